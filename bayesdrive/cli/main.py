@@ -1,0 +1,19 @@
+"""The ``bayesdrive`` command: one typer app, one sub-module per command group."""
+
+import logging
+
+import typer
+
+from bayesdrive.cli import data_cmd
+
+app = typer.Typer(
+    help="Learn distributions over rule-based driver-model parameters from real trajectories.",
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+)
+app.add_typer(data_cmd.app, name="data")
+
+
+@app.callback()
+def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log repairs and flags.")):
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")

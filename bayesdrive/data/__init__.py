@@ -1,0 +1,1 @@
+"""Reading data: one trajectory representation, readers into it, data sets by name, derived views."""
