@@ -1,0 +1,138 @@
+"""The driver-model interface every engine and the simulator share.
+
+A driver model is a parameter NamedTuple (its docstring states the math) plus pure functions of
+ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and vehicles:
+
+* ``mean_acceleration(params, state, inputs) -> a``: the deterministic rule (IDM, C-IDM, ...).
+* ``transition_sample(key, params, state, inputs) -> next_state``: one stochastic step.
+* ``transition_logpdf(params, state, next_state, inputs) -> log p``: the exact one-step density
+  of an observed next state (see :mod:`bayesdrive.drivers.idm` for which quantity it scores).
+* ``observation_logpdf(params, state, obs) -> log p``: the observation model. For the base models
+  the state is observed exactly (a point mass); the measurement-noise extension replaces it.
+* ``initial_sample(key, params, obs) -> state``: the first latent state given the first observation.
+
+States are kept *relative to the current step*: engines pass ``x = 0`` and the observed increment
+``dx = x[t+1] - x[t]`` (computed in float64 by the data layer), so float32 never subtracts two
+positions of hundreds of metres.
+
+A :class:`DriverModel` bundles those functions with the parameter names, defaults and the prior
+(independent uniform priors on documented bounds, the same for every engine).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+__all__ = [
+    "CarFollowingInputs",
+    "DriverModel",
+    "EgoState",
+    "ParamSpec",
+    "PriorBox",
+    "fill_params",
+]
+
+
+class EgoState(NamedTuple):
+    """Longitudinal state of one vehicle: position x (m, relative to the current step) and speed v."""
+
+    x: Array
+    v: Array
+
+
+class CarFollowingInputs(NamedTuple):
+    """Exogenous inputs at one step, read from the leader's *observed* trajectory.
+
+    gap: bumper-to-bumper gap to the leader at the current step (m); ignored without a leader.
+    lead_v: the leader's speed (m/s).
+    has_leader: 1.0 with a leader, 0.0 on free road (float so it vmaps and differentiates cleanly).
+    dt: step length (s).
+    """
+
+    gap: Array
+    lead_v: Array
+    has_leader: Array
+    dt: Array
+
+
+class ParamSpec(NamedTuple):
+    """One parameter: name, unit, default, prior bounds (uniform prior), and what it means."""
+
+    name: str
+    unit: str
+    default: float
+    lower: float
+    upper: float
+    doc: str
+
+
+class PriorBox(NamedTuple):
+    """Independent uniform priors on [lower, upper] for a chosen subset of parameters."""
+
+    names: tuple[str, ...]
+    lower: Array
+    upper: Array
+
+    def logpdf(self, theta: Array) -> Array:
+        inside = jnp.all((theta >= self.lower) & (theta <= self.upper))
+        return jnp.where(inside, -jnp.sum(jnp.log(self.upper - self.lower)), -jnp.inf)
+
+    def sample(self, key: Array, shape: Sequence[int] = ()) -> Array:
+        return jax.random.uniform(
+            key, (*shape, len(self.names)), minval=self.lower, maxval=self.upper
+        )
+
+
+class DriverModel(NamedTuple):
+    """A driver model: parameter layout, prior and the pure per-vehicle functions."""
+
+    name: str
+    params_type: type
+    specs: tuple[ParamSpec, ...]
+    mean_acceleration: Callable[..., Array]
+    transition_sample: Callable[..., Any]
+    transition_logpdf: Callable[..., Array]
+    observation_logpdf: Callable[..., Array]
+    initial_sample: Callable[..., Any]
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.specs)
+
+    def spec(self, name: str) -> ParamSpec:
+        for s in self.specs:
+            if s.name == name:
+                return s
+        raise KeyError(f"model {self.name!r} has no parameter {name!r}; it has {self.param_names}")
+
+    def defaults(self) -> Any:
+        return self.params_type(*(jnp.asarray(s.default) for s in self.specs))
+
+    def prior(self, names: Sequence[str] | None = None) -> PriorBox:
+        chosen = tuple(names) if names is not None else self.param_names
+        specs = [self.spec(n) for n in chosen]
+        return PriorBox(
+            chosen,
+            jnp.asarray([s.lower for s in specs]),
+            jnp.asarray([s.upper for s in specs]),
+        )
+
+
+def fill_params(model: DriverModel, names: Sequence[str], theta: Array, fixed: Any = None) -> Any:
+    """Parameters with ``names`` taken from the vector ``theta`` and the rest from ``fixed``.
+
+    ``fixed`` defaults to the model's documented defaults. Works under ``jit``/``vmap``/``grad``.
+    """
+    base = model.defaults() if fixed is None else fixed
+    position = {n: i for i, n in enumerate(names)}
+    unknown = set(names) - set(model.param_names)
+    if unknown:
+        raise KeyError(f"model {model.name!r} has no parameter(s) {sorted(unknown)}")
+    return model.params_type(
+        *(theta[..., position[n]] if n in position else getattr(base, n) for n in model.param_names)
+    )

@@ -1,0 +1,174 @@
+r"""The Intelligent Driver Model (Treiber, Hennecke & Helbing 2000) with Gaussian execution noise.
+
+Deterministic rule, for ego speed :math:`v`, leader speed :math:`v_l`, bumper gap :math:`d` and
+relative speed :math:`r = v_l - v` (a closing leader has :math:`r < 0`):
+
+.. math::
+
+    a_{IDM} = a_{max}\Big[1 - (v / v_{des})^{\delta} - (d_{des} / d)^2\Big], \qquad
+    d_{des} = d_{min} + \max\Big(0,\; \tau v - \frac{v\, r}{2\sqrt{a_{max} b_{pref}}}\Big),
+
+with :math:`\delta = 4`. On free road (no leader) the interaction term is absent. The dynamic part
+of :math:`d_{des}` is floored at 0 as in Treiber's formulation, so a fast-receding leader never
+pulls the ego closer than :math:`d_{min}`.
+
+Stochastic IDM (the paper's execution noise, sigma = its :math:`\sigma_{IDM}`): over one step of
+length :math:`\Delta t`,
+
+.. math::
+
+    a \sim \mathcal N(a_{IDM}, \sigma^2), \quad v' = \max(0, v + a\Delta t), \quad
+    x' = x + \tfrac{1}{2}(v + v')\Delta t.
+
+While the speed stays positive, :math:`x' = x + v\Delta t + a\Delta t^2/2`, so the position has sd
+:math:`\sigma\Delta t^2/2` (the paper's own code used :math:`\sigma\Delta t^2`, a factor 2 off).
+
+**What the likelihood scores.** Next position and next speed are both functions of the one random
+acceleration, so their joint density is degenerate (a line in the plane). We score the next
+*position increment* :math:`x' - x` (as the paper does), with density
+:math:`\mathcal N(v\Delta t + a_{IDM}\Delta t^2/2,\ (\sigma\Delta t^2/2)^2)`; the observed next speed
+becomes the conditioning state of the following step, and it decides censoring: an observed stop
+(:math:`v' = 0`, real data holds exact stops) has probability
+:math:`P(v' = 0) = \Phi(-(v + a_{IDM}\Delta t)/(\sigma\Delta t))`, and then the position carries no
+further information. In the NGSIM chains the position is exactly the trapezoid-integrated speed and
+OpenACC positions are the integrated Doppler speed (see the readers), so scoring position or speed
+uses the same information there. Increments are relative to the current state, so float32 never
+loses the density on positions of hundreds of metres.
+
+Parameters, units, bounds of the uniform priors (the same for every engine) and defaults
+(Treiber's textbook values where the paper lists them):
+
+=========  =======  =======  ============  ==============================================
+name       unit     default  prior bounds  meaning
+=========  =======  =======  ============  ==============================================
+v_des      m/s      30.0     [5, 45]       desired speed on free road
+d_min      m        2.0      [0.5, 10]     jam distance (minimum bumper gap at standstill)
+tau        s        1.0      [0.1, 4]      safe time headway
+a_max      m/s^2    3.0      [0.2, 5]      maximum acceleration
+b_pref     m/s^2    2.0      [0.5, 10]     comfortable (preferred) deceleration
+sigma      m/s^2    0.3      [0.02, 2]     sd of the Gaussian execution noise
+=========  =======  =======  ============  ==============================================
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.scipy.stats import norm
+
+from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
+
+__all__ = [
+    "DELTA",
+    "IDM",
+    "IDMParams",
+    "STOP_SPEED",
+    "idm_acceleration",
+    "noisy_step",
+    "step_logpdf",
+]
+
+DELTA = 4.0
+# Speeds below 1 mm/s are a stop: smoothing leaves values like 1e-5 where the car stands still.
+STOP_SPEED = 1e-3
+# The interaction term diverges at zero gap; the simulator counts a collision long before.
+MIN_GAP = 0.1
+
+IDM_SPECS = (
+    ParamSpec("v_des", "m/s", 30.0, 5.0, 45.0, "desired speed"),
+    ParamSpec("d_min", "m", 2.0, 0.5, 10.0, "jam distance"),
+    ParamSpec("tau", "s", 1.0, 0.1, 4.0, "safe time headway"),
+    ParamSpec("a_max", "m/s^2", 3.0, 0.2, 5.0, "maximum acceleration"),
+    ParamSpec("b_pref", "m/s^2", 2.0, 0.5, 10.0, "comfortable deceleration"),
+    ParamSpec("sigma", "m/s^2", 0.3, 0.02, 2.0, "execution-noise sd"),
+)
+
+
+class IDMParams(NamedTuple):
+    r"""Stochastic IDM: :math:`a \sim N(a_{IDM}(v, d, r), \sigma^2)` (module docstring for the rule).
+
+    v_des (m/s), d_min (m), tau (s), a_max (m/s^2), b_pref (m/s^2), sigma (m/s^2).
+    """
+
+    v_des: Array
+    d_min: Array
+    tau: Array
+    a_max: Array
+    b_pref: Array
+    sigma: Array
+
+
+def idm_acceleration(params, v: Array, gap: Array, lead_v: Array, has_leader: Array) -> Array:
+    """The deterministic IDM acceleration; ``params`` needs v_des, d_min, tau, a_max, b_pref."""
+    free = 1.0 - (v / params.v_des) ** DELTA
+    closing = v - lead_v  # = -r: positive while the ego gains on its leader
+    dynamic = v * params.tau + v * closing / (2.0 * jnp.sqrt(params.a_max * params.b_pref))
+    desired_gap = params.d_min + jnp.maximum(0.0, dynamic)
+    # A safe gap of 1 where there is no leader keeps gradients finite; the term is masked anyway.
+    safe_gap = jnp.maximum(jnp.where(has_leader > 0, gap, 1.0), MIN_GAP)
+    interaction = jnp.where(has_leader > 0, (desired_gap / safe_gap) ** 2, 0.0)
+    return params.a_max * (free - interaction)
+
+
+def noisy_step(key: Array, state: EgoState, mean_acc: Array, sigma: Array, dt: Array) -> EgoState:
+    """One step of Gaussian execution noise around ``mean_acc``, speed clipped at 0."""
+    acc = mean_acc + sigma * jax.random.normal(key, jnp.shape(mean_acc))
+    next_v = jnp.maximum(0.0, state.v + acc * dt)
+    return EgoState(x=state.x + 0.5 * (state.v + next_v) * dt, v=next_v)
+
+
+def step_logpdf(
+    state: EgoState, next_state: EgoState, mean_acc: Array, sigma: Array, dt: Array
+) -> Array:
+    """Exact log-density of the observed next state under :func:`noisy_step` (module docstring)."""
+    increment = next_state.x - state.x
+    predicted = state.v * dt + 0.5 * mean_acc * dt**2
+    moving = norm.logpdf(increment, predicted, 0.5 * sigma * dt**2)
+    stopped = norm.logcdf(-(state.v + mean_acc * dt) / (sigma * dt))
+    return jnp.where(next_state.v <= STOP_SPEED, stopped, moving)
+
+
+def _mean_acceleration(params: IDMParams, state: EgoState, inputs: CarFollowingInputs) -> Array:
+    return idm_acceleration(params, state.v, inputs.gap, inputs.lead_v, inputs.has_leader)
+
+
+def _transition_sample(
+    key: Array, params: IDMParams, state: EgoState, inputs: CarFollowingInputs
+) -> EgoState:
+    return noisy_step(
+        key, state, _mean_acceleration(params, state, inputs), params.sigma, inputs.dt
+    )
+
+
+def _transition_logpdf(
+    params: IDMParams, state: EgoState, next_state: EgoState, inputs: CarFollowingInputs
+) -> Array:
+    mean_acc = _mean_acceleration(params, state, inputs)
+    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt)
+
+
+def exact_observation_logpdf(params, state: EgoState, obs: EgoState) -> Array:
+    """The state is observed exactly: the observation carries no density of its own (log 1 = 0)."""
+    del params, state, obs
+    return jnp.zeros(())
+
+
+def exact_initial_sample(key: Array, params, obs: EgoState) -> EgoState:
+    """With exact observations the first state is the first observation."""
+    del key, params
+    return obs
+
+
+IDM = DriverModel(
+    name="idm",
+    params_type=IDMParams,
+    specs=IDM_SPECS,
+    mean_acceleration=_mean_acceleration,
+    transition_sample=_transition_sample,
+    transition_logpdf=_transition_logpdf,
+    observation_logpdf=exact_observation_logpdf,
+    initial_sample=exact_initial_sample,
+)
