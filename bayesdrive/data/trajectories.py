@@ -46,7 +46,7 @@ import pandas as pd
 
 from bayesdrive.data.errors import DataError
 
-__all__ = ["TRACK_COLUMNS", "FLAG_COLUMNS", "Trajectories", "validate_tracks"]
+__all__ = ["FLAG_COLUMNS", "TRACK_COLUMNS", "Trajectories", "validate_tracks"]
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +264,9 @@ def _refuse_feet(tracks: pd.DataFrame, *, source: str, shown) -> None:
 
 
 def empty_flags() -> pd.DataFrame:
-    return pd.DataFrame({c: pd.Series(dtype="object" if c != "t" else "float64") for c in FLAG_COLUMNS})
+    return pd.DataFrame(
+        {c: pd.Series(dtype="object" if c != "t" else "float64") for c in FLAG_COLUMNS}
+    )
 
 
 def flag_negative_gaps(tracks: pd.DataFrame) -> pd.DataFrame:
@@ -300,7 +302,7 @@ def summary(traj: Trajectories) -> dict[str, Any]:
         "scenes": len(traj.scene_ids),
         "vehicles": int(tracks["vehicle_id"].nunique()),
         "samples": len(tracks),
-        "time_steps": int(len(np.unique(times))),
+        "time_steps": len(np.unique(times)),
         "dt_s": traj.dt,
         "duration_s": float(span["max"].max() - span["min"].min()),
         "vehicle_seconds": float(len(tracks) * traj.dt),

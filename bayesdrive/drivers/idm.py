@@ -64,8 +64,8 @@ from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, P
 __all__ = [
     "DELTA",
     "IDM",
-    "IDMParams",
     "STOP_SPEED",
+    "IDMParams",
     "idm_acceleration",
     "noisy_step",
     "step_logpdf",
