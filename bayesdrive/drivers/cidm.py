@@ -1,0 +1,209 @@
+r"""The Cooperative IDM (Bouton et al. 2019), with several merge-lane vehicles as in the paper.
+
+The ego drives on the main lane towards a merge point; up to K vehicles approach the same point on
+the merge lane. Distances are measured from each vehicle's *front bumper* to the merge point along
+its own lane (m, positive before the point, negative once past it); speeds in m/s, lengths in m.
+
+**Time to merge** by constant velocity, for the ego and every merge-lane vehicle k:
+
+.. math::
+
+    TTM = d / v \quad (v > 0), \qquad TTM = \infty \quad (v = 0).
+
+A merge-lane vehicle is a *candidate* when it is present and has not passed the merge point
+(:math:`d_k \ge 0`). The ego considers the one candidate :math:`k^*` whose TTM is closest to its
+own, :math:`\arg\min_k |TTM_k - TTM_{ego}|` (for a stopped ego, :math:`TTM_{ego} = \infty`, the
+limit of that rule: the candidate with the largest TTM). It **yields** when, with cooperation
+:math:`c \in [0, 1]`,
+
+.. math::
+
+    d_{ego} \ge 0, \quad TTM_{k^*} < TTM_{ego}, \quad TTM_{k^*} < c\, TTM_{ego}, \quad c > 0,
+
+i.e. the ego has not passed the merge point and the merging vehicle arrives first, early enough.
+So :math:`c = 0` never yields and :math:`c = 1` yields to every vehicle that arrives first. The
+paper prints the inequality the other way round (:math:`TTM_{ego} < c\,TTM_{other}`, under which a
+larger c would yield *less*, contradicting its own reading of c as cooperation); its code does
+what is written here, and so do we.
+
+Yielding means following the IDM towards the merging vehicle projected onto the ego's lane at the
+same distance to the merge point, and never accelerating harder than the IDM towards the real
+leader:
+
+.. math::
+
+    a_{CIDM} = \min\big(a_{IDM}(v, d_{ego} - d_{k^*} - L_{k^*}, v_{k^*}),\ a_{IDM}(v, d, v_l)\big)
+    \ \text{if yielding, else}\ a_{IDM}(v, d, v_l).
+
+The projected gap can be small or negative (the merging vehicle is beside or behind the ego but
+faster); the IDM's gap floor then makes the ego brake hard, which is the intended yield.
+
+Stochastic exactly like the IDM: :math:`a \sim N(a_{CIDM}, \sigma^2)`, the same
+:func:`~bayesdrive.drivers.idm.noisy_step` and the same exact one-step density
+:func:`~bayesdrive.drivers.idm.step_logpdf` (see :mod:`bayesdrive.drivers.idm`).
+
+Parameters: the IDM's six (same units, bounds, defaults; see :mod:`bayesdrive.drivers.idm`) plus
+
+=====  ====  =======  ============  =====================================================
+name   unit  default  prior bounds  meaning
+=====  ====  =======  ============  =====================================================
+c      --    0.5      [0, 1]        cooperation: yield when TTM_other < c * TTM_ego
+=====  ====  =======  ============  =====================================================
+
+**Not differentiable in c.** The yield decision is a hard threshold in c, so the likelihood is
+piecewise constant in c (gradient zero almost everywhere, jumps at the thresholds). Gradients with
+respect to the IDM parameters are exact. Samplers that need gradients (NUTS) must treat c apart,
+e.g. by smoothing the threshold (a sigmoid in :math:`c\,TTM_{ego} - TTM_{other}` with a stated
+temperature) or by marginalising/Gibbs-updating c; particle filters and other derivative-free
+engines can use the model as is.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jax import Array
+
+from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.idm import (
+    IDM,
+    exact_initial_sample,
+    exact_observation_logpdf,
+    idm_acceleration,
+    noisy_step,
+    step_logpdf,
+)
+
+__all__ = [
+    "CIDM",
+    "CIDMParams",
+    "MergeInputs",
+    "cidm_acceleration",
+    "time_to_merge",
+    "yield_target",
+]
+
+CIDM_SPECS = (
+    *IDM.specs,
+    ParamSpec("c", "--", 0.5, 0.0, 1.0, "cooperation: yield when TTM_other < c * TTM_ego"),
+)
+
+
+class CIDMParams(NamedTuple):
+    """Cooperative IDM: the IDM's parameters plus cooperation c in [0, 1] (module docstring).
+
+    v_des (m/s), d_min (m), tau (s), a_max (m/s^2), b_pref (m/s^2), sigma (m/s^2), c (--).
+    """
+
+    v_des: Array
+    d_min: Array
+    tau: Array
+    a_max: Array
+    b_pref: Array
+    sigma: Array
+    c: Array
+
+
+class MergeInputs(NamedTuple):
+    """The car-following inputs (same first four fields) plus the merge scene at one step.
+
+    gap, lead_v, has_leader, dt: as in :class:`~bayesdrive.drivers.base.CarFollowingInputs`.
+    ego_to_merge: the ego's front-bumper distance to the merge point (m; negative once past it).
+    merge_to_merge: (K,) each merge-lane vehicle's front-bumper distance to the merge point (m).
+    merge_v: (K,) their speeds (m/s).
+    merge_length: (K,) their lengths (m).
+    merge_present: (K,) 1.0 for a real vehicle, 0.0 for a padded slot (padded slots hold finite
+        values, so gradients stay finite).
+    """
+
+    gap: Array
+    lead_v: Array
+    has_leader: Array
+    dt: Array
+    ego_to_merge: Array
+    merge_to_merge: Array
+    merge_v: Array
+    merge_length: Array
+    merge_present: Array
+
+    @property
+    def car_following(self) -> CarFollowingInputs:
+        """The real-leader part, as the IDM sees it."""
+        return CarFollowingInputs(self.gap, self.lead_v, self.has_leader, self.dt)
+
+
+def time_to_merge(distance: Array, speed: Array) -> Array:
+    """Constant-velocity time to reach the merge point: distance / speed, +inf at zero speed."""
+    moving = speed > 0
+    # Divide by a safe speed so the unused branch never produces inf * 0 = NaN in gradients.
+    return jnp.where(moving, distance / jnp.where(moving, speed, 1.0), jnp.inf)
+
+
+def yield_target(c: Array, v: Array, inputs: MergeInputs) -> tuple[Array, Array]:
+    """Whether the ego yields, and to which merge-lane slot (an index in 0..K-1).
+
+    The decision is a hard threshold in ``c`` (module docstring); the index is only meaningful
+    where the first output is true.
+    """
+    ttm_ego = time_to_merge(inputs.ego_to_merge, v)
+    ttm_other = time_to_merge(inputs.merge_to_merge, inputs.merge_v)
+    candidate = (inputs.merge_present > 0) & (inputs.merge_to_merge >= 0)
+    # |TTM_k - TTM_ego|, and its limit -TTM_k for a stopped ego (inf - inf would be NaN).
+    closeness = jnp.where(jnp.isfinite(ttm_ego), jnp.abs(ttm_other - ttm_ego), -ttm_other)
+    closeness = jnp.where(candidate, closeness, jnp.inf)
+    chosen = jnp.argmin(closeness)
+    ttm_chosen = ttm_other[chosen]
+    yields = (
+        candidate[chosen]
+        & (inputs.ego_to_merge >= 0)
+        & (c > 0)
+        & (ttm_chosen < ttm_ego)
+        & (ttm_chosen < c * ttm_ego)
+    )
+    return yields, chosen
+
+
+def cidm_acceleration(params, v: Array, inputs: MergeInputs) -> Array:
+    """The deterministic Cooperative-IDM acceleration (module docstring); needs the IDM fields + c."""
+    if not isinstance(inputs, MergeInputs):
+        raise TypeError(
+            f"the Cooperative IDM needs MergeInputs (car-following inputs plus the merge scene), "
+            f"got {type(inputs).__name__}"
+        )
+    follow_leader = idm_acceleration(params, v, inputs.gap, inputs.lead_v, inputs.has_leader)
+    yields, k = yield_target(params.c, v, inputs)
+    projected_gap = inputs.ego_to_merge - inputs.merge_to_merge[k] - inputs.merge_length[k]
+    follow_merger = idm_acceleration(params, v, projected_gap, inputs.merge_v[k], 1.0)
+    return jnp.where(yields, jnp.minimum(follow_merger, follow_leader), follow_leader)
+
+
+def _mean_acceleration(params: CIDMParams, state: EgoState, inputs: MergeInputs) -> Array:
+    return cidm_acceleration(params, state.v, inputs)
+
+
+def _transition_sample(
+    key: Array, params: CIDMParams, state: EgoState, inputs: MergeInputs
+) -> EgoState:
+    return noisy_step(
+        key, state, _mean_acceleration(params, state, inputs), params.sigma, inputs.dt
+    )
+
+
+def _transition_logpdf(
+    params: CIDMParams, state: EgoState, next_state: EgoState, inputs: MergeInputs
+) -> Array:
+    mean_acc = _mean_acceleration(params, state, inputs)
+    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt)
+
+
+CIDM = DriverModel(
+    name="cidm",
+    params_type=CIDMParams,
+    specs=CIDM_SPECS,
+    mean_acceleration=_mean_acceleration,
+    transition_sample=_transition_sample,
+    transition_logpdf=_transition_logpdf,
+    observation_logpdf=exact_observation_logpdf,
+    initial_sample=exact_initial_sample,
+)

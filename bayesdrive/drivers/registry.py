@@ -1,0 +1,21 @@
+"""Driver models by name, as the CLI and result metadata spell them."""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.cidm import CIDM
+from bayesdrive.drivers.idm import IDM
+
+__all__ = ["MODELS", "get_model"]
+
+MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM)})
+
+
+def get_model(name: str) -> DriverModel:
+    """The driver model called ``name`` ("idm", "cidm"); a KeyError lists the known names."""
+    try:
+        return MODELS[name]
+    except KeyError:
+        raise KeyError(f"unknown driver model {name!r}; known models: {sorted(MODELS)}") from None
