@@ -78,7 +78,7 @@ class Section:
             escape=True,
             border=0,
             float_format=lambda x: float_format.format(x),
-            na_rep="–",
+            na_rep="-",
         )
         if caption:
             body = f"<p><b>{html.escape(caption)}</b></p>{body}"
