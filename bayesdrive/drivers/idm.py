@@ -28,12 +28,15 @@ acceleration, so their joint density is degenerate (a line in the plane). We sco
 *position increment* :math:`x' - x` (as the paper does), with density
 :math:`\mathcal N(v\Delta t + a_{IDM}\Delta t^2/2,\ (\sigma\Delta t^2/2)^2)`; the observed next speed
 becomes the conditioning state of the following step, and it decides censoring: an observed stop
-(:math:`v' = 0`, real data holds exact stops) has probability
-:math:`P(v' = 0) = \Phi(-(v + a_{IDM}\Delta t)/(\sigma\Delta t))`, and then the position carries no
-further information. In the NGSIM chains the position is exactly the trapezoid-integrated speed and
-OpenACC positions are the integrated Doppler speed (see the readers), so scoring position or speed
-uses the same information there. Increments are relative to the current state, so float32 never
-loses the density on positions of hundreds of metres.
+(:math:`v' \le v_{stop}` = ``STOP_SPEED``, real data holds exact stops and smoothing leaves
+values like 1e-5) has probability
+:math:`P(v' \le v_{stop}) = \Phi((v_{stop} - v - a_{IDM}\Delta t)/(\sigma\Delta t))`, and then the
+position carries no further information. Censoring at the same threshold that classifies a stop
+keeps the density normalised: stop mass plus the Gaussian over the increments of the moving
+outcomes (:math:`v' > v_{stop}`) is exactly 1. In the NGSIM chains the position is exactly the
+trapezoid-integrated speed and OpenACC positions are the integrated Doppler speed (see the
+readers), so scoring position or speed uses the same information there. Increments are relative
+to the current state, so float32 never loses the density on positions of hundreds of metres.
 
 Parameters, units, bounds of the uniform priors (the same for every engine) and defaults
 (Treiber's textbook values where the paper lists them):
@@ -127,7 +130,7 @@ def step_logpdf(
     increment = next_state.x - state.x
     predicted = state.v * dt + 0.5 * mean_acc * dt**2
     moving = norm.logpdf(increment, predicted, 0.5 * sigma * dt**2)
-    stopped = norm.logcdf(-(state.v + mean_acc * dt) / (sigma * dt))
+    stopped = norm.logcdf((STOP_SPEED - state.v - mean_acc * dt) / (sigma * dt))
     return jnp.where(next_state.v <= STOP_SPEED, stopped, moving)
 
 
