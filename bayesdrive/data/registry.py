@@ -293,7 +293,7 @@ _NGSIM_MERGE_EPISODES = DataSet(
         "the end of the acceleration lane, gaps and relative speeds to up to 5 neighbours, 10 Hz, SI"
     ),
     origins=(_github("zhexilian/On-ramp-merging-decision-making", "5f259fa54970ee08850b1e12d3bc570f6662ea45"),),
-    licence="none stated (derived from NGSIM, public US DOT data)",
+    licence="none stated (NGSIM-derived)",
     citation="the On-ramp-merging-decision-making repository's IEEE T-IV paper on merge planning; NGSIM, doi:10.21949/1504477",
     files=_files("""
 5064a90d41c7cd4979f9855bb122c4c5454c4a9ca73bfae2f70e22521b405a94    3597 PROVENANCE.txt <- -
@@ -323,9 +323,9 @@ d9a7947d0db85774e2c6169b093f508d3bb6d47bfbfd39c3f6bfa5514ca325f4      41 SOURCE_
 _ACC_PLATOON_FHWA = DataSet(
     name="acc_platoon_fhwa",
     format="openacc_extract",
-    description="5-car adaptive-cruise-control platoon, 1984 s, 10 Hz, SI (speeds and IVS gaps only)",
+    description="5-car adaptive-cruise-control platoon, 1984 s, 10 Hz, SI (speeds and IVS gaps only); OpenACC layout, so credit JRC (CC-BY-4.0) to be safe",
     origins=(_github("usdot-fhwa-stol/To-21-426-multivariate-piecewise-linear-ACC-car-following-model", "11b7f2319fc55c8c680bde54dedc298f57eb0b1f"),),
-    licence="CC0-1.0 as stated (layout matches OpenACC: credit JRC, CC-BY-4.0, to be safe)",
+    licence="CC0-1.0 (stated)",
     citation="USDOT FHWA STOL, multivariate piecewise-linear ACC car-following model",
     files=_files("""
 922692d6b02babd7910a61c435dff3c5cdfaff4bf86702b1fcb8083ac9141974     455 PROVENANCE.txt <- -
