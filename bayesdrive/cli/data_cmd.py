@@ -1,5 +1,264 @@
-"""``bayesdrive data``: list, inspect and fetch data sets."""
+"""``bayesdrive data``: list, inspect, verify and fetch data sets.
+
+Bad input (an unreadable file, an unknown name, a missing data set, a failed checksum) ends with a
+one-line ``error: ...`` on standard error and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
 
 import typer
+from rich.markup import escape
+from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
 
-app = typer.Typer(help="List, inspect and fetch trajectory data sets.", no_args_is_help=True)
+from bayesdrive.cli.common import console, emit_json, err_console, fail
+from bayesdrive.data import registry
+from bayesdrive.data.errors import DataError
+from bayesdrive.data.fetch import fetch as fetch_dataset
+from bayesdrive.data.fetch import files_to_fetch
+from bayesdrive.data.trajectories import summary
+
+__all__ = ["app"]
+
+app = typer.Typer(
+    help="List, inspect, verify and fetch trajectory data sets.", no_args_is_help=True
+)
+
+DATA_DIR_HELP = (
+    "Folder holding the data sets (default: $BAYESDRIVE_DATA_DIR, else ../shared/data beside the "
+    "repository); for a held-out data set, the holdout folder ($BAYESDRIVE_HOLDOUT_DIR)."
+)
+JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
+
+
+def _error(error: Exception) -> typer.Exit:
+    # Messages quote file contents and paths: never let rich read them as markup.
+    return fail(escape(str(error)))
+
+
+def _root(dataset: registry.DataSet, explicit: str | None) -> Path:
+    if dataset.role == "holdout":
+        return registry.holdout_dir(explicit)
+    return registry.data_dir(explicit)
+
+
+def _status(dataset: registry.DataSet, explicit: str | None) -> str:
+    """'yes' (every file as pinned), 'no', 'differs: N file(s)', or why it cannot be told."""
+    try:
+        folder = _root(dataset, explicit) / dataset.name
+    except DataError:
+        return "no data dir"
+    if not folder.is_dir():
+        return "no"
+    mismatches = registry.verify(dataset.name, folder.parent)
+    return f"differs: {len(mismatches)} file(s)" if mismatches else "yes"
+
+
+@app.command("list")
+def list_datasets(
+    data_dir: str | None = typer.Option(None, "--data-dir", help="Folder holding the data sets."),
+    holdout_dir: str | None = typer.Option(
+        None, "--holdout-dir", help="Folder holding the held-out data sets."
+    ),
+    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+) -> None:
+    """The known data sets: format, role, whether present (and verified), licence."""
+    rows = []
+    for dataset in (*registry.DATASETS.values(), *registry.HOLDOUT.values()):
+        explicit = holdout_dir if dataset.role == "holdout" else data_dir
+        rows.append(
+            {
+                "name": dataset.name,
+                "format": dataset.format,
+                "role": dataset.role,
+                "present": _status(dataset, explicit),
+                "licence": dataset.licence,
+                "files": len(dataset.files),
+                "description": dataset.description,
+            }
+        )
+    if emit_json(rows, json_out):
+        return
+    table = Table(title="Data sets ('present': every file matches its pinned sha256)")
+    for column in ("name", "format", "role", "present"):
+        table.add_column(column, no_wrap=True)
+    table.add_column("licence")
+    for row in rows:
+        table.add_row(
+            *(escape(str(row[c])) for c in ("name", "format", "role", "present", "licence"))
+        )
+    console.print(table)
+    console.print(
+        "Held-out data sets are for evaluation only: never fit, tune or choose anything on them."
+    )
+
+
+def _parse_columns(text: str | None) -> dict[str, str] | None:
+    """``vehicle_id=ID,t=time`` -> {"vehicle_id": "ID", "t": "time"}."""
+    if text is None:
+        return None
+    mapping = {}
+    for item in text.split(","):
+        schema_name, equals, file_name = item.partition("=")
+        if not equals or not schema_name.strip() or not file_name.strip():
+            raise DataError(
+                f"--columns: {item!r} is not SCHEMA=FILE_COLUMN "
+                "(e.g. --columns vehicle_id=ID,t=time,x=pos,v=speed)"
+            )
+        mapping[schema_name.strip()] = file_name.strip()
+    return mapping
+
+
+def _reader_options(columns: str | None, units: str | None, headway: str | None) -> dict[str, Any]:
+    """Options for the column-map reader; only those given, so other readers see none."""
+    given = {"columns": _parse_columns(columns), "units": units, "headway": headway}
+    return {key: value for key, value in given.items() if value is not None}
+
+
+def _flatten(result: dict[str, Any], prefix: str = "") -> list[tuple[str, str]]:
+    rows = []
+    for key, value in result.items():
+        if key in ("notes", "flags", "drivers"):
+            continue
+        if isinstance(value, dict):
+            rows.extend(_flatten(value, f"{prefix}{key}."))
+        elif isinstance(value, float):
+            rows.append((prefix + key, f"{value:.4g}"))
+        else:
+            rows.append((prefix + key, str(value)))
+    return rows
+
+
+@app.command()
+def info(
+    path_or_name: str = typer.Argument(..., help="A file, a folder, or a data set name."),
+    format: str | None = typer.Option(
+        None, "--format", help="Reader to use (default: the data set's, else detected)."
+    ),
+    data_dir: str | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
+    strict: bool = typer.Option(
+        False, "--strict", help="Refuse data that needs any repair instead of repairing it."
+    ),
+    columns: str | None = typer.Option(
+        None,
+        "--columns",
+        help="Column map for an arbitrary CSV: SCHEMA=FILE_COLUMN,... (e.g. vehicle_id=ID,t=time).",
+    ),
+    units: str | None = typer.Option(
+        None, "--units", help="Length unit of an arbitrary CSV: m, ft, or a factor to metres."
+    ),
+    headway: str | None = typer.Option(
+        None, "--headway", help="What the CSV's gap column measures: front (to front) or bumper."
+    ),
+    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+) -> None:
+    """Figures of a data set: scenes, vehicles, time, speeds, gaps, flags and notes."""
+    try:
+        options = _reader_options(columns, units, headway)
+        if path_or_name in registry.HOLDOUT and not Path(path_or_name).exists():
+            traj = registry.load_holdout(
+                path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options
+            )
+        else:
+            traj = registry.load(
+                path_or_name, format=format, data_dir=data_dir, strict=strict, **options
+            )
+    except (DataError, OSError) as error:
+        raise _error(error) from None
+    result = summary(traj)
+    if emit_json(result, json_out):
+        return
+    table = Table(title=escape(f"{result['source']} ({result['format']})"))
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    for key, value in _flatten(result):
+        table.add_row(key, escape(value))
+    for driver, count in result["drivers"].items():
+        table.add_row(f"vehicles driven by: {driver}", str(count))
+    console.print(table)
+    for kind, count in result["flags"].items():
+        console.print(f"flagged ({escape(kind)}): {count} sample(s), left out of fitting")
+    for note in result["notes"]:
+        console.print(f"note: {escape(note)}")
+
+
+@app.command()
+def verify(
+    name: str = typer.Argument(..., help="A data set name."),
+    data_dir: str | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
+    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+) -> None:
+    """Check every file of a data set against its pinned size and sha256 (exit 1 if any differ)."""
+    try:
+        dataset = registry.get(name)
+        root = _root(dataset, data_dir)
+    except DataError as error:
+        raise _error(error) from None
+    mismatches = registry.verify(name, root)
+    result = {
+        "name": name,
+        "path": str(root / name),
+        "ok": not mismatches,
+        "mismatches": [m._asdict() for m in mismatches],
+    }
+    if not emit_json(result, json_out):
+        for mismatch in mismatches:
+            console.print(escape(str(mismatch)))
+        verdict = "differs from" if mismatches else "matches"
+        console.print(escape(f"{root / name} {verdict} the registry ({len(dataset.files)} files)"))
+    if mismatches:
+        raise typer.Exit(1)
+
+
+@app.command()
+def fetch(
+    name: str = typer.Argument(..., help="A data set name (see `bayesdrive data list`)."),
+    data_dir: str | None = typer.Option(
+        None, "--data-dir", help="Folder to fetch into (default as for the other commands)."
+    ),
+    mirror: str | None = typer.Option(
+        None,
+        "--mirror",
+        help="Base URL of a mirror serving <URL>/<name>/<file> (default: the pinned origin).",
+    ),
+    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+) -> None:
+    """Download a data set, checking every sha256 before anything lands in the data folder."""
+    try:
+        dataset = registry.get(name)
+        root = _root(dataset, data_dir)
+        wanted, _ = files_to_fetch(dataset, mirror)
+        with Progress(
+            TextColumn(f"fetching {escape(name)}"),
+            BarColumn(),
+            DownloadColumn(),
+            TimeRemainingColumn(),
+            console=err_console,
+            transient=True,
+        ) as progress:
+            task = progress.add_task(name, total=sum(f.size for f in wanted))
+            result = fetch_dataset(
+                name,
+                root,
+                base_url=mirror,
+                progress=lambda received: progress.advance(task, received),
+            )
+    except (DataError, OSError) as error:
+        raise _error(error) from None
+    report = result._asdict() | {"path": str(result.path)}
+    if emit_json(report, json_out):
+        return
+    if result.already_present:
+        console.print(escape(f"{result.path} already holds {name} as pinned; nothing fetched"))
+    else:
+        console.print(escape(f"fetched {len(result.fetched)} file(s) into {result.path}, verified"))
+    if result.not_published:
+        console.print(
+            escape(
+                "not published at the origin (copy them from a mirror): "
+                + ", ".join(result.not_published)
+            )
+        )
