@@ -18,10 +18,12 @@ limit of that rule: the candidate with the largest TTM). It **yields** when, wit
 
 .. math::
 
-    d_{ego} \ge 0, \quad TTM_{k^*} < TTM_{ego}, \quad TTM_{k^*} < c\, TTM_{ego}, \quad c > 0,
+    d_{ego} \ge 0, \quad TTM_{k^*} < TTM_{ego}, \quad TTM_{k^*} < c\, TTM_{ego},
 
 i.e. the ego has not passed the merge point and the merging vehicle arrives first, early enough.
-So :math:`c = 0` never yields and :math:`c = 1` yields to every vehicle that arrives first. The
+So :math:`c = 0` never yields (no TTM of a candidate is negative; for a stopped ego
+:math:`0 \cdot \infty` is undefined and compares false) and :math:`c = 1` yields to every vehicle
+that arrives first. The
 paper prints the inequality the other way round (:math:`TTM_{ego} < c\,TTM_{other}`, under which a
 larger c would yield *less*, contradicting its own reading of c as cooperation); its code does
 what is written here, and so do we.
@@ -157,8 +159,8 @@ def yield_target(c: Array, v: Array, inputs: MergeInputs) -> tuple[Array, Array]
     yields = (
         candidate[chosen]
         & (inputs.ego_to_merge >= 0)
-        & (c > 0)
         & (ttm_chosen < ttm_ego)
+        # c = 0 never passes: candidates have TTM >= 0, and 0 * inf = NaN compares false.
         & (ttm_chosen < c * ttm_ego)
     )
     return yields, chosen
