@@ -65,8 +65,10 @@ TRACK_COLUMNS: dict[str, str] = {
 FLAG_COLUMNS = ["vehicle_id", "t", "kind", "message"]
 DRIVERS = ("human", "acc", "unknown")
 
-# A passenger car is at most ~6 m long and a truck ~20 m; anything longer in "metres" is feet.
+# A passenger car is at most ~6 m long; a median length above this in "metres" is feet.
 MAX_CAR_LENGTH_M = 8.0
+# A US tractor-trailer is up to ~23 m (NGSIM I-80 has 74-76 ft trucks); longer than this is feet.
+MAX_VEHICLE_LENGTH_M = 30.0
 # Stopped cars in a jam keep 1-4 m bumper to bumper; a median jam spacing (front to front) far above
 # 15 m while speeds are below 2 m/s reads as feet passed as metres.
 MAX_JAM_SPACING_M = 15.0
@@ -127,8 +129,14 @@ class Trajectories:
 
 
 def _where(source: str, frame: pd.DataFrame, index, column: str) -> str:
-    """'file, row R, column C' for an error message; rows carry their source row when known."""
+    """'file, row R, column C' for an error message; rows carry their source row when known.
+
+    A ``_file`` column, if present, names each row's own file (readers that merge several files
+    into one table set it), so the message names the file the row came from.
+    """
     row = frame.loc[index, "_row"] if "_row" in frame.columns else index
+    if "_file" in frame.columns and isinstance(frame.loc[index, "_file"], str):
+        source = frame.loc[index, "_file"]
     return f"{source}, row {row}, column {column!r}"
 
 
@@ -143,7 +151,8 @@ def validate_tracks(
 
     ``column_names`` maps schema columns to the source's own column names, so that errors name the
     column the user sees in the file. A ``_row`` column, if present, gives the source row numbers
-    for messages; it is dropped from the result. Raises :class:`DataError` naming file, row and
+    for messages, and a ``_file`` column the file each row came from; both are dropped from the
+    result. Raises :class:`DataError` naming file, row and
     column for: missing columns, NaN in required columns, duplicate frames, time going backwards,
     an empty table, negative speeds or lengths, a leader id that names no vehicle, a time step
     that is not a multiple of ``dt``, and lengths or jam spacings that can only be feet.
@@ -242,7 +251,7 @@ def _refuse_feet(tracks: pd.DataFrame, *, source: str, shown) -> None:
     Congested speeds in ft/s (10-30) still look like plausible m/s, so speed alone cannot tell;
     vehicle length and the spacing of stopped cars can.
     """
-    too_long = tracks["length"] > MAX_CAR_LENGTH_M * 2.5  # trucks up to ~20 m are real
+    too_long = tracks["length"] > MAX_VEHICLE_LENGTH_M
     median_length = float(tracks["length"].median())
     if median_length > MAX_CAR_LENGTH_M or too_long.any():
         first = too_long.idxmax() if too_long.any() else tracks.index[0]

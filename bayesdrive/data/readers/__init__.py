@@ -1,0 +1,167 @@
+"""Readers: every supported format into one validated :class:`Trajectories`.
+
+``read(path)`` detects the format from folder and file names and from CSV header signatures;
+``read(path, format=...)`` overrides the detection. One module per format declares its units:
+
+============== ====================================================================
+format         source
+============== ====================================================================
+ngsim_raw      US DOT NGSIM trajectory files (feet), :mod:`.ngsim_raw`
+ngsim_chains   NGSIM I-80 6-vehicle chains (m), deduplicated, :mod:`.ngsim_chains`
+openacc        JRC OpenACC platoon CSVs (SI), :mod:`.openacc`
+highd          highD tracks + meta files (SI, 25 Hz), :mod:`.highd`
+interaction    INTERACTION vehicle tracks on a lanelet2 map, :mod:`.interaction`
+merge_episodes NGSIM on-ramp merge episodes (ego-centric), :mod:`.merge_episodes`
+columns        any table through a column map (incl. the held-out folders), :mod:`.columns`
+============== ====================================================================
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from bayesdrive.data.errors import DataError
+from bayesdrive.data.readers.columns import HOLDOUT_LAYOUTS, read_columns
+from bayesdrive.data.readers.highd import read_highd
+from bayesdrive.data.readers.interaction import read_interaction
+from bayesdrive.data.readers.merge_episodes import read_merge_episodes
+from bayesdrive.data.readers.ngsim_chains import read_ngsim_chains
+from bayesdrive.data.readers.ngsim_raw import read_ngsim_raw
+from bayesdrive.data.readers.openacc import read_openacc
+from bayesdrive.data.trajectories import Trajectories
+
+__all__ = ["FORMATS", "HOLDOUT_LAYOUTS", "detect_format", "read"]
+
+FORMATS: dict[str, Callable[..., Trajectories]] = {
+    "ngsim_raw": read_ngsim_raw,
+    "ngsim_chains": read_ngsim_chains,
+    "openacc": read_openacc,
+    "highd": read_highd,
+    "interaction": read_interaction,
+    "merge_episodes": read_merge_episodes,
+    "columns": read_columns,
+}
+# Lines read to recognise a CSV (OpenACC puts a few metadata rows before its header).
+SNIFF_LINES = 12
+
+
+def read(
+    path: str | Path, format: str | None = None, *, strict: bool = False, **options: Any
+) -> Trajectories:
+    """Read ``path`` (file or folder) into validated trajectories.
+
+    ``format`` names a reader in :data:`FORMATS`; without it the format is detected
+    (:func:`detect_format`). ``options`` go to the reader (e.g. ``missing_leaders="drop"`` for
+    ngsim_raw, ``columns={...}`` for columns). ``strict=True`` turns flags (physically impossible
+    samples such as negative gaps) into a :class:`DataError` instead of keeping them flagged.
+    """
+    path = Path(path)
+    if format is None:
+        format, detected = detect_format(path)
+        options = {**detected, **options}
+    elif format not in FORMATS:
+        raise DataError(f"unknown format {format!r}; known formats: {', '.join(FORMATS)}")
+    traj = FORMATS[format](path, **options)
+    if strict and len(traj.flags):
+        first = traj.flags.iloc[0]
+        kinds = traj.flags.groupby("kind").size()
+        raise DataError(
+            f"{path}: strict mode refuses flagged data: "
+            + ", ".join(f"{n} {kind} sample(s)" for kind, n in kinds.items())
+            + f"; first: vehicle {first['vehicle_id']} at t={first['t']:g} s: {first['message']}"
+        )
+    return traj
+
+
+def detect_format(path: str | Path) -> tuple[str, dict[str, Any]]:
+    """The reader for ``path`` and the options it needs, from names and header signatures.
+
+    Raises a :class:`DataError` listing the known formats and what was seen.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such file or folder")
+    if path.is_dir():
+        return _detect_folder(path)
+    found = _detect_file(path)
+    if found is None:
+        raise DataError(
+            f"{path}: cannot tell the format (first line: {_first_line(path)!r}). Known formats: "
+            f"{', '.join(FORMATS)}; pass format=... (columns needs a column map)"
+        )
+    return found, {}
+
+
+def _detect_folder(path: Path) -> tuple[str, dict[str, Any]]:
+    if path.name in HOLDOUT_LAYOUTS:
+        layout = HOLDOUT_LAYOUTS[path.name]
+        if layout["format"] == "columns":
+            return "columns", {"layout": path.name}
+        return layout["format"], {}
+    names = {f.name for f in path.iterdir()}
+    if any(n.endswith("_tracks.csv") for n in names) and any(
+        n.endswith("_tracksMeta.csv") for n in names
+    ):
+        return "highd", {}
+    if any(re.fullmatch(r"vehicle_tracks_.*\.csv", n) for n in names):
+        return "interaction", {}
+    if "dataset_with_episode_ids.csv" in names or "dataset.npy" in names:
+        return "merge_episodes", {}
+    seen = {}
+    for file in sorted(path.glob("*.csv"))[:20] + sorted(path.glob("*.txt"))[:5]:
+        found = _detect_file(file)
+        if found is not None:
+            return found, {}
+        seen[file.name] = _first_line(file)[:80]
+    raise DataError(
+        f"{path}: cannot tell the format of this folder (files: "
+        f"{', '.join(sorted(names)[:10])}{' ...' if len(names) > 10 else ''}; first lines: "
+        f"{seen}). Known formats: {', '.join(FORMATS)}; known held-out layouts: "
+        f"{', '.join(HOLDOUT_LAYOUTS)}; pass format=..."
+    )
+
+
+def _first_line(path: Path) -> str:
+    try:
+        with path.open("r", errors="replace") as handle:
+            return handle.readline().strip()
+    except OSError:
+        return ""
+
+
+def _detect_file(path: Path) -> str | None:
+    if path.suffix == ".npy":
+        return "merge_episodes"
+    if path.name.endswith("_tracks.csv"):
+        return "highd"
+    if path.suffix not in (".csv", ".txt"):
+        return None
+    try:
+        with path.open("r", newline="", errors="replace") as handle:
+            rows = [row for _, row in zip(range(SNIFF_LINES), csv.reader(handle), strict=False)]
+    except OSError:
+        return None
+    if not rows:
+        return None
+    header = {c.strip().lower() for c in rows[0]}
+    if {"t1", "id1", "y1", "v1"} <= header:
+        return "ngsim_chains"
+    if {"vehicle_id", "frame_id", "local_y", "preceding"} <= header:
+        return "ngsim_raw"
+    if {"track_id", "frame_id", "timestamp_ms", "vx", "vy"} <= header:
+        return "interaction"
+    if {"episode", "ego_v_mps", "ego_dist_to_accel_lane_end_m"} <= header:
+        return "merge_episodes"
+    if {"frame", "id", "xvelocity", "precedingid"} <= header:
+        return "highd"
+    for row in rows:
+        if row and row[0].strip() == "Time" and any(c.strip() == "Speed1" for c in row):
+            return "openacc"
+    tokens = rows[0][0].split() if len(rows[0]) == 1 else []
+    if len(tokens) == 18 and all(re.fullmatch(r"-?[\d.]+(e[-+]?\d+)?", t) for t in tokens):
+        return "ngsim_raw"  # the original headerless whitespace-separated NGSIM .txt
+    return None

@@ -1,0 +1,230 @@
+"""US DOT NGSIM trajectory files (I-80, US-101, Lankershim, Peachtree) as published.
+
+Units (:data:`UNITS`): feet, ft/s and ft/s^2, sampled at 10 Hz; converted to SI with 0.3048 m/ft.
+
+- ``x`` is ``Local_Y``, the longitudinal position of the FRONT centre of the vehicle (ft).
+- ``t`` is ``Frame_ID * 0.1 s`` (frames are 1/10 s; files of one period share the frame clock).
+- ``v``/``a`` are ``v_Vel``/``v_Acc``; ``length`` is ``v_Length``; ``lane_id`` is ``Lane_ID``.
+- The leader is ``Preceding`` per row (0 means none), so a lane change changes the leader.
+- ``Space_Headway`` is FRONT-to-front, so the bumper gap is ``Space_Headway * 0.3048`` minus the
+  leader's length (taken from the leader's own row at the same frame).
+- A ``Preceding`` id that names no vehicle of the file at that frame is an error naming file, row
+  and column; ``missing_leaders="drop"`` instead removes the link (leader None, logged, noted).
+- One scene per file (scene id = file stem); vehicle ids are ``"<stem>:<Vehicle_ID>"`` so files of
+  different periods never collide. ``driver`` is ``"unknown"``.
+
+Column names are matched case-insensitively (the data.transportation.gov CSV writes ``v_length``).
+The original whitespace-separated ``trajectories-*.txt`` files without a header are read too, with
+the documented 18-column order (:data:`TXT_COLUMNS`).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+
+from bayesdrive.data.errors import DataError
+from bayesdrive.data.readers._common import (
+    Notes,
+    finish,
+    input_files,
+    make_tracks,
+    numeric_columns,
+    read_table,
+    require_columns,
+    time_steps,
+)
+from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.units import FOOT_M
+
+__all__ = ["COLUMNS", "DT", "REQUIRED", "TXT_COLUMNS", "UNITS", "read_ngsim_raw"]
+
+log = logging.getLogger(__name__)
+
+FORMAT = "ngsim_raw"
+DT = 0.1
+UNITS = {
+    "Local_Y": "ft (front centre of the vehicle)",
+    "v_Length": "ft",
+    "v_Vel": "ft/s",
+    "v_Acc": "ft/s^2",
+    "Space_Headway": "ft (front to front)",
+    "Frame_ID": "1/10 s",
+}
+# The published column set; REQUIRED is what the reader uses.
+COLUMNS = [
+    "Vehicle_ID",
+    "Frame_ID",
+    "Total_Frames",
+    "Global_Time",
+    "Local_X",
+    "Local_Y",
+    "v_Length",
+    "v_Width",
+    "v_Class",
+    "v_Vel",
+    "v_Acc",
+    "Lane_ID",
+    "Preceding",
+    "Following",
+    "Space_Headway",
+    "Time_Headway",
+]
+REQUIRED = [
+    "Vehicle_ID",
+    "Frame_ID",
+    "Local_Y",
+    "v_Length",
+    "v_Vel",
+    "v_Acc",
+    "Lane_ID",
+    "Preceding",
+    "Space_Headway",
+]
+TXT_COLUMNS = [
+    "Vehicle_ID",
+    "Frame_ID",
+    "Total_Frames",
+    "Global_Time",
+    "Local_X",
+    "Local_Y",
+    "Global_X",
+    "Global_Y",
+    "v_Length",
+    "v_Width",
+    "v_Class",
+    "v_Vel",
+    "v_Acc",
+    "Lane_ID",
+    "Preceding",
+    "Following",
+    "Space_Headway",
+    "Time_Headway",
+]
+SCHEMA_NAMES = {
+    "vehicle_id": "Vehicle_ID",
+    "t": "Frame_ID",
+    "x": "Local_Y",
+    "v": "v_Vel",
+    "a": "v_Acc",
+    "lane_id": "Lane_ID",
+    "leader_id": "Preceding",
+    "gap": "Space_Headway",
+    "length": "v_Length",
+}
+
+
+def read_ngsim_raw(
+    path: str | Path, *, missing_leaders: Literal["error", "drop"] = "error"
+) -> Trajectories:
+    """Read one NGSIM file, or every ``*.csv``/``*.txt`` in a folder, into SI trajectories."""
+    if missing_leaders not in ("error", "drop"):
+        raise DataError(f"missing_leaders must be 'error' or 'drop', got {missing_leaders!r}")
+    files = input_files(path, ["*.csv", "*.txt"], what="NGSIM")
+    notes = Notes(log)
+    notes.assume(
+        "NGSIM: feet converted with 0.3048 m/ft; x = Local_Y (front of vehicle); "
+        "gap = Space_Headway (front to front) - leader length; t = Frame_ID * 0.1 s"
+    )
+    parts = [_read_file(f, missing_leaders=missing_leaders, notes=notes) for f in files]
+    tracks = pd.concat([p for p, _ in parts], ignore_index=True)
+    scenes = pd.concat([s for _, s in parts], ignore_index=True)
+    return finish(
+        tracks,
+        fmt=FORMAT,
+        source=path,
+        dt=DT,
+        scenes=scenes,
+        notes=notes,
+        column_names=SCHEMA_NAMES,
+    )
+
+
+def _load(path: Path) -> pd.DataFrame:
+    with path.open("r", errors="replace") as handle:
+        first = handle.readline()
+    if not first.strip():
+        raise DataError(f"{path}: empty file (expected an NGSIM table)")
+    if "," not in first:
+        tokens = first.split()
+        if tokens and _is_number(tokens[0]):
+            return read_table(path, names=TXT_COLUMNS, sep=r"\s+", fmt="NGSIM")
+        return read_table(path, sep=r"\s+", fmt="NGSIM")
+    return read_table(path, fmt="NGSIM")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _read_file(
+    path: Path, *, missing_leaders: str, notes: Notes
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    frame = _load(path)
+    by_lower = {str(c).lower(): c for c in frame.columns}
+    frame = frame.rename(
+        columns={by_lower[c.lower()]: c for c in TXT_COLUMNS if c.lower() in by_lower}
+    )
+    require_columns(frame, REQUIRED, source=path, fmt="NGSIM")
+    # Every published numeric column present is checked: a damaged cell anywhere means a damaged
+    # file, even in a column this reader does not use.
+    numeric = [c for c in TXT_COLUMNS if c in frame.columns]
+    numeric_columns(frame, numeric)
+    scene = path.stem
+
+    def ids(values: pd.Series) -> pd.Series:
+        return scene + ":" + values.astype(np.int64).astype(str)
+
+    vehicle = ids(frame["Vehicle_ID"])
+    frames = frame["Frame_ID"].astype(np.int64)
+    length = frame["v_Length"].to_numpy() * FOOT_M
+    preceding = frame["Preceding"].astype(np.int64)
+    has_leader = (preceding != 0).to_numpy()
+    leader = ids(preceding).where(has_leader, None)
+
+    # The leader must be in the file at the same frame: its length gives the bumper gap.
+    own = pd.DataFrame({"leader": vehicle, "frame": frames, "leader_length": length})
+    own = own.drop_duplicates(["leader", "frame"])
+    asked = pd.DataFrame({"leader": leader, "frame": frames})
+    found = asked.merge(own, on=["leader", "frame"], how="left")["leader_length"].to_numpy()
+    missing = has_leader & np.isnan(found)
+    if missing.any():
+        first = int(np.argmax(missing))
+        message = (
+            f"{path}, row {frame['_row'].iloc[first]}, column 'Preceding': leader "
+            f"{int(preceding.iloc[first])} has no row at frame {int(frames.iloc[first])} in this "
+            f"file ({int(missing.sum())} such row(s))"
+        )
+        if missing_leaders == "error":
+            raise DataError(message + "; pass missing_leaders='drop' to drop these links")
+        notes.repair(
+            f"{path.name}: {int(missing.sum())} row(s) name a leader that is not in the file at "
+            "that frame; leader set to None there (missing_leaders='drop')"
+        )
+        has_leader &= ~missing
+        leader = leader.where(has_leader, None)
+    gap = np.where(has_leader, frame["Space_Headway"].to_numpy() * FOOT_M - found, np.nan)
+
+    tracks = make_tracks(
+        vehicle_id=vehicle,
+        t=time_steps(frames.to_numpy(), DT),
+        x=frame["Local_Y"].to_numpy() * FOOT_M,
+        v=frame["v_Vel"].to_numpy() * FOOT_M,
+        a=frame["v_Acc"].to_numpy() * FOOT_M,
+        lane_id=frame["Lane_ID"].astype(np.int64).to_numpy(),
+        leader_id=leader.to_numpy(),
+        gap=gap,
+        length=length,
+        row=frame["_row"].to_numpy(),
+        file=str(path),
+    )
+    scenes = pd.DataFrame({"scene_id": scene, "vehicle_id": pd.unique(vehicle)})
+    return tracks, scenes
