@@ -19,12 +19,14 @@ columns        any table through a column map (incl. the held-out folders), :mod
 from __future__ import annotations
 
 import csv
+import functools
 import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from bayesdrive.data.errors import DataError
+from bayesdrive.data.readers._common import REPAIR_PREFIX
 from bayesdrive.data.readers.columns import HOLDOUT_LAYOUTS, read_columns
 from bayesdrive.data.readers.highd import read_highd
 from bayesdrive.data.readers.interaction import read_interaction
@@ -44,6 +46,12 @@ FORMATS: dict[str, Callable[..., Trajectories]] = {
     "interaction": read_interaction,
     "merge_episodes": read_merge_episodes,
     "columns": read_columns,
+    # Named layouts of the held-out folders (the format names the data-set registry uses).
+    "openacc_extract": read_openacc,
+    "ngsim_pairs": functools.partial(read_columns, layout="ngsim_i80_pairs_a"),
+    "ngsim_parquet": functools.partial(read_columns, layout="ngsim_i80_pairs_b"),
+    "ngsim_matrices": functools.partial(read_columns, layout="ngsim_i80_pairs_raw_c"),
+    "ngsim_vehicles": functools.partial(read_columns, layout="ngsim_us101_vehicles"),
 }
 # Lines read to recognise a CSV (OpenACC puts a few metadata rows before its header).
 SNIFF_LINES = 12
@@ -56,8 +64,10 @@ def read(
 
     ``format`` names a reader in :data:`FORMATS`; without it the format is detected
     (:func:`detect_format`). ``options`` go to the reader (e.g. ``missing_leaders="drop"`` for
-    ngsim_raw, ``columns={...}`` for columns). ``strict=True`` turns flags (physically impossible
-    samples such as negative gaps) into a :class:`DataError` instead of keeping them flagged.
+    ngsim_raw, ``columns={...}`` for columns). ``strict=True`` refuses, with a :class:`DataError`,
+    data that has flags (physically impossible samples such as negative gaps, otherwise kept and
+    flagged) or that the reader had to repair (samples or leader links left out: the notes
+    starting with ``"repair: "``).
     """
     path = Path(path)
     if format is None:
@@ -66,7 +76,13 @@ def read(
     elif format not in FORMATS:
         raise DataError(f"unknown format {format!r}; known formats: {', '.join(FORMATS)}")
     traj = FORMATS[format](path, **options)
-    if strict and len(traj.flags):
+    if strict:
+        _refuse_flags_and_repairs(traj, path)
+    return traj
+
+
+def _refuse_flags_and_repairs(traj: Trajectories, path: Path) -> None:
+    if len(traj.flags):
         first = traj.flags.iloc[0]
         kinds = traj.flags.groupby("kind").size()
         raise DataError(
@@ -74,7 +90,12 @@ def read(
             + ", ".join(f"{n} {kind} sample(s)" for kind, n in kinds.items())
             + f"; first: vehicle {first['vehicle_id']} at t={first['t']:g} s: {first['message']}"
         )
-    return traj
+    repairs = [n for n in traj.notes if n.startswith(REPAIR_PREFIX)]
+    if repairs:
+        raise DataError(
+            f"{path}: strict mode refuses data that needed {len(repairs)} repair(s); first: "
+            f"{repairs[0][len(REPAIR_PREFIX) :]}"
+        )
 
 
 def detect_format(path: str | Path) -> tuple[str, dict[str, Any]]:

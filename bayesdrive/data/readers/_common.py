@@ -28,6 +28,7 @@ from bayesdrive.data.trajectories import (
 
 __all__ = [
     "DEFAULT_LENGTH_M",
+    "REPAIR_PREFIX",
     "Notes",
     "finish",
     "gaps_from_positions",
@@ -49,6 +50,10 @@ DEFAULT_LENGTH_M = 4.5
 GRID_TOLERANCE = 1e-3
 
 
+# Notes that record a change to the data start with this; ``read(strict=True)`` refuses them.
+REPAIR_PREFIX = "repair: "
+
+
 class Notes:
     """Documented assumptions and repairs of one read; repairs are also logged as warnings."""
 
@@ -56,15 +61,20 @@ class Notes:
         self.items: list[str] = []
         self._log = logger
 
-    def assume(self, message: str) -> None:
-        """Record an assumption the format forces (e.g. an assumed length); not a repair."""
+    def assume(self, message: str, *, warn: bool = False) -> None:
+        """Record an assumption or interpretation (an assumed length, an inferred layout).
+
+        ``warn`` also logs it, for interpretations a user should notice (approximate placement).
+        """
         if message not in self.items:
+            if warn:
+                self._log.warning(message)
             self.items.append(message)
 
     def repair(self, message: str) -> None:
-        """Record and log a change made to the data (dropped, trimmed, re-labelled samples)."""
+        """Record and log a change to the data: samples or leader links left out or replaced."""
         self._log.warning(message)
-        self.items.append(message)
+        self.items.append(REPAIR_PREFIX + message)
 
 
 def input_files(path: str | Path, patterns: Sequence[str], *, what: str) -> list[Path]:

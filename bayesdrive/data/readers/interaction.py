@@ -275,9 +275,10 @@ def _read_file(path: Path, lanelets: list[Lanelet], notes: Notes):
     lane, s, lateral, half = _project(lanelets, xy, frame["psi_rad"].to_numpy())
     outside = lateral > half + 0.5
     if outside.any():
-        notes.repair(
+        notes.assume(
             f"{path.name}: {int(outside.sum())} sample(s) lie outside every lanelet (more than "
-            "half a lane width from any centreline); assigned to the nearest lanelet"
+            "half a lane width from any centreline); assigned to the nearest lanelet",
+            warn=True,
         )
     length = frame["length"].to_numpy()
     ids = path.stem + ":" + frame["track_id"].astype(np.int64).astype(str)

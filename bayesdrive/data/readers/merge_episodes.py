@@ -126,14 +126,16 @@ def read_merge_episodes(path: str | Path, *, length: float = ASSUMED_LENGTH_M) -
         present[i] = here
         positions[i] = x_ego + d
     if jumps:
-        notes.repair(
+        notes.assume(
             f"{jumps} slot re-assignment(s) (|delta d| > {SLOT_JUMP_M} m between steps): the car "
-            "after the jump gets a new id (suffix _b, _c, ...)"
+            "after the jump gets a new id (suffix _b, _c, ...); no data dropped",
+            warn=True,
         )
     if reappearances:
-        notes.repair(
+        notes.assume(
             f"{reappearances} slot(s) reappear after the missing-neighbour sentinel: treated as a "
-            "new car (new id suffix), since no vehicle ids say otherwise"
+            "new car (new id suffix), since no vehicle ids say otherwise",
+            warn=True,
         )
     sentinel_samples = sum(int((~present[i]).sum()) for i in SLOTS)
     notes.assume(

@@ -404,15 +404,17 @@ def _place_by_enu(
                 k = int(np.argmax(usable))
                 distance = float(np.hypot(e_j[k] - e_i[k], n_j[k] - n_i[k]))
                 x[i] += x[j][k] - distance - x[i][k]
-                notes.repair(
+                notes.assume(
                     f"{path.name}: vehicle {i} has no measured gap to the car ahead; placed on the "
                     f"platoon axis by its straight-line ENU distance to vehicle {j} "
-                    "(approximate; it has no leader)"
+                    "(approximate; it has no leader)",
+                    warn=True,
                 )
                 return
-    notes.repair(
+    notes.assume(
         f"{path.name}: vehicle {i} cannot be placed relative to the platoon (no IVS, no ENU); "
-        "its x is its own integrated distance from 0 (it has no leader)"
+        "its x is its own integrated distance from 0 (it has no leader)",
+        warn=True,
     )
 
 

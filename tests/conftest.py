@@ -1,0 +1,37 @@
+"""Shared fixtures: where the real data live.
+
+``data_dir`` is ``$BAYESDRIVE_DATA_DIR`` or ``<repo>/../shared/data``; ``holdout_dir`` is
+``$BAYESDRIVE_HOLDOUT_DIR`` or ``<repo>/../shared/holdout``. When the folder is missing, a test
+using it fails in CI (``$CI`` set) and is skipped, with the reason shown, elsewhere.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _shared_folder(env: str, default: Path) -> Path:
+    folder = Path(os.environ.get(env) or default)
+    if not folder.is_dir():
+        message = f"real data folder {folder} not found (set {env} to point at it)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """The shared real-data folder (``../shared/data`` from the repository)."""
+    return _shared_folder("BAYESDRIVE_DATA_DIR", REPO.parent / "shared" / "data")
+
+
+@pytest.fixture(scope="session")
+def holdout_dir() -> Path:
+    """The held-out data folder (``../shared/holdout``): for evaluation and loading tests only."""
+    return _shared_folder("BAYESDRIVE_HOLDOUT_DIR", REPO.parent / "shared" / "holdout")
