@@ -1,0 +1,1 @@
+"""Closed-loop simulation: scenarios from held-out data, rollouts, baselines and metrics."""

@@ -1,0 +1,291 @@
+"""Metrics of closed-loop rollouts against the observed held-out trajectories.
+
+Per scenario (R rollouts of N simulated vehicles over T steps):
+
+* **RMSE** of position and of speed at every horizon step t = 0..T, over vehicles and rollouts:
+  :math:`\\sqrt{\\frac{1}{RN}\\sum_{r,n}(x^{sim}_{rnt} - x^{obs}_{nt})^2}` (a true root mean
+  square). Beside it, labelled ``paper_mae_last_step``, the quantity the paper's code reported:
+  the mean absolute error at the last step only.
+* **Collisions**: events = onsets (a vehicle's bumper gap turning <= 0; a collision lasting
+  several steps is one event); fraction = share of simulated vehicle-rollouts that collide at
+  least once.
+* **Hard braking**: vehicle-steps with realised acceleration <= -3 m/s^2, beside the same count
+  in the data (observed speeds of the same vehicles and steps).
+* **Off road**: vehicle-steps past the end of the vehicle's lane.
+
+Across scenarios: mean and sample sd (ddof = 1; None with a single scenario) of the per-scenario
+values, totals of the counts, and speed and gap distributions of all simulated vehicle-steps
+against the observed ones: Wasserstein-1 distance and the two-sample Kolmogorov-Smirnov
+statistic. :func:`kde` evaluates a Gaussian KDE for plots.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+from jax import Array
+from scipy import stats
+
+from bayesdrive.simulation.baselines import Policy
+from bayesdrive.simulation.rollout import HARD_BRAKING_MPS2, Rollout, rollout, scene_arrays
+from bayesdrive.simulation.scenarios import Scenario, ScenarioSet
+
+__all__ = [
+    "DistributionSamples",
+    "Observed",
+    "ScenarioMetrics",
+    "collision_onsets",
+    "distribution_distance",
+    "distribution_samples",
+    "evaluate_policy",
+    "kde",
+    "observed",
+    "rmse_by_step",
+    "scenario_metrics",
+    "summarize",
+]
+
+
+class Observed(NamedTuple):
+    """The data a rollout is scored against, on the rollout's axes.
+
+    x, v, gap: (N, T + 1) observed position (from the scene's local origin), speed and bumper gap
+    of the simulated vehicles (gap NaN where there is no leader). step_mask: (T,) 1 for real
+    steps (0: past the end of the scene). dt: step length (s).
+    """
+
+    x: np.ndarray
+    v: np.ndarray
+    gap: np.ndarray
+    step_mask: np.ndarray
+    dt: float
+
+
+class ScenarioMetrics(NamedTuple):
+    """One scenario's metrics (module docstring); by-step arrays are NaN past the scene's end.
+
+    collided: vehicle-rollouts that collide at least once, out of ``vehicles * rollouts``.
+    """
+
+    scenario_id: str
+    vehicles: int
+    rollouts: int
+    rmse_position_by_step: np.ndarray
+    rmse_speed_by_step: np.ndarray
+    mae_position_last: float
+    mae_speed_last: float
+    collisions: int
+    collided: int
+    hard_braking: int
+    data_hard_braking: int
+    off_road: int
+
+    @property
+    def last_step(self) -> int:
+        return int(np.flatnonzero(np.isfinite(self.rmse_position_by_step))[-1])
+
+
+class DistributionSamples(NamedTuple):
+    """Speeds and gaps of every real simulated vehicle-step (t >= 1) and of the data there."""
+
+    simulated_speed: np.ndarray
+    observed_speed: np.ndarray
+    simulated_gap: np.ndarray
+    observed_gap: np.ndarray
+
+
+def observed(scenario: Scenario) -> Observed:
+    """The observed simulated vehicles of a scenario, positions from the scenario's origin."""
+    return Observed(
+        x=scenario.x[1:] - scenario.origin,
+        v=scenario.v[1:],
+        gap=scenario.gap,
+        step_mask=scenario.step_mask,
+        dt=scenario.dt,
+    )
+
+
+def rmse_by_step(simulated: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """Root mean square error over rollouts and vehicles at each step.
+
+    simulated: (R, N, T + 1); observed: (N, T + 1). Returns (T + 1,).
+    """
+    error = np.asarray(simulated, np.float64) - np.asarray(observed, np.float64)[None]
+    return np.sqrt(np.mean(error**2, axis=(0, 1)))
+
+
+def collision_onsets(collision: np.ndarray) -> int:
+    """Number of collision events in a (..., T) boolean array: the steps where one begins."""
+    collision = np.asarray(collision, bool)
+    before = np.concatenate([np.zeros_like(collision[..., :1]), collision[..., :-1]], axis=-1)
+    return int(np.sum(collision & ~before))
+
+
+def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> ScenarioMetrics:
+    """All per-scenario metrics of ``rollout`` (numpy or JAX arrays) against ``observed``."""
+    x, v = np.asarray(rollout.x, np.float64), np.asarray(rollout.v, np.float64)
+    num_rollouts, num_vehicles, _ = x.shape
+    real = np.asarray(observed.step_mask) > 0
+    past_end = np.concatenate([[False], ~real])
+    last = int(np.flatnonzero(~past_end)[-1])
+    collision = np.asarray(rollout.collision, bool)
+    # The simulator's realised-acceleration rule, applied to the observed speeds.
+    observed_acceleration = np.diff(observed.v, axis=1) / observed.dt
+    return ScenarioMetrics(
+        scenario_id=scenario_id,
+        vehicles=num_vehicles,
+        rollouts=num_rollouts,
+        rmse_position_by_step=np.where(past_end, np.nan, rmse_by_step(x, observed.x)),
+        rmse_speed_by_step=np.where(past_end, np.nan, rmse_by_step(v, observed.v)),
+        mae_position_last=float(np.mean(np.abs(x[:, :, last] - observed.x[None, :, last]))),
+        mae_speed_last=float(np.mean(np.abs(v[:, :, last] - observed.v[None, :, last]))),
+        collisions=collision_onsets(collision),
+        collided=int(np.sum(collision.any(axis=-1))),
+        hard_braking=int(np.sum(rollout.hard_braking)),
+        data_hard_braking=int(np.sum((observed_acceleration <= HARD_BRAKING_MPS2) & real)),
+        off_road=int(np.sum(rollout.off_road)),
+    )
+
+
+def distribution_samples(rollout: Rollout, observed: Observed) -> DistributionSamples:
+    """Pool the real steps t >= 1; gaps only where the vehicle has a leader (the replayed head's
+    presence is the same in simulation and data, so the observed gap's NaNs mark it)."""
+    real = np.concatenate([[False], np.asarray(observed.step_mask) > 0])
+    real_steps = np.broadcast_to(real, observed.v.shape)
+    with_leader = real_steps & np.isfinite(observed.gap)
+    return DistributionSamples(
+        simulated_speed=np.asarray(rollout.v, np.float64)[:, real_steps].ravel(),
+        observed_speed=observed.v[real_steps],
+        simulated_gap=np.asarray(rollout.gap, np.float64)[:, with_leader].ravel(),
+        observed_gap=observed.gap[with_leader],
+    )
+
+
+def distribution_distance(simulated: np.ndarray, observed: np.ndarray) -> dict[str, float]:
+    """Wasserstein-1 distance (in the samples' unit) and two-sample KS statistic."""
+    if len(simulated) == 0 or len(observed) == 0:
+        raise ValueError("cannot compare distributions: one of the samples is empty")
+    return {
+        "wasserstein": float(stats.wasserstein_distance(simulated, observed)),
+        "ks": float(stats.ks_2samp(simulated, observed).statistic),
+    }
+
+
+def kde(samples: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Gaussian kernel density (Scott's bandwidth) of ``samples`` evaluated on ``grid``."""
+    return stats.gaussian_kde(np.asarray(samples, np.float64))(np.asarray(grid, np.float64))
+
+
+def _mean_sd(values) -> dict[str, float | None]:
+    values = np.asarray(values, np.float64)
+    return {
+        "mean": float(np.mean(values)),
+        "sd": float(np.std(values, ddof=1)) if len(values) > 1 else None,
+    }
+
+
+def _by_step(per_scenario: list[np.ndarray]) -> dict[str, list[float | None]]:
+    """Mean and sd across the scenarios that reach each step (NaN past a scene's end)."""
+    table = np.stack(per_scenario)
+    reached = np.isfinite(table)
+    means, sds = [], []
+    for column, ok in zip(table.T, reached.T, strict=True):
+        summary = _mean_sd(column[ok]) if ok.any() else {"mean": None, "sd": None}
+        means.append(summary["mean"])
+        sds.append(summary["sd"])
+    return {"mean": means, "sd": sds}
+
+
+def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]) -> dict[str, Any]:
+    """Across-scenario summary (module docstring), JSON-ready; "final" = each scene's last step."""
+    if not metrics:
+        raise ValueError("no scenarios to summarize")
+    rollouts = metrics[0].rollouts
+    vehicle_rollouts = sum(m.vehicles * m.rollouts for m in metrics)
+
+    def final(name: str) -> dict[str, Any]:
+        by_step = [getattr(m, name) for m in metrics]
+        return {
+            **_mean_sd([b[m.last_step] for b, m in zip(by_step, metrics, strict=True)]),
+            "by_step": _by_step(by_step),
+        }
+
+    def pooled(name: str) -> np.ndarray:
+        return np.concatenate([getattr(s, name) for s in samples])
+
+    collisions = sum(m.collisions for m in metrics)
+    hard_braking = sum(m.hard_braking for m in metrics)
+    return {
+        "scenarios": len(metrics),
+        "vehicles": sum(m.vehicles for m in metrics),
+        "rollouts": rollouts,
+        "rmse_position_m": final("rmse_position_by_step"),
+        "rmse_speed_mps": final("rmse_speed_by_step"),
+        "paper_mae_last_step": {
+            "note": "mean absolute error at the last step only, as the paper's code computed it",
+            "position_m": _mean_sd([m.mae_position_last for m in metrics]),
+            "speed_mps": _mean_sd([m.mae_speed_last for m in metrics]),
+        },
+        "collisions": {
+            "total": collisions,
+            "per_rollout": collisions / rollouts,
+            "fraction": sum(m.collided for m in metrics) / vehicle_rollouts,
+        },
+        "hard_braking": {
+            "total": hard_braking,
+            "per_rollout": hard_braking / rollouts,
+            "data_total": sum(m.data_hard_braking for m in metrics),
+        },
+        "off_road": {"total": sum(m.off_road for m in metrics)},
+        "speed_distribution_mps": distribution_distance(
+            pooled("simulated_speed"), pooled("observed_speed")
+        ),
+        "gap_distribution_m": distribution_distance(
+            pooled("simulated_gap"), pooled("observed_gap")
+        ),
+        "by_scenario": [
+            {
+                "scenario": m.scenario_id,
+                "rmse_position_m": float(m.rmse_position_by_step[m.last_step]),
+                "rmse_speed_mps": float(m.rmse_speed_by_step[m.last_step]),
+                "collisions": m.collisions,
+                "hard_braking": m.hard_braking,
+            }
+            for m in metrics
+        ],
+    }
+
+
+def evaluate_policy(
+    key: Array,
+    policy: Policy,
+    scenarios: ScenarioSet,
+    *,
+    num_rollouts: int,
+    on_scenario: Callable[[ScenarioMetrics], None] | None = None,
+) -> dict[str, Any]:
+    """Run ``policy`` on every scenario and summarize (:func:`summarize`).
+
+    The key splits into one key per scenario, each into a parameter-draw key and a rollout key.
+    ``on_scenario`` is called after each scenario (progress display).
+    """
+    if not scenarios.scenarios:
+        raise ValueError(f"{scenarios.source}: no scenarios to evaluate")
+    metrics, samples = [], []
+    for scenario, scenario_key in zip(
+        scenarios.scenarios, jax.random.split(key, len(scenarios.scenarios)), strict=True
+    ):
+        key_params, key_rollout = jax.random.split(scenario_key)
+        params = policy.params_for(key_params, scenario.simulated_ids, num_rollouts)
+        simulated = rollout(
+            key_rollout, policy.model, params, scene_arrays(scenario), num_rollouts=num_rollouts
+        )
+        data = observed(scenario)
+        metrics.append(scenario_metrics(scenario.scenario_id, simulated, data))
+        samples.append(distribution_samples(simulated, data))
+        if on_scenario is not None:
+            on_scenario(metrics[-1])
+    return summarize(metrics, samples)

@@ -1,0 +1,243 @@
+"""Closed-loop rollouts of a driver model through a scenario, vectorised over vehicles and rollouts.
+
+One rollout: the head (and, in merge scenes, the merging car) replays the data; every simulated
+vehicle starts from its observed state at t0 (through ``model.initial_sample``) and then moves by
+``model.transition_sample`` only, fed the *simulated* gap to its leader:
+``gap = x_leader - x - length_leader`` and the leader's simulated (or replayed) speed. Nothing
+here knows the IDM: any :class:`~bayesdrive.drivers.base.DriverModel` runs. ``lax.scan`` runs the
+steps, ``vmap`` the vehicles within a step and the rollouts; one compilation serves every scenario
+of the same shape.
+
+Positions are float32 metres from a local origin (the head's position at t0), so a 5 s horizon
+never adds small increments to large numbers.
+
+**Keys** (:func:`rollout_keys`): the key splits into one key per rollout; a rollout key splits
+into ``init`` (one key per vehicle for ``initial_sample``) and ``steps`` (one key per step, each
+split into one per vehicle). The same key gives bit-identical rollouts.
+
+**Events**, per rollout, vehicle and step t = 1 .. T (after the t-th transition):
+collision: bumper gap to the leader <= 0 (vehicle lengths included);
+hard braking: realised acceleration (v_t - v_{t-1}) / dt <= :data:`HARD_BRAKING_MPS2`;
+off road: the vehicle's front passed the end of its lane (``road_end``; +inf on the main lane).
+Steps past the end of a scene (``step_mask`` = 0, merge episodes) count nothing.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.simulation.scenarios import Scenario
+
+__all__ = [
+    "HARD_BRAKING_MPS2",
+    "Rollout",
+    "SceneArrays",
+    "broadcast_params",
+    "draw_particles",
+    "rollout",
+    "rollout_keys",
+    "scene_arrays",
+]
+
+# The paper's hard-braking threshold.
+HARD_BRAKING_MPS2 = -3.0
+
+
+class SceneArrays(NamedTuple):
+    """What the simulator needs of one scene (float32; positions from the local origin).
+
+    head_x, head_v, head_present: (T + 1,) the replayed leader of the first simulated vehicle
+        (head_present = 0 where it is absent: the first vehicle then drives on free road).
+    x0, v0: (N,) observed state of the simulated vehicles at t0, front to back.
+    lead_length: (N,) length of each simulated vehicle's leader.
+    road_end: (N,) position where each simulated vehicle's lane ends (+inf: it does not).
+    step_mask: (T,) 1 for real steps, 0 for padding past the end of the scene.
+    merge_x, merge_v, merge_present: (K, T + 1) replayed merge-lane vehicles (K = 0: none).
+    merge_length: (K,) their lengths.
+    dt: () step length (s).
+    """
+
+    head_x: Array
+    head_v: Array
+    head_present: Array
+    x0: Array
+    v0: Array
+    lead_length: Array
+    road_end: Array
+    step_mask: Array
+    merge_x: Array
+    merge_v: Array
+    merge_present: Array
+    merge_length: Array
+    dt: Array
+
+
+class Rollout(NamedTuple):
+    """Simulated trajectories and events, leading axes (rollout, vehicle).
+
+    x, v, gap: (R, N, T + 1) position (local origin), speed and bumper gap to the leader; index 0
+        is the initial state. collision, hard_braking, off_road: (R, N, T) booleans for steps 1..T.
+    """
+
+    x: Array
+    v: Array
+    gap: Array
+    collision: Array
+    hard_braking: Array
+    off_road: Array
+
+
+def scene_arrays(scenario: Scenario) -> SceneArrays:
+    """A scenario as simulator input: positions shifted by the scenario's origin, float32."""
+    f32 = partial(jnp.asarray, dtype=jnp.float32)
+    num_simulated = len(scenario.simulated_ids)
+    head_x = np.where(scenario.head_present > 0, scenario.x[0] - scenario.origin, 0.0)
+    return SceneArrays(
+        head_x=f32(head_x),
+        head_v=f32(np.where(scenario.head_present > 0, scenario.v[0], 0.0)),
+        head_present=f32(scenario.head_present),
+        x0=f32(scenario.x[1:, 0] - scenario.origin),
+        v0=f32(scenario.v[1:, 0]),
+        lead_length=f32(scenario.length[:-1]),
+        road_end=jnp.full(num_simulated, jnp.inf, jnp.float32),
+        step_mask=f32(scenario.step_mask),
+        merge_x=f32(np.where(scenario.merge_present > 0, scenario.merge_x - scenario.origin, 0.0)),
+        merge_v=f32(np.where(scenario.merge_present > 0, scenario.merge_v, 0.0)),
+        merge_present=f32(scenario.merge_present),
+        merge_length=f32(scenario.merge_length),
+        dt=f32(scenario.dt),
+    )
+
+
+class RolloutKeys(NamedTuple):
+    """The keys of one rollout: init (N,) and steps (T, N)."""
+
+    init: Array
+    steps: Array
+
+
+def rollout_keys(key: Array, num_steps: int, num_vehicles: int) -> RolloutKeys:
+    """The documented key schedule of one rollout (module docstring)."""
+    key_init, key_steps = jax.random.split(key)
+    per_step = jax.random.split(key_steps, num_steps)
+    return RolloutKeys(
+        init=jax.random.split(key_init, num_vehicles),
+        steps=jax.vmap(lambda k: jax.random.split(k, num_vehicles))(per_step),
+    )
+
+
+def _inputs(scene: SceneArrays, t: Array, state: EgoState):
+    """The model inputs of every simulated vehicle at step t (leaders: head, then vehicle k-1)."""
+    lead_x = jnp.concatenate([scene.head_x[t][None], state.x[:-1]])
+    lead_v = jnp.concatenate([scene.head_v[t][None], state.v[:-1]])
+    has_leader = jnp.ones_like(state.x).at[0].set(scene.head_present[t])
+    gap = lead_x - state.x - scene.lead_length
+    dt = jnp.broadcast_to(scene.dt, state.x.shape)
+    following = CarFollowingInputs(gap=gap, lead_v=lead_v, has_leader=has_leader, dt=dt)
+    if scene.merge_x.shape[0] == 0:
+        return following
+    # Imported here: only merge scenes need the Cooperative IDM's input type.
+    from bayesdrive.drivers.cidm import MergeInputs
+
+    num_vehicles = state.x.shape[0]
+
+    def per_vehicle(values: Array) -> Array:
+        return jnp.broadcast_to(values, (num_vehicles, *values.shape))
+
+    # Distances to the merge point (x = 0) are measured from the front bumper, positive before it.
+    return MergeInputs(
+        *following,
+        ego_to_merge=-state.x,
+        merge_to_merge=per_vehicle(-scene.merge_x[:, t]),
+        merge_v=per_vehicle(scene.merge_v[:, t]),
+        merge_length=per_vehicle(scene.merge_length),
+        merge_present=per_vehicle(scene.merge_present[:, t]),
+    )
+
+
+def _gaps(scene: SceneArrays, x: Array) -> tuple[Array, Array]:
+    """Bumper gaps (N, T + 1) of simulated positions x (N, T + 1) to their leaders, and whether
+    there is a leader (only the first vehicle can lack one, where the head is absent)."""
+    lead_x = jnp.concatenate([scene.head_x[None], x[:-1]])
+    has_leader = jnp.ones_like(x).at[0].set(scene.head_present)
+    return lead_x - x - scene.lead_length[:, None], has_leader > 0
+
+
+def _one_rollout(key: Array, model: DriverModel, params: Any, scene: SceneArrays) -> Rollout:
+    num_steps = scene.step_mask.shape[0]
+    num_vehicles = scene.x0.shape[0]
+    keys = rollout_keys(key, num_steps, num_vehicles)
+    observed = EgoState(x=scene.x0, v=scene.v0)
+    start = jax.vmap(model.initial_sample)(keys.init, params, observed)
+
+    def step(state: EgoState, scan_in):
+        t, step_keys = scan_in
+        inputs = _inputs(scene, t, state)
+        moved = jax.vmap(model.transition_sample)(step_keys, params, state, inputs)
+        return moved, moved
+
+    _, path = jax.lax.scan(step, start, (jnp.arange(num_steps), keys.steps))
+    x = jnp.concatenate([start.x[:, None], path.x.T], axis=1)
+    v = jnp.concatenate([start.v[:, None], path.v.T], axis=1)
+    gap, has_leader = _gaps(scene, x)
+    real = scene.step_mask[None, :] > 0
+    acceleration = jnp.diff(v, axis=1) / scene.dt
+    return Rollout(
+        x=x,
+        v=v,
+        gap=gap,
+        collision=(gap[:, 1:] <= 0) & has_leader[:, 1:] & real,
+        hard_braking=(acceleration <= HARD_BRAKING_MPS2) & real,
+        off_road=(x[:, 1:] > scene.road_end[:, None]) & real,
+    )
+
+
+@partial(jax.jit, static_argnames=("model", "num_rollouts"))
+def rollout(
+    key: Array, model: DriverModel, params: Any, scene: SceneArrays, *, num_rollouts: int
+) -> Rollout:
+    """``num_rollouts`` closed-loop rollouts of ``model`` through ``scene``.
+
+    ``params`` is the model's parameter NamedTuple with every leaf shaped (num_rollouts, N): one
+    parameter set per rollout and simulated vehicle (see :func:`broadcast_params` and
+    :func:`draw_particles`). Keys follow :func:`rollout_keys` after one split per rollout.
+    """
+    keys = jax.random.split(key, num_rollouts)
+    return jax.vmap(_one_rollout, in_axes=(0, None, 0, None))(keys, model, params, scene)
+
+
+def broadcast_params(params: Any, num_rollouts: int, num_vehicles: int) -> Any:
+    """One fixed parameter set (scalar leaves) for every rollout and vehicle: leaves (R, N)."""
+    return jax.tree.map(
+        lambda leaf: jnp.broadcast_to(jnp.asarray(leaf, jnp.float32), (num_rollouts, num_vehicles)),
+        params,
+    )
+
+
+def draw_particles(
+    key: Array,
+    model: DriverModel,
+    names: tuple[str, ...],
+    particles: np.ndarray | Array,
+    num_rollouts: int,
+    fixed: Any = None,
+) -> Any:
+    """Per rollout and vehicle, one equally weighted particle of that vehicle's posterior.
+
+    particles: (N, P, D) draws of the parameters ``names`` per simulated vehicle; each rollout
+    picks, independently per vehicle, a uniformly random particle. Parameters not in ``names``
+    come from ``fixed`` (default: the model's defaults). Returns leaves shaped (R, N).
+    """
+    particles = jnp.asarray(particles, jnp.float32)
+    num_vehicles, num_particles, _ = particles.shape
+    index = jax.random.randint(key, (num_rollouts, num_vehicles), 0, num_particles)
+    theta = particles[jnp.arange(num_vehicles)[None, :], index]
+    base = model.defaults() if fixed is None else fixed
+    return fill_params(model, names, theta, broadcast_params(base, num_rollouts, num_vehicles))
