@@ -110,11 +110,8 @@ def sample_nuts(
             model_args=model_args,
             rng_key=key,
         )
-        state = jax.lax.fori_loop(
-            0, config.num_warmup, lambda _, s: sample_kernel(s, model_args=model_args), state
-        )
 
-        def draw(state, _):
+        def iterate(state, _):
             state = sample_kernel(state, model_args=model_args)
             return state, NUTSDraws(
                 z=state.z,
@@ -126,8 +123,10 @@ def sample_nuts(
                 step_size=state.adapt_state.step_size,
             )
 
-        _, draws = jax.lax.scan(draw, state, length=config.num_samples)
-        return draws
+        # One scan over warm-up and sampling (warm-up draws dropped afterwards): a second loop
+        # would trace and compile the whole NUTS tree builder a second time.
+        _, draws = jax.lax.scan(iterate, state, length=config.num_warmup + config.num_samples)
+        return jax.tree.map(lambda a: a[config.num_warmup :], draws)
 
     num_chains = jax.tree.leaves(init_z)[0].shape[0]
     return jax.vmap(one_chain)(jax.random.split(key, num_chains), init_z)
