@@ -1,0 +1,1 @@
+"""Inference engines over driver-model parameters and their shared result layout."""
