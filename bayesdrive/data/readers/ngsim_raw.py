@@ -209,7 +209,7 @@ def _read_file(
             f"{path.name}: {int(missing.sum())} row(s) name a leader that is not in the file at "
             "that frame; leader set to None there (missing_leaders='drop')"
         )
-        has_leader &= ~missing
+        has_leader = has_leader & ~missing
         leader = leader.where(has_leader, None)
     gap = np.where(has_leader, frame["Space_Headway"].to_numpy() * FOOT_M - found, np.nan)
 
