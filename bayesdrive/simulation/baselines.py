@@ -12,7 +12,18 @@ its parameters for every rollout. Baselines (names in :data:`BASELINES`):
   (:mod:`bayesdrive.inference.lm`), deterministic at the fitted values.
 * ``cv`` / ``ca``: constant velocity / constant acceleration +1 m/s^2 (the paper's value),
   deterministic; the :data:`CONSTANT_ACCELERATION` model below.
-* ``blackbox``: a behavioural-cloning MLP policy (:mod:`bayesdrive.simulation.blackbox`).
+* ``blackbox``: a behavioural-cloning MLP policy (:mod:`bayesdrive.simulation.blackbox`) trained
+  on the fitting windows of all vehicles.
+
+Merge baselines (merge scenes only; the cooperating main-lane driver is simulated):
+
+* ``cidm-c1``: the Cooperative IDM with c = 1 (yields to every merging car that arrives first) at
+  the ``idm-default`` IDM parameters, deterministic.
+* ``idm-nomerge``: the ``idm-default`` IDM, which ignores merging cars.
+
+The per-vehicle fits (``idm-lm``) and the trained black box need fitting windows of the very
+vehicles or scenes evaluated; merge scenes are split by episode, so the held-out cooperating
+drivers have none: those two baselines run on platoon scenes only.
 """
 
 from __future__ import annotations
@@ -24,7 +35,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from bayesdrive.data.errors import DataError
+from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.cidm import CIDM, CIDMParams
 from bayesdrive.drivers.idm import (
     IDM,
     IDMParams,
@@ -33,16 +48,28 @@ from bayesdrive.drivers.idm import (
     noisy_step,
     step_logpdf,
 )
+from bayesdrive.inference import lm
+from bayesdrive.simulation.blackbox import (
+    BlackboxParams,
+    TrainConfig,
+    blackbox_model,
+    train_blackbox,
+)
 from bayesdrive.simulation.rollout import broadcast_params, draw_particles
 
 __all__ = [
     "BASELINES",
+    "CAR_FOLLOWING_ONLY",
     "CONSTANT_ACCELERATION",
     "IDM_DEFAULT_PARAMS",
     "IDM_NLS_PARAMS",
+    "MERGE_ONLY",
     "ConstantAccelerationParams",
     "Policy",
+    "baseline_policy",
+    "blackbox_policy",
     "fixed_policy",
+    "lm_policy",
     "particle_policy",
     "per_vehicle_policy",
 ]
@@ -162,23 +189,99 @@ def particle_policy(
     return Policy(name, model, params_for, description, {"params": list(names)})
 
 
-BASELINES = {
-    "idm-default": lambda: fixed_policy(
-        "idm-default", IDM, IDM_DEFAULT_PARAMS, "IDM at Treiber's defaults, sigma = 0"
-    ),
-    "idm-nls": lambda: fixed_policy(
-        "idm-nls", IDM, IDM_NLS_PARAMS, "IDM at the paper's published NLS fit, sigma = 0"
-    ),
-    "cv": lambda: fixed_policy(
-        "cv",
+def lm_policy(
+    key: Array,
+    traj: Trajectories,
+    vehicle_ids: list[str],
+    progress: Callable[[int, int], None] | None = None,
+) -> Policy:
+    """``idm-lm``: the IDM's five rule parameters fitted by Levenberg-Marquardt on each vehicle's
+    own fitting window, then simulated deterministically (sigma = 0) at the fit. The fit is
+    deterministic; ``key`` only feeds the engine's posterior draws, which are not used."""
+    arrays = follower_arrays(traj, window="fit", vehicle_ids=vehicle_ids)
+    unfit = sorted(set(vehicle_ids) - set(arrays.vehicle_ids))
+    if unfit:
+        raise DataError(
+            f"{traj.source}: idm-lm: vehicle(s) {unfit} have no usable car-following step in their fitting "
+            "window, so they cannot be fitted"
+        )
+    names = tuple(n for n in IDM.param_names if n != "sigma")
+    fit = lm.run(
+        key, arrays, model=IDM, params=names, progress=progress, num_draws=1, log_likelihood_draws=1
+    )
+    estimate = fit.sample_stats["estimate"][1]
+    by_vehicle = {
+        vid: IDMParams(**dict(zip(names, map(float, row), strict=True)), sigma=0.0)
+        for vid, row in zip(arrays.vehicle_ids, estimate, strict=True)
+    }
+    policy = per_vehicle_policy(
+        "idm-lm", IDM, by_vehicle, "IDM fitted per vehicle by LM on its fitting window, sigma = 0"
+    )
+    converged = fit.sample_stats["converged"][1]
+    details = {
+        **policy.details,
+        "fitted": list(names),
+        "not_converged": [v for v, ok in zip(arrays.vehicle_ids, converged, strict=True) if not ok],
+    }
+    return policy._replace(details=details)
+
+
+def blackbox_policy(key: Array, traj: Trajectories, config: TrainConfig) -> Policy:
+    """``blackbox``: the MLP policy trained by behavioural cloning on every vehicle's fitting
+    window (:mod:`bayesdrive.simulation.blackbox`); ``key`` seeds the training."""
+    trained = train_blackbox(key, follower_arrays(traj, window="fit"), config)
+    policy = fixed_policy(
+        "blackbox",
+        blackbox_model(trained.net),
+        BlackboxParams(),
+        "MLP policy by behavioural cloning on the fitting windows (stands in for GAIL)",
+    )
+    details = {
+        "config": config._asdict(),
+        "final_training_loss": float(np.mean(trained.losses[-100:])),
+    }
+    return policy._replace(details=details)
+
+
+_FIXED = {
+    "idm-default": (IDM, IDM_DEFAULT_PARAMS, "IDM at Treiber's defaults, sigma = 0"),
+    "idm-nls": (IDM, IDM_NLS_PARAMS, "IDM at the paper's published NLS fit, sigma = 0"),
+    "cv": (CONSTANT_ACCELERATION, ConstantAccelerationParams(0.0, 0.0), "constant velocity"),
+    "ca": (
         CONSTANT_ACCELERATION,
-        ConstantAccelerationParams(acc=0.0, sigma=0.0),
-        "constant velocity",
-    ),
-    "ca": lambda: fixed_policy(
-        "ca",
-        CONSTANT_ACCELERATION,
-        ConstantAccelerationParams(acc=1.0, sigma=0.0),
+        ConstantAccelerationParams(1.0, 0.0),
         "constant acceleration +1 m/s^2",
     ),
+    "cidm-c1": (
+        CIDM,
+        CIDMParams(*IDM_DEFAULT_PARAMS, c=1.0),
+        "Cooperative IDM, c = 1, IDM at Treiber's defaults, sigma = 0",
+    ),
+    "idm-nomerge": (IDM, IDM_DEFAULT_PARAMS, "IDM at Treiber's defaults ignoring merging cars"),
 }
+BASELINES = ("idm-default", "idm-nls", "idm-lm", "cv", "ca", "blackbox", "cidm-c1", "idm-nomerge")
+MERGE_ONLY = frozenset({"cidm-c1", "idm-nomerge"})
+CAR_FOLLOWING_ONLY = frozenset({"idm-lm", "blackbox"})
+
+
+def baseline_policy(
+    name: str,
+    key: Array,
+    traj: Trajectories,
+    vehicle_ids: list[str],
+    *,
+    blackbox_config: TrainConfig | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Policy:
+    """The baseline ``name`` (one of :data:`BASELINES`) for the simulated ``vehicle_ids``.
+
+    ``key`` seeds what is trained or drawn (black box, LM engine); ``progress(done, total)``
+    follows the per-vehicle fits.
+    """
+    if name in _FIXED:
+        return fixed_policy(name, *_FIXED[name])
+    if name == "idm-lm":
+        return lm_policy(key, traj, vehicle_ids, progress)
+    if name == "blackbox":
+        return blackbox_policy(key, traj, blackbox_config or TrainConfig())
+    raise KeyError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
