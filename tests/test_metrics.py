@@ -1,0 +1,152 @@
+"""Metrics against values computed by hand on tiny arrays."""
+
+import json
+
+import numpy as np
+import pytest
+
+from bayesdrive.simulation.metrics import (
+    Observed,
+    collision_onsets,
+    distribution_distance,
+    distribution_samples,
+    kde,
+    rmse_by_step,
+    scenario_metrics,
+    summarize,
+)
+from bayesdrive.simulation.rollout import Rollout
+
+
+def test_rmse_is_the_root_of_the_mean_square_over_rollouts_and_vehicles():
+    # Step 1 errors over (rollout, vehicle): 1, 3, -1, 1 -> mean square 12 / 4 = 3.
+    simulated = np.array([[[0.0, 1.0], [0.0, 3.0]], [[0.0, -1.0], [0.0, 1.0]]])
+    observed = np.zeros((2, 2))
+    np.testing.assert_allclose(rmse_by_step(simulated, observed), [0.0, np.sqrt(3.0)])
+    # Not the mean absolute error (1.5) nor the RMS of per-vehicle means.
+    assert rmse_by_step(simulated, observed)[1] != pytest.approx(1.5)
+
+
+def test_a_collision_lasting_several_steps_is_one_event():
+    assert collision_onsets(np.array([[False, True, True, False, True]])) == 2
+    assert collision_onsets(np.array([[True, True], [False, False]])) == 1
+    assert collision_onsets(np.zeros((3, 2, 4), bool)) == 0
+
+
+def tiny_scenario():
+    """2 rollouts x 2 vehicles x 3 steps, the second vehicle of rollout 1 colliding twice."""
+    x = np.array(
+        [
+            [[0.0, 1.0, 2.0, 3.0], [-10.0, -9.0, -8.0, -7.0]],
+            [[0.0, 1.0, 2.0, 5.0], [-10.0, -9.0, -8.0, -3.0]],
+        ]
+    )
+    v = np.full((2, 2, 4), 10.0)
+    collision = np.zeros((2, 2, 3), bool)
+    collision[1, 1] = [True, False, True]
+    hard = np.zeros((2, 2, 3), bool)
+    hard[0, 0, 2] = hard[1, 0, 0] = hard[1, 1, 1] = True
+    rollout = Rollout(
+        x=x,
+        v=v,
+        gap=np.full((2, 2, 4), 5.0),
+        collision=collision,
+        hard_braking=hard,
+        off_road=np.zeros((2, 2, 3), bool),
+    )
+    observed = Observed(
+        x=np.array([[0.0, 1.0, 2.0, 3.0], [-10.0, -9.0, -8.0, -7.0]]),
+        # Vehicle 1 brakes at -4, -6, -2 m/s^2: two steps at or below -3.
+        v=np.array([[10.0, 10.0, 10.0, 10.0], [10.0, 9.6, 9.0, 8.8]]),
+        gap=np.array([[5.0, 5.0, 5.0, 5.0], [np.nan, 5.0, 5.0, 5.0]]),
+        step_mask=np.ones(3),
+        dt=0.1,
+    )
+    return rollout, observed
+
+
+def test_scenario_metrics_by_hand():
+    rollout, observed = tiny_scenario()
+    m = scenario_metrics("tiny", rollout, observed)
+    # Last-step position errors: 0, 0, 2, 4 -> RMSE sqrt(20 / 4), MAE 6 / 4.
+    np.testing.assert_allclose(m.rmse_position_by_step, [0.0, 0.0, 0.0, np.sqrt(5.0)])
+    assert m.mae_position_last == pytest.approx(1.5)
+    # Speed errors at the last step: 0, 10 - 8.8 = 1.2 for both rollouts' vehicle 1.
+    assert m.rmse_speed_by_step[-1] == pytest.approx(np.sqrt(2 * 1.2**2 / 4))
+    assert m.mae_speed_last == pytest.approx(2 * 1.2 / 4)
+    assert m.collisions == 2
+    assert m.collided == 1  # one vehicle-rollout of four
+    assert m.hard_braking == 3
+    assert m.data_hard_braking == 2
+    assert m.off_road == 0
+
+
+def test_steps_past_the_end_of_a_scene_are_not_scored():
+    rollout, observed = tiny_scenario()
+    short = observed._replace(step_mask=np.array([1.0, 1.0, 0.0]))
+    m = scenario_metrics("short", rollout, short)
+    assert np.isnan(m.rmse_position_by_step[3])
+    assert m.last_step == 2
+    assert m.mae_position_last == 0.0
+    # The data's third step (-2 m/s^2) would not count anyway; its second (-6) still does.
+    assert m.data_hard_braking == 2
+    samples = distribution_samples(rollout, short)
+    assert len(samples.simulated_speed) == 2 * 2 * 2  # rollouts x vehicles x real steps 1..2
+    assert len(samples.observed_speed) == 2 * 2
+
+
+def test_distribution_samples_skip_steps_without_a_leader():
+    rollout, observed = tiny_scenario()
+    samples = distribution_samples(rollout, observed)
+    # Observed gaps: vehicle 0 has 3 real steps, vehicle 1 has 3 (its NaN is at step 0).
+    assert len(samples.observed_gap) == 6
+    assert len(samples.simulated_gap) == 2 * 6
+    gapless = observed._replace(gap=np.where(np.arange(4) == 2, np.nan, observed.gap))
+    assert len(distribution_samples(rollout, gapless).observed_gap) == 4
+
+
+def test_summary_across_scenarios_by_hand():
+    rollout, observed = tiny_scenario()
+    first = scenario_metrics("a", rollout, observed)
+    exact = rollout._replace(
+        x=np.broadcast_to(observed.x, (2, 2, 4)), collision=np.zeros((2, 2, 3), bool)
+    )
+    second = scenario_metrics("b", exact, observed)
+    samples = [distribution_samples(rollout, observed), distribution_samples(exact, observed)]
+    summary = summarize([first, second], samples)
+    # Final position RMSE: sqrt(5) and 0 -> mean sqrt(5)/2, sample sd sqrt(5)/sqrt(2).
+    assert summary["rmse_position_m"]["mean"] == pytest.approx(np.sqrt(5.0) / 2)
+    assert summary["rmse_position_m"]["sd"] == pytest.approx(np.sqrt(5.0) / np.sqrt(2.0))
+    assert summary["rmse_position_m"]["by_step"]["mean"][-1] == pytest.approx(np.sqrt(5.0) / 2)
+    assert summary["collisions"] == {"total": 2, "per_rollout": 1.0, "fraction": 1 / 8}
+    assert summary["hard_braking"] == {"total": 6, "per_rollout": 3.0, "data_total": 4}
+    assert summary["scenarios"] == 2 and summary["vehicles"] == 4 and summary["rollouts"] == 2
+    json.dumps(summary, allow_nan=False)  # JSON-ready: no NaN, no numpy types
+
+
+def test_a_single_scenario_has_no_sd():
+    rollout, observed = tiny_scenario()
+    one = summarize(
+        [scenario_metrics("a", rollout, observed)], [distribution_samples(rollout, observed)]
+    )
+    assert one["rmse_position_m"]["sd"] is None
+    json.dumps(one, allow_nan=False)
+
+
+def test_distribution_distances_by_hand():
+    far = distribution_distance(np.zeros(3), np.ones(2))
+    assert far == {"wasserstein": pytest.approx(1.0), "ks": pytest.approx(1.0)}
+    # Half the mass moved by 2: W1 = 1; the CDFs differ by at most 1/2 between 0 and 2.
+    half = distribution_distance(np.array([0.0, 2.0]), np.array([0.0, 0.0]))
+    assert half == {"wasserstein": pytest.approx(1.0), "ks": pytest.approx(0.5)}
+    assert distribution_distance(np.arange(5.0), np.arange(5.0)) == {"wasserstein": 0.0, "ks": 0.0}
+    with pytest.raises(ValueError, match="empty"):
+        distribution_distance(np.array([]), np.ones(2))
+
+
+def test_kde_is_a_density_centred_on_the_samples():
+    samples = np.random.default_rng(0).normal(3.0, 1.0, 500)
+    grid = np.linspace(-5.0, 11.0, 1601)
+    density = kde(samples, grid)
+    assert np.trapezoid(density, grid) == pytest.approx(1.0, abs=1e-3)
+    assert abs(grid[np.argmax(density)] - 3.0) < 0.3  # mode of N(3, 1) from 500 draws, seed 0
