@@ -460,3 +460,16 @@ def test_columns_wide_matrices(tmp_path):
     np.savetxt(tmp_path / "x_leader.csv", lead[:-1], delimiter=",", fmt="%.4f")
     with pytest.raises(DataError, match="wide matrices differ in shape"):
         read_columns(tmp_path, mode="wide", files=files, units="ft", dt=0.1)
+
+
+def test_columns_numeric_leader_ids_with_blanks_mean_no_leader(tmp_path):
+    path = tmp_path / "cars.csv"
+    path.write_text("id,t,x,v,lead\n1,0.0,50,10,\n1,0.1,51,10,\n2,0.0,30,10,1\n2,0.1,31,10,1\n")
+    traj = read_columns(
+        path, {"vehicle_id": "id", "t": "t", "x": "x", "v": "v", "leader_id": "lead"}, dt=0.1
+    )
+    assert traj.vehicle("1")["leader_id"].isna().all()
+    assert traj.vehicle("2")["gap"].iloc[0] == pytest.approx(50 - 30 - 4.5)
+    path.write_text("id,t,x,v\n1,0.0,50,10\n,0.1,51,10\n")
+    with pytest.raises(DataError, match=r"row 3, column 'id': vehicle id is empty"):
+        read_columns(path, {"vehicle_id": "id", "t": "t", "x": "x", "v": "v"}, dt=0.1)

@@ -4,7 +4,8 @@ Reading: :func:`input_files` (a file or a folder), :func:`read_table` (CSV with 
 line number of every row in ``_row`` and the file in ``_file``), :func:`require_columns`,
 :func:`numeric_columns` (non-numbers and NaN are errors naming file, row and column),
 :func:`snap_to_grid` (times onto the ``dt`` grid). Building: :func:`make_tracks` (a schema table with
-defaults), :func:`integrate_speed`, :func:`gaps_from_positions`, :func:`harmonise_lengths`. Ending:
+defaults), :func:`integrate_speed`, :func:`leader_values`, :func:`gaps_from_positions`,
+:func:`harmonise_lengths`, :func:`merge_copies` (samples present in several files). Ending:
 :func:`finish` (validate, flag negative gaps, wrap in :class:`Trajectories`). Every repair goes
 through :class:`Notes`, which logs it as a warning and records it in ``Trajectories.notes``.
 """
@@ -35,6 +36,7 @@ __all__ = [
     "harmonise_lengths",
     "input_files",
     "integrate_speed",
+    "leader_values",
     "make_tracks",
     "merge_copies",
     "numeric_columns",
@@ -267,21 +269,24 @@ def integrate_speed(t: np.ndarray, v: np.ndarray) -> np.ndarray:
     return x
 
 
-def gaps_from_positions(tracks: pd.DataFrame, dt: float) -> pd.Series:
-    """Bumper gap ``x_leader - x - length_leader`` at the same time; NaN where no leader sample."""
+def leader_values(tracks: pd.DataFrame, column: str, dt: float) -> pd.Series:
+    """The leader's ``column`` on each row at the same time; NaN without a leader sample."""
     key = np.round(tracks["t"].to_numpy(dtype=float) / dt).astype(np.int64)
-    leaders = pd.DataFrame(
+    own = pd.DataFrame(
         {
             "leader_id": tracks["vehicle_id"].to_numpy(),
             "_k": key,
-            "_x_leader": tracks["x"].to_numpy(dtype=float),
-            "_length_leader": tracks["length"].to_numpy(dtype=float),
+            "_value": tracks[column].to_numpy(dtype=float),
         }
     ).drop_duplicates(["leader_id", "_k"])
     asked = pd.DataFrame({"leader_id": tracks["leader_id"].to_numpy(), "_k": key})
-    found = asked.merge(leaders, on=["leader_id", "_k"], how="left")
-    gap = found["_x_leader"] - tracks["x"].to_numpy(dtype=float) - found["_length_leader"]
-    return pd.Series(gap.to_numpy(), index=tracks.index)
+    found = asked.merge(own, on=["leader_id", "_k"], how="left")["_value"]
+    return pd.Series(found.to_numpy(), index=tracks.index)
+
+
+def gaps_from_positions(tracks: pd.DataFrame, dt: float) -> pd.Series:
+    """Bumper gap ``x_leader - x - length_leader`` at the same time; NaN where no leader sample."""
+    return leader_values(tracks, "x", dt) - tracks["x"] - leader_values(tracks, "length", dt)
 
 
 def harmonise_lengths(

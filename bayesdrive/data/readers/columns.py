@@ -325,7 +325,7 @@ def _read(
             dt = _infer_dt(frames, columns, mode, notes)
         maker = _vehicles if mode == "vehicles" else _pairs
         parts = [
-            maker(f, frame, columns, factor, dt, id_pattern, no_leader)
+            maker(f, frame, columns, factor, dt, id_pattern=id_pattern, no_leader=no_leader)
             for f, frame in zip(sources, frames, strict=True)
         ]
         tracks = pd.concat(parts, ignore_index=True)
@@ -382,17 +382,28 @@ def _infer_dt(frames: list[pd.DataFrame], columns, mode: str, notes: Notes) -> f
 
 
 def _ids(values: pd.Series) -> pd.Series:
-    """Ids as strings; integral numbers without a trailing '.0'."""
+    """Ids as strings (integral numbers without a trailing '.0'); None where missing."""
+    if isinstance(values.dtype, pd.CategoricalDtype):
+        values = values.astype(object)
     if pd.api.types.is_numeric_dtype(values):
         numbers = values.astype(float)
         integral = np.isfinite(numbers) & (numbers == np.round(numbers))
-        text = values.astype(str)
-        return text.where(~integral, numbers.round().astype("Int64").astype(str))
-    return (
-        values.astype(object)
-        .where(values.notna(), None)
-        .map(lambda v: None if v is None else str(v).strip())
-    )
+        text = values.astype(str).where(~integral, numbers.round().astype("Int64").astype(str))
+    else:
+        text = values.astype(object).map(lambda v: str(v).strip())
+    return text.astype(object).where(values.notna(), None)
+
+
+def _required_ids(frame: pd.DataFrame, column: str) -> np.ndarray:
+    ids = _ids(frame[column])
+    missing = ids.isna().to_numpy()
+    if missing.any():
+        first = int(np.argmax(missing))
+        raise DataError(
+            f"{frame['_file'].iloc[first]}, row {frame['_row'].iloc[first]}, column {column!r}: "
+            "vehicle id is empty"
+        )
+    return ids.to_numpy()
 
 
 def _none_leaders(leaders: pd.Series, no_leader: Sequence[Any]) -> pd.Series:
@@ -407,8 +418,7 @@ def _optional(frame: pd.DataFrame, columns, key: str, factor: float = 1.0, defau
     return frame[columns[key]].to_numpy() * factor
 
 
-def _vehicles(path, frame, columns, factor, dt, id_pattern, no_leader) -> pd.DataFrame:
-    del id_pattern
+def _vehicles(path, frame, columns, factor, dt, *, no_leader, **_) -> pd.DataFrame:
     numeric_columns(frame, [columns["x"], columns["v"]])
     steps = snap_to_grid(frame["_t"], dt, frame, column=columns["t"])
     leader = (
@@ -417,7 +427,7 @@ def _vehicles(path, frame, columns, factor, dt, id_pattern, no_leader) -> pd.Dat
         else None
     )
     tracks = make_tracks(
-        vehicle_id=_ids(frame[columns["vehicle_id"]]).to_numpy(),
+        vehicle_id=_required_ids(frame, columns["vehicle_id"]),
         t=time_steps(steps, dt),
         x=frame[columns["x"]].to_numpy() * factor,
         v=frame[columns["v"]].to_numpy() * factor,
@@ -447,8 +457,8 @@ def _lanes(frame, columns):
 def _pair_ids(path: Path, frame, columns, id_pattern) -> tuple[np.ndarray, np.ndarray]:
     if "follower_id" in columns and "leader_id" in columns:
         return (
-            _ids(frame[columns["follower_id"]]).to_numpy(),
-            _ids(frame[columns["leader_id"]]).to_numpy(),
+            _required_ids(frame, columns["follower_id"]),
+            _required_ids(frame, columns["leader_id"]),
         )
     if id_pattern:
         match = re.search(id_pattern, path.stem)
@@ -468,8 +478,7 @@ def _pair_ids(path: Path, frame, columns, id_pattern) -> tuple[np.ndarray, np.nd
     )
 
 
-def _pairs(path, frame, columns, factor, dt, id_pattern, no_leader) -> pd.DataFrame:
-    del no_leader
+def _pairs(path, frame, columns, factor, dt, *, id_pattern, **_) -> pd.DataFrame:
     required = [columns[k] for k in ("x_follower", "v_follower", "x_leader", "v_leader")]
     numeric_columns(frame, required)
     steps = snap_to_grid(frame["_t"], dt, frame, column=columns["t"])

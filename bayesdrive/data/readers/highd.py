@@ -37,6 +37,7 @@ from bayesdrive.data.readers._common import (
     Notes,
     finish,
     gaps_from_positions,
+    leader_values,
     make_tracks,
     numeric_columns,
     read_table,
@@ -203,29 +204,28 @@ def _read_recording(folder: Path, prefix: str, notes: Notes):
             f"{preceding.iloc[first]} has no row at frame {frames[first]}"
         )
     if "dhw" in frame.columns:
-        _compare_dhw(frame, tracks, has_leader, notes, tracks_path.name)
+        _compare_dhw(frame, tracks, has_leader, dt, notes, tracks_path.name)
     scenes = pd.DataFrame({"scene_id": prefix, "vehicle_id": pd.unique(tracks["vehicle_id"])})
     return tracks, scenes, dt
 
 
 def _compare_dhw(
-    frame: pd.DataFrame, tracks: pd.DataFrame, has_leader: np.ndarray, notes: Notes, name: str
+    frame: pd.DataFrame,
+    tracks: pd.DataFrame,
+    has_leader: np.ndarray,
+    dt: float,
+    notes: Notes,
+    name: str,
 ) -> None:
     dhw = pd.to_numeric(frame["dhw"], errors="coerce").to_numpy()
     usable = has_leader & np.isfinite(dhw)
     if not usable.any():
         return
     gap = tracks["gap"].to_numpy()[usable]
-    spacing = gap + _leader_lengths(tracks)[usable]  # front to front
+    spacing = gap + leader_values(tracks, "length", dt).to_numpy()[usable]  # front to front
     to_gap = np.median(np.abs(dhw[usable] - gap))
     to_spacing = np.median(np.abs(dhw[usable] - spacing))
     notes.assume(
         f"{name}: dhw vs computed gaps: median |dhw - bumper gap| = {to_gap:.2f} m, "
         f"median |dhw - front-to-front spacing| = {to_spacing:.2f} m (gap from positions used)"
     )
-
-
-def _leader_lengths(tracks: pd.DataFrame) -> np.ndarray:
-    """The leader's length on each row (NaN without a leader)."""
-    lengths = tracks.drop_duplicates("vehicle_id").set_index("vehicle_id")["length"]
-    return tracks["leader_id"].map(lengths).to_numpy(dtype=float)

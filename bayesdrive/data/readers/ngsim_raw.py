@@ -32,6 +32,7 @@ from bayesdrive.data.readers._common import (
     Notes,
     finish,
     input_files,
+    leader_values,
     make_tracks,
     numeric_columns,
     read_table,
@@ -183,25 +184,29 @@ def _read_file(
     def ids(values: pd.Series) -> pd.Series:
         return scene + ":" + values.astype(np.int64).astype(str)
 
-    vehicle = ids(frame["Vehicle_ID"])
-    frames = frame["Frame_ID"].astype(np.int64)
-    length = frame["v_Length"].to_numpy() * FOOT_M
     preceding = frame["Preceding"].astype(np.int64)
-    has_leader = (preceding != 0).to_numpy()
-    leader = ids(preceding).where(has_leader, None)
-
+    tracks = make_tracks(
+        vehicle_id=ids(frame["Vehicle_ID"]).to_numpy(),
+        t=time_steps(frame["Frame_ID"].astype(np.int64).to_numpy(), DT),
+        x=frame["Local_Y"].to_numpy() * FOOT_M,
+        v=frame["v_Vel"].to_numpy() * FOOT_M,
+        a=frame["v_Acc"].to_numpy() * FOOT_M,
+        lane_id=frame["Lane_ID"].astype(np.int64).to_numpy(),
+        leader_id=ids(preceding).where(preceding != 0, None).to_numpy(),
+        length=frame["v_Length"].to_numpy() * FOOT_M,
+        row=frame["_row"].to_numpy(),
+        file=str(path),
+    )
     # The leader must be in the file at the same frame: its length gives the bumper gap.
-    own = pd.DataFrame({"leader": vehicle, "frame": frames, "leader_length": length})
-    own = own.drop_duplicates(["leader", "frame"])
-    asked = pd.DataFrame({"leader": leader, "frame": frames})
-    found = asked.merge(own, on=["leader", "frame"], how="left")["leader_length"].to_numpy()
-    missing = has_leader & np.isnan(found)
+    leader_length = leader_values(tracks, "length", DT).to_numpy()
+    has_leader = tracks["leader_id"].notna().to_numpy()
+    missing = has_leader & np.isnan(leader_length)
     if missing.any():
         first = int(np.argmax(missing))
         message = (
             f"{path}, row {frame['_row'].iloc[first]}, column 'Preceding': leader "
-            f"{int(preceding.iloc[first])} has no row at frame {int(frames.iloc[first])} in this "
-            f"file ({int(missing.sum())} such row(s))"
+            f"{int(preceding.iloc[first])} has no row at frame {int(frame['Frame_ID'].iloc[first])} "
+            f"in this file ({int(missing.sum())} such row(s))"
         )
         if missing_leaders == "error":
             raise DataError(message + "; pass missing_leaders='drop' to drop these links")
@@ -209,22 +214,8 @@ def _read_file(
             f"{path.name}: {int(missing.sum())} row(s) name a leader that is not in the file at "
             "that frame; leader set to None there (missing_leaders='drop')"
         )
-        has_leader = has_leader & ~missing
-        leader = leader.where(has_leader, None)
-    gap = np.where(has_leader, frame["Space_Headway"].to_numpy() * FOOT_M - found, np.nan)
-
-    tracks = make_tracks(
-        vehicle_id=vehicle,
-        t=time_steps(frames.to_numpy(), DT),
-        x=frame["Local_Y"].to_numpy() * FOOT_M,
-        v=frame["v_Vel"].to_numpy() * FOOT_M,
-        a=frame["v_Acc"].to_numpy() * FOOT_M,
-        lane_id=frame["Lane_ID"].astype(np.int64).to_numpy(),
-        leader_id=leader.to_numpy(),
-        gap=gap,
-        length=length,
-        row=frame["_row"].to_numpy(),
-        file=str(path),
-    )
-    scenes = pd.DataFrame({"scene_id": scene, "vehicle_id": pd.unique(vehicle)})
+        tracks.loc[missing, "leader_id"] = None
+    tracks["gap"] = frame["Space_Headway"].to_numpy() * FOOT_M - leader_length
+    tracks.loc[tracks["leader_id"].isna(), "gap"] = np.nan
+    scenes = pd.DataFrame({"scene_id": scene, "vehicle_id": pd.unique(tracks["vehicle_id"])})
     return tracks, scenes
