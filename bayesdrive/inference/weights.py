@@ -31,7 +31,9 @@ def log_mean_weight(log_weights: Array) -> Array:
 
 def effective_sample_size(log_weights: Array) -> Array:
     """Kish's effective sample size (sum w)^2 / sum w^2, between 1 and the number of particles."""
-    return jnp.exp(2.0 * logsumexp(log_weights) - logsumexp(2.0 * log_weights))
+    # Shifting by the maximum is exact, so float32 keeps its precision on log weights near -1e3.
+    shifted = log_weights - jnp.max(log_weights)
+    return jnp.exp(2.0 * logsumexp(shifted) - logsumexp(2.0 * shifted))
 
 
 def weighted_mean_cov(particles: Array, log_weights: Array) -> tuple[Array, Array]:
