@@ -147,6 +147,16 @@ def test_openacc_positions_gaps_drivers_and_time(tmp_path):
     assert any("no length known for Ford(S-Max), KIA(Niro)" in n for n in traj.notes)
 
 
+def test_openacc_lengths_given_by_model_name(tmp_path):
+    path = tmp_path / "platoon.csv"
+    table = openacc_file(path, metadata_rows=2)
+    traj = read(path, lengths={"Ford (S-Max)": 4.8})
+    lead, follower = traj.vehicle("platoon:1"), traj.vehicle("platoon:2")
+    assert lead["length"].eq(4.8).all() and follower["length"].eq(4.5).all()
+    np.testing.assert_allclose(lead["x"].to_numpy() - follower["x"] - 4.8, table["IVS1"], atol=1e-6)
+    assert any("no length known for KIA(Niro)" in n for n in traj.notes)
+
+
 def test_openacc_trailing_missing_values_are_a_logged_repair(tmp_path, caplog):
     path = tmp_path / "rec.csv"
     openacc_file(path, metadata_rows=5, trailing_nan=7)

@@ -14,6 +14,10 @@ interaction    INTERACTION vehicle tracks on a lanelet2 map, :mod:`.interaction`
 merge_episodes NGSIM on-ramp merge episodes (ego-centric), :mod:`.merge_episodes`
 columns        any table through a column map (incl. the held-out folders), :mod:`.columns`
 ============== ====================================================================
+
+The data-set registry's format names for the held-out folders are in :data:`FORMATS` too:
+``openacc_extract`` (OpenACC reader) and ``ngsim_pairs``, ``ngsim_parquet``, ``ngsim_matrices``,
+``ngsim_vehicles`` (the column-map reader with the matching :data:`HOLDOUT_LAYOUTS` entry).
 """
 
 from __future__ import annotations
