@@ -111,7 +111,7 @@ def test_fetch_from_a_corrupted_mirror_exits_2_with_the_checksum_message(data_di
         )
     assert result.exit_code == 2
     assert "checksum mismatch" in one_line(result.stderr)
-    assert result.exception is None or isinstance(result.exception, SystemExit)
+    assert isinstance(result.exception, SystemExit)  # a clean exit, not an escaped exception
     assert not (tmp_path / "d").exists()
 
 
@@ -119,3 +119,103 @@ def test_fetch_of_an_unknown_name_exits_2(tmp_path):
     result = runner.invoke(app, ["data", "fetch", "nope", "--data-dir", str(tmp_path)])
     assert result.exit_code == 2
     assert "unknown data set 'nope'" in one_line(result.stderr)
+
+
+# ---- info ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.realdata
+def test_info_json_on_stdout_is_pure_json(data_dir):
+    result = runner.invoke(
+        app, ["data", "info", "ngsim_i80_chains", "--data-dir", str(data_dir), "--json", "-"]
+    )
+    assert result.exit_code == 0, result.stderr
+    info = json.loads(result.stdout)  # nothing but the JSON document on stdout
+    # The data set's documented figures (shared/data/README.md): 75 chains, 210 vehicles, 10 Hz.
+    assert info["format"] == "ngsim_chains"
+    assert info["scenes"] == 75
+    assert info["vehicles"] == 210
+    assert info["dt_s"] == pytest.approx(0.1)
+    for key in ("time_steps", "duration_s", "leader_follower_pairs"):
+        assert info[key] > 0
+    assert set(info["speed_mps"]) == {"min", "median", "max"}
+    assert set(info["gap_m"]) == {"min", "median"}
+
+
+@pytest.mark.realdata
+def test_info_accepts_a_held_out_name(holdout_dir):
+    result = runner.invoke(
+        app, ["data", "info", "acc_platoon_fhwa", "--data-dir", str(holdout_dir), "--json", "-"]
+    )
+    assert result.exit_code == 0, result.stderr
+    assert json.loads(result.stdout)["source"] == "acc_platoon_fhwa"
+
+
+def test_info_on_a_bad_file_exits_2_with_the_message_and_no_traceback(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("what,is,this\n1,2,3\n")
+    result = runner.invoke(app, ["data", "info", str(bad)])
+    assert result.exit_code == 2
+    message = one_line(result.stderr)
+    assert message.startswith("error:") and "bad.csv" in message
+    assert "cannot tell the format" in message
+    assert "Traceback" not in result.output
+    assert isinstance(result.exception, SystemExit)  # a clean exit, not an escaped exception
+
+
+def test_info_on_a_missing_data_set_names_the_fetch_command(tmp_path):
+    result = runner.invoke(app, ["data", "info", "ngsim_i80_chains", "--data-dir", str(tmp_path)])
+    assert result.exit_code == 2
+    assert "bayesdrive data fetch ngsim_i80_chains" in one_line(result.stderr)
+
+
+def write_two_cars_in_feet(path: Path, leader_gap_ft: float = 60.0) -> None:
+    """Car 1 follows car 2 at 30 ft/s for 3 s; 'space' is front to front; cars are 15 ft long."""
+    lines = ["ID,time,pos,speed,lead,space,len"]
+    for k in range(31):
+        t = round(0.1 * k, 1)
+        lines.append(f"1,{t},{3.0 * k:.1f},30,2,{leader_gap_ft},15")
+    for k in range(31):
+        t = round(0.1 * k, 1)
+        lines.append(f"2,{t},{leader_gap_ft + 3.0 * k:.1f},30,0,,15")
+    path.write_text("\n".join(lines) + "\n")
+
+
+COLUMN_MAP = "vehicle_id=ID,t=time,x=pos,v=speed,leader_id=lead,gap=space,length=len"
+
+
+@pytest.mark.parametrize(
+    ("headway", "gap_ft"),
+    [("front", 60.0 - 15.0), ("bumper", 60.0)],  # front-to-front minus the leader's length
+)
+def test_info_passes_the_column_map_units_and_headway_to_the_reader(tmp_path, headway, gap_ft):
+    table = tmp_path / "cars.csv"
+    write_two_cars_in_feet(table)
+    options = ["--columns", COLUMN_MAP, "--units", "ft", "--headway", headway]
+    result = runner.invoke(app, ["data", "info", str(table), *options, "--json", "-"])
+    assert result.exit_code == 0, result.stderr
+    info = json.loads(result.stdout)
+    assert info["format"] == "columns"
+    assert info["vehicles"] == 2 and info["leader_follower_pairs"] == 1
+    assert info["speed_mps"]["median"] == pytest.approx(30 * 0.3048)
+    assert info["gap_m"]["median"] == pytest.approx(gap_ft * 0.3048)
+
+
+def test_info_strict_refuses_flagged_data(tmp_path):
+    table = tmp_path / "cars.csv"
+    write_two_cars_in_feet(table, leader_gap_ft=10.0)  # 10 ft front to front: cars overlap
+    args = ["data", "info", str(table), "--columns", COLUMN_MAP, "--units", "ft"]
+    lenient = runner.invoke(app, [*args, "--headway", "front", "--json", "-"])
+    assert lenient.exit_code == 0, lenient.stderr
+    assert json.loads(lenient.stdout)["flags"] == {"negative_gap": 31}
+    strict = runner.invoke(app, [*args, "--headway", "front", "--strict"])
+    assert strict.exit_code == 2
+    assert "strict mode refuses flagged data" in one_line(strict.stderr)
+
+
+def test_info_rejects_a_malformed_column_map(tmp_path):
+    table = tmp_path / "cars.csv"
+    write_two_cars_in_feet(table)
+    result = runner.invoke(app, ["data", "info", str(table), "--columns", "vehicle_id"])
+    assert result.exit_code == 2
+    assert "is not SCHEMA=FILE_COLUMN" in one_line(result.stderr)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bayesdrive.data import registry
+from bayesdrive.data import readers, registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.registry import DATASETS, HOLDOUT
 
@@ -184,3 +184,33 @@ def test_get_knows_both_tables_and_nothing_else():
     assert registry.get("openacc_casale").role == "holdout"
     with pytest.raises(DataError, match="unknown data set 'nope'"):
         registry.get("nope")
+
+
+# ---- load ---------------------------------------------------------------------------------------
+
+
+def test_every_registered_format_is_a_reader():
+    for dataset in (*DATASETS.values(), *HOLDOUT.values()):
+        assert dataset.format in readers.FORMATS, dataset.name
+
+
+@pytest.mark.realdata
+def test_load_by_name_uses_the_registered_reader_and_records_the_name(data_dir):
+    traj = registry.load("interaction_fixture", data_dir=data_dir)
+    assert traj.format == DATASETS["interaction_fixture"].format
+    assert traj.source == "interaction_fixture"
+
+
+@pytest.mark.realdata
+def test_load_by_path_keeps_the_path_as_source(data_dir):
+    folder = Path(data_dir) / "interaction_fixture"
+    assert registry.load(folder).source == str(folder)
+
+
+@pytest.mark.realdata
+def test_load_refuses_held_out_names_and_load_holdout_reads_them(data_dir, holdout_dir):
+    with pytest.raises(DataError, match="held out for evaluation only"):
+        registry.load("acc_platoon_fhwa", data_dir=data_dir)
+    # Loading only (the one thing tests may do with held-out data): no figures asserted.
+    traj = registry.load_holdout("acc_platoon_fhwa", holdout_dir=holdout_dir)
+    assert traj.source == "acc_platoon_fhwa" and len(traj.tracks) > 0

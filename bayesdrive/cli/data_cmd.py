@@ -126,7 +126,7 @@ def _flatten(result: dict[str, Any], prefix: str = "") -> list[tuple[str, str]]:
         if isinstance(value, dict):
             rows.extend(_flatten(value, f"{prefix}{key}."))
         elif isinstance(value, float):
-            rows.append((prefix + key, f"{value:.4g}"))
+            rows.append((prefix + key, f"{value:.6g}"))
         else:
             rows.append((prefix + key, str(value)))
     return rows
@@ -158,6 +158,8 @@ def info(
     """Figures of a data set: scenes, vehicles, time, speeds, gaps, flags and notes."""
     try:
         options = _reader_options(columns, units, headway)
+        if columns is not None and format is None:
+            format = "columns"  # a column map only means something to the column-map reader
         if path_or_name in registry.HOLDOUT and not Path(path_or_name).exists():
             traj = registry.load_holdout(
                 path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options
