@@ -24,8 +24,9 @@ R-hat over walkers means nothing. The first ``num_burn`` steps (default: half) a
 integrated autocorrelation time ``tau`` of each parameter is estimated on the rest
 (``get_autocorr_time``; it is trustworthy when the kept run is longer than 50 tau,
 recorded as ``autocorr_reliable``); the kept steps are thinned by ``ceil(max tau)`` and the walkers
-flattened into one chain (``chain = 1``). Vehicles with different tau keep different numbers of
-draws; all keep the same number, the smallest over vehicles, taking their latest thinned draws.
+flattened into one chain (``chain = 1``). Vehicles with different tau have different numbers of
+thinned draws; all keep the same number (``num_particles``, or the smallest over vehicles if
+lower), taking their latest thinned draws.
 """
 
 from __future__ import annotations
@@ -81,13 +82,19 @@ def run(
     model: DriverModel,
     params: Sequence[str] | None = None,
     fixed: Mapping[str, float] | None = None,
+    num_particles: int = 2000,
+    prior: Any = None,
     progress: Callable[[int, int], None] | None = None,
     num_steps: int = 4000,
     num_burn: int | None = None,
     num_walkers: int | None = None,
     log_likelihood_draws: int = 200,
 ) -> EngineResult:
-    """emcee for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
+    """emcee for every vehicle of ``arrays`` (module docstring).
+
+    Each vehicle keeps its latest ``num_particles`` thinned draws, or fewer when some vehicle has
+    fewer (then all keep that many). ``prior`` (default: the model's uniform box) needs
+    ``logpdf(theta)`` and ``sample(key, shape)``; the mode search stays inside the box.
 
     ``sample_stats`` holds per vehicle ``autocorr_time`` [vehicle, param], ``thin``,
     ``kept_draws`` (before the common truncation), ``autocorr_reliable``, ``acceptance_fraction``
@@ -104,6 +111,7 @@ def run(
             f"num_walkers={walkers}, num_burn={burn}, num_steps={num_steps}"
         )
     box = model.prior(names)
+    prior = box if prior is None else prior
     fixed_values = fixed_params(model, fixed)
     lower, upper = np.asarray(box.lower, np.float64), np.asarray(box.upper, np.float64)
     width = upper - lower
@@ -111,7 +119,7 @@ def run(
     num_vehicles = series.mask.shape[0]
 
     def log_posterior(thetas: Array, vehicle: Any) -> Array:
-        log_prior = jax.vmap(box.logpdf)(thetas)
+        log_prior = jax.vmap(prior.logpdf)(thetas)
         log_lik = jax.vmap(lambda th: series_loglik(model, names, fixed_values, th, vehicle).sum())(
             thetas
         )
@@ -141,7 +149,7 @@ def run(
     compile_time = time.perf_counter() - started
 
     key_candidates, key_ball, key_seed = jax.random.split(key, 3)
-    candidates = box.sample(key_candidates, (num_vehicles, START_CANDIDATES, walkers))
+    candidates = prior.sample(key_candidates, (num_vehicles, START_CANDIDATES, walkers))
     balls = np.asarray(jax.random.normal(key_ball, (num_vehicles, walkers, dim)))
     seeds = np.asarray(jax.random.bits(key_seed, (num_vehicles,), dtype=jnp.uint32)).astype(
         np.int64
@@ -185,7 +193,7 @@ def run(
             progress(i + 1, num_vehicles)
 
     started = time.perf_counter()
-    common = min(kept)
+    common = min(*kept, num_particles)
     theta = np.stack([draws[-common:] for draws in chains])  # (vehicle, draw, d)
     scored = thinned_draws(common, log_likelihood_draws)
     log_lik = np.stack(

@@ -20,7 +20,7 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import pf, smc
+from bayesdrive.inference import ensemble, nuts, pf, smc
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import EngineResult, build_tree, metadata
 
@@ -45,7 +45,12 @@ class Engine(Protocol):
     ) -> EngineResult: ...
 
 
-ENGINES: dict[str, Engine] = {"smc": smc.run, "pf": pf.run}
+ENGINES: dict[str, Engine] = {
+    "smc": smc.run,
+    "pf": pf.run,
+    "nuts": nuts.run,
+    "emcee": ensemble.run,
+}
 
 
 def fit(

@@ -132,11 +132,19 @@ def sample_nuts(
     return jax.vmap(one_chain)(jax.random.split(key, num_chains), init_z)
 
 
-def _box_model(box: Any, log_lik_fn: Callable[[Array, Any], Array]) -> Callable[[Any], None]:
-    """The NumPyro model of one vehicle: uniform prior on the box, the likelihood as a factor."""
+def _box_model(
+    box: Any, log_lik_fn: Callable[[Array, Any], Array], prior: Any
+) -> Callable[[Any], None]:
+    """The NumPyro model of one vehicle: uniform prior on the box, the likelihood as a factor.
+
+    A custom ``prior`` (with ``logpdf``) is added as a factor on top of the uniform base, so its
+    density is exact wherever its support lies inside the box.
+    """
 
     def vehicle_model(series: Any) -> None:
         theta = numpyro.sample("theta", dist.Uniform(box.lower, box.upper).to_event(1))
+        if prior is not None:
+            numpyro.factor("prior", prior.logpdf(theta))
         numpyro.factor("log_likelihood", log_lik_fn(theta, series))
 
     return vehicle_model
@@ -162,6 +170,7 @@ def _nuts_vehicle(
     names: tuple[str, ...],
     fixed: Any,
     box: Any,
+    prior: Any,
     config: NUTSConfig,
 ) -> _VehicleOutput:
     """Warm-up and sampling of ``config.num_chains`` vectorised chains for one vehicle."""
@@ -169,7 +178,7 @@ def _nuts_vehicle(
     def log_lik(theta: Array, series: StepInputs) -> Array:
         return series_loglik(model, names, fixed, theta, series).sum()
 
-    vehicle_model = _box_model(box, log_lik)
+    vehicle_model = _box_model(box, log_lik, prior)
 
     def potential_fn_gen(series: StepInputs):
         return functools.partial(potential_energy, vehicle_model, (series,), {})
@@ -206,10 +215,11 @@ def run(
     model: DriverModel,
     params: Sequence[str] | None = None,
     fixed: Mapping[str, float] | None = None,
+    num_particles: int = 2000,
+    prior: Any = None,
     progress: Callable[[int, int], None] | None = None,
     num_chains: int = 4,
     num_warmup: int = 500,
-    num_samples: int = 500,
     target_accept_prob: float = 0.95,
     max_tree_depth: int = 10,
     log_likelihood_draws: int = 200,
@@ -218,17 +228,19 @@ def run(
 ) -> EngineResult:
     """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
 
-    Posterior draws are (chain, draw, vehicle) with ``num_chains`` chains of ``num_samples`` draws
-    after ``num_warmup`` warm-up iterations. ``sample_stats`` holds per draw ``diverging``,
+    Posterior draws are (chain, draw, vehicle): ``num_particles`` draws in all, ``num_particles /
+    num_chains`` (rounded up) per chain after ``num_warmup`` warm-up iterations. ``prior`` (default:
+    the uniform box) needs ``logpdf(theta)`` and support inside the box. ``sample_stats`` holds per draw ``diverging``,
     ``tree_depth``, ``n_steps``, ``acceptance_rate``, ``energy`` and ``lp`` (the log density on the
     unconstrained scale), and the adapted ``step_size`` per vehicle and chain.
     """
     check_model(model)
     names = param_names(model, params)
+    num_samples = -(-num_particles // num_chains)
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
         raise ValueError(
-            "need num_chains >= 1, num_warmup >= 1 and num_samples >= 2, got "
-            f"{num_chains}, {num_warmup}, {num_samples}"
+            "need num_chains >= 1, num_warmup >= 1 and at least 2 draws per chain, got "
+            f"num_chains={num_chains}, num_warmup={num_warmup}, num_particles={num_particles}"
         )
     if not 0.0 < target_accept_prob < 1.0:
         raise ValueError(f"target_accept_prob must be in (0, 1), got {target_accept_prob}")
@@ -246,6 +258,7 @@ def run(
         names=names,
         fixed=fixed_params(model, fixed),
         box=model.prior(names),
+        prior=prior,
         config=config,
     )
     series = step_inputs(arrays)

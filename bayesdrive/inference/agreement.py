@@ -1,0 +1,195 @@
+r"""Convergence diagnostics of one result and agreement between results of different engines.
+
+**Convergence** (:func:`convergence_table`), per vehicle and parameter, through ArviZ 1.x:
+rank-normalised split R-hat (only with two or more chains: the walkers of one emcee ensemble and
+the particles of a filter are not independent chains, so no R-hat is reported for them), bulk and
+tail effective sample size and the Monte Carlo standard errors of the mean and the sd. Within a
+single chain ESS and MCSE come from the autocorrelation along the stored draw order. Engine
+extras are joined where the result has them: NUTS divergences per vehicle, emcee's integrated
+autocorrelation time (its maximum over parameters, the thinning) and whether the run was longer
+than 50 of them.
+
+**Agreement** (:func:`agreement_table`), for every pair (a, b) of results on the same data, per
+vehicle and parameter, with :math:`s = \sqrt{(sd_a^2 + sd_b^2)/2}`:
+
+* ``mean_diff_sd`` = :math:`(\bar\theta_b - \bar\theta_a)/s`, the difference of posterior means in
+  posterior sds;
+* ``sd_ratio`` = :math:`sd_b / sd_a`;
+* ``wasserstein`` = the 1-Wasserstein distance between the two sets of draws
+  (``scipy.stats.wasserstein_distance``), also in units of s (``wasserstein_sd``);
+* ``mc_tolerance`` = :math:`3\sqrt{mcse_a^2 + mcse_b^2}`, what Monte Carlo error alone explains;
+* ``agree`` = :math:`|\bar\theta_b - \bar\theta_a| \le \max(0.1\,s,\ \text{mc\_tolerance})` and the
+  sds within 10% (:math:`\max(sd_a, sd_b) \le 1.1 \min(sd_a, sd_b)`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping
+
+import arviz
+import numpy as np
+import pandas as pd
+import scipy.stats
+import xarray as xr
+
+from bayesdrive.inference.output import metadata
+
+__all__ = [
+    "MC_TOLERANCE_SE",
+    "MEAN_TOLERANCE_SD",
+    "SD_TOLERANCE",
+    "agreement_summary",
+    "agreement_table",
+    "convergence_table",
+    "same_data",
+]
+
+MEAN_TOLERANCE_SD = 0.1
+MC_TOLERANCE_SE = 3.0
+SD_TOLERANCE = 0.1
+
+
+def _posterior(tree: xr.DataTree) -> xr.Dataset:
+    return tree["posterior"].to_dataset()
+
+
+def _per_vehicle(values: xr.DataTree | xr.Dataset, name: str) -> np.ndarray:
+    dataset = values.to_dataset() if isinstance(values, xr.DataTree) else values
+    return np.asarray(dataset[name].values, dtype=np.float64)
+
+
+def convergence_table(tree: xr.DataTree) -> pd.DataFrame:
+    """One row per vehicle and parameter: R-hat (NaN with one chain), ESS, MCSE, engine extras."""
+    posterior = _posterior(tree)
+    names = list(posterior.data_vars)
+    multi_chain = posterior.sizes["chain"] >= 2
+    stats = {
+        "ess_bulk": arviz.ess(tree, method="bulk"),
+        "ess_tail": arviz.ess(tree, method="tail"),
+        "mcse_mean": arviz.mcse(tree, method="mean"),
+        "mcse_sd": arviz.mcse(tree, method="sd"),
+    }
+    if multi_chain:
+        stats["rhat"] = arviz.rhat(tree)
+    sample_stats = tree["sample_stats"].to_dataset() if "sample_stats" in tree.children else None
+    vehicles = [str(v) for v in posterior["vehicle"].values]
+    rows = []
+    for k, name in enumerate(names):
+        values = {key: _per_vehicle(result, name) for key, result in stats.items()}
+        for i, vehicle in enumerate(vehicles):
+            row = {"vehicle": vehicle, "param": name}
+            row["rhat"] = float(values["rhat"][i]) if multi_chain else float("nan")
+            row |= {key: float(values[key][i]) for key in stats if key != "rhat"}
+            row["sd"] = float(posterior[name].values[:, :, i].std())
+            if sample_stats is not None:
+                row |= _engine_extras(sample_stats, i, k)
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _engine_extras(sample_stats: xr.Dataset, vehicle: int, param: int) -> dict[str, float]:
+    """Divergences (NUTS) and autocorrelation times (emcee) for one vehicle, where present."""
+    extras: dict[str, float] = {}
+    if "diverging" in sample_stats and "vehicle" in sample_stats["diverging"].dims:
+        extras["divergences"] = float(sample_stats["diverging"].isel(vehicle=vehicle).values.sum())
+    if "autocorr_time" in sample_stats:
+        extras["autocorr_time"] = float(
+            sample_stats["autocorr_time"].isel(vehicle=vehicle).values[param]
+        )
+        extras["thin"] = float(sample_stats["thin"].isel(vehicle=vehicle))
+        extras["autocorr_reliable"] = float(sample_stats["autocorr_reliable"].isel(vehicle=vehicle))
+    return extras
+
+
+def same_data(trees: Mapping[str, xr.DataTree]) -> None:
+    """Refuse results fitted to different data: source, window and model must all match."""
+    keys = ("data_source", "window", "model")
+    seen = {label: tuple(metadata(tree).get(k) for k in keys) for label, tree in trees.items()}
+    if len(set(seen.values())) > 1:
+        detail = "; ".join(
+            f"{label}: {dict(zip(keys, v, strict=True))}" for label, v in seen.items()
+        )
+        raise ValueError(f"results are not on the same data and model: {detail}")
+
+
+def agreement_table(trees: Mapping[str, xr.DataTree]) -> pd.DataFrame:
+    """Every pair of results, per shared vehicle and parameter (module docstring for columns).
+
+    ``trees`` maps a label (e.g. the engine name) to a result. Only vehicles and parameters that
+    all results share are compared; none shared is an error.
+    """
+    if len(trees) < 2:
+        raise ValueError("agreement needs at least two results")
+    posteriors = {label: _posterior(tree) for label, tree in trees.items()}
+    mcse = {label: arviz.mcse(tree, method="mean") for label, tree in trees.items()}
+    vehicle_sets = [set(map(str, p["vehicle"].values)) for p in posteriors.values()]
+    param_sets = [set(p.data_vars) for p in posteriors.values()]
+    first = next(iter(posteriors.values()))
+    vehicles = [v for v in map(str, first["vehicle"].values) if all(v in s for s in vehicle_sets)]
+    params = [n for n in first.data_vars if all(n in s for s in param_sets)]
+    if not vehicles or not params:
+        raise ValueError(
+            f"the results share no vehicle and parameter (vehicles in common: {len(vehicles)}, "
+            f"parameters in common: {params})"
+        )
+
+    def draws(label: str, name: str, vehicle: str) -> np.ndarray:
+        values = posteriors[label][name].sel(vehicle=vehicle).values
+        return np.asarray(values, dtype=np.float64).ravel()
+
+    def standard_error(label: str, name: str, vehicle: str) -> float:
+        return float(mcse[label].to_dataset()[name].sel(vehicle=vehicle))
+
+    rows = []
+    for a, b in itertools.combinations(trees, 2):
+        for name in params:
+            for vehicle in vehicles:
+                draws_a, draws_b = draws(a, name, vehicle), draws(b, name, vehicle)
+                mean_a, mean_b = draws_a.mean(), draws_b.mean()
+                sd_a, sd_b = draws_a.std(), draws_b.std()
+                pooled_sd = float(np.sqrt((sd_a**2 + sd_b**2) / 2.0))
+                mcse_a, mcse_b = standard_error(a, name, vehicle), standard_error(b, name, vehicle)
+                mc_tolerance = MC_TOLERANCE_SE * float(np.hypot(mcse_a, mcse_b))
+                distance = float(scipy.stats.wasserstein_distance(draws_a, draws_b))
+                agree_mean = abs(mean_b - mean_a) <= max(
+                    MEAN_TOLERANCE_SD * pooled_sd, mc_tolerance
+                )
+                agree_sd = max(sd_a, sd_b) <= (1.0 + SD_TOLERANCE) * min(sd_a, sd_b)
+                rows.append(
+                    {
+                        "a": a,
+                        "b": b,
+                        "vehicle": vehicle,
+                        "param": name,
+                        "mean_a": float(mean_a),
+                        "mean_b": float(mean_b),
+                        "sd_a": float(sd_a),
+                        "sd_b": float(sd_b),
+                        "mcse_a": mcse_a,
+                        "mcse_b": mcse_b,
+                        "mean_diff_sd": float((mean_b - mean_a) / pooled_sd),
+                        "sd_ratio": float(sd_b / sd_a),
+                        "wasserstein": distance,
+                        "wasserstein_sd": distance / pooled_sd,
+                        "mc_tolerance": mc_tolerance,
+                        "agree_mean": bool(agree_mean),
+                        "agree_sd": bool(agree_sd),
+                        "agree": bool(agree_mean and agree_sd),
+                    }
+                )
+    return pd.DataFrame(rows)
+
+
+def agreement_summary(table: pd.DataFrame) -> pd.DataFrame:
+    """Per pair and parameter: share of vehicles agreeing and the worst departures."""
+    grouped = table.groupby(["a", "b", "param"], sort=False)
+    return grouped.agg(
+        vehicles=("vehicle", "size"),
+        agree=("agree", "mean"),
+        agree_mean=("agree_mean", "mean"),
+        agree_sd=("agree_sd", "mean"),
+        max_abs_mean_diff_sd=("mean_diff_sd", lambda d: float(np.max(np.abs(d)))),
+        median_sd_ratio=("sd_ratio", "median"),
+        max_wasserstein_sd=("wasserstein_sd", "max"),
+    ).reset_index()
