@@ -1,0 +1,54 @@
+"""Model extensions, one cause of misfit each, and the registry the criticism uses.
+
+Each extension wraps a car-following base model (see :mod:`.compose`) and adds parameters with
+documented priors whose defaults switch it off, so the base model is nested in every extension.
+:data:`EXTENSIONS` maps the cause name that ``bayesdrive criticize`` reports to the wrapper.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from types import MappingProxyType
+
+from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.extensions import (
+    autocorrelated_noise,
+    cut_in,
+    reaction_delay,
+    second_leader,
+    speed_dependent_noise,
+)
+from bayesdrive.drivers.extensions.compose import ExtendedModel, observed_lift
+
+__all__ = ["CAUSES", "EXTENSIONS", "NO_CAUSE", "as_extended", "extend"]
+
+NO_CAUSE = "none"
+
+EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = MappingProxyType(
+    {
+        reaction_delay.CAUSE: reaction_delay.with_reaction_delay,
+        autocorrelated_noise.CAUSE: autocorrelated_noise.with_autocorrelated_noise,
+        speed_dependent_noise.CAUSE: speed_dependent_noise.with_speed_dependent_noise,
+        second_leader.CAUSE: second_leader.with_second_leader_anticipation,
+        cut_in.CAUSE: cut_in.with_cut_in_heuristic,
+    }
+)
+CAUSES = tuple(EXTENSIONS)
+
+
+@functools.cache
+def as_extended(base: DriverModel) -> ExtendedModel:
+    """The base model itself in the :class:`ExtendedModel` form (cause "none", nothing added)."""
+    return ExtendedModel(NO_CAUSE, base, base, (), observed_lift)
+
+
+def extend(cause: str, base: DriverModel) -> ExtendedModel:
+    """``base`` extended for ``cause`` (or itself for "none"); a KeyError lists the causes."""
+    if cause == NO_CAUSE:
+        return as_extended(base)
+    try:
+        wrap = EXTENSIONS[cause]
+    except KeyError:
+        raise KeyError(f"unknown cause {cause!r}; known causes: {list(CAUSES)}") from None
+    return wrap(base)

@@ -1,0 +1,136 @@
+r"""Autocorrelated execution noise: the acceleration error follows a stationary AR(1) process.
+
+With :math:`e_t` the deviation of the applied acceleration from the base rule,
+
+.. math::
+
+    e_t = \rho\, e_{t-1} + \sqrt{1 - \rho^2}\,\sigma\, z_t, \quad z_t \sim N(0, 1), \qquad
+    a_t = a_{base,t} + e_t,
+
+so each :math:`e_t` has the base model's marginal sd :math:`\sigma` and lag-k correlation
+:math:`\rho^k` (per step: :math:`\rho` depends on the sampling interval; the data's dt is fixed).
+
+**Exact likelihood with observed states.** The state carries the last residual
+(:class:`NoiseMemoryState`). With exactly observed positions and speeds, the previous step's
+residual is observed too: :math:`e_{t-1} = \hat a_{t-1} - a_{base,t-1}`, where
+:math:`\hat a = 2(\Delta x - v\,\Delta t)/\Delta t^2` is the acceleration implied by the observed
+position increment (the quantity the base likelihood scores) and the base rule is evaluated on
+the previous step's inputs from the history window. :func:`with_autocorrelated_noise`'s ``lift``
+recovers it, so each step is scored exactly given the observed past.
+
+**Stops.** A step that ends in a stop censors its acceleration (the speed is clipped at 0), so the
+residual is unknown afterwards; the process then restarts from its stationary distribution
+(``known = 0``: mean :math:`a_{base}`, sd :math:`\sigma`). Simulation does the same, so sampler and
+density describe one process.
+
+========  ====  =======  ============  ==================================================
+name      unit  default  prior bounds  meaning
+========  ====  =======  ============  ==================================================
+rho       --    0.0      [0, 0.99]     lag-one-step correlation of the acceleration error
+========  ====  =======  ============  ==================================================
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jax import Array
+
+from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.extensions.compose import (
+    ExtendedModel,
+    base_params,
+    extended_specs,
+    params_type,
+)
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+from bayesdrive.drivers.idm import STOP_SPEED, noisy_step, step_logpdf
+
+__all__ = [
+    "AR_SPECS",
+    "CAUSE",
+    "NoiseMemoryState",
+    "implied_acceleration",
+    "with_autocorrelated_noise",
+]
+
+CAUSE = "autocorrelated_noise"
+AR_SPECS = (
+    ParamSpec("rho", "--", 0.0, 0.0, 0.99, "lag-one correlation of the acceleration error"),
+)
+
+
+class NoiseMemoryState(NamedTuple):
+    """Position x (m, relative to the current step), speed v (m/s), the last acceleration residual
+    (m/s^2) and whether it is known (1.0) or censored by a stop (0.0)."""
+
+    x: Array
+    v: Array
+    residual: Array
+    known: Array
+
+
+def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:
+    """The acceleration that turns speed ``v`` into position increment ``dx`` over ``dt``."""
+    return 2.0 * (dx - v * dt) / dt**2
+
+
+@functools.cache
+def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
+    """``base`` with AR(1) execution noise of correlation ``rho`` (module docstring)."""
+    specs = extended_specs(base, AR_SPECS)
+
+    def base_mean(params, v: Array, inputs: CarFollowingInputs) -> Array:
+        return base.mean_acceleration(
+            base_params(base, params), EgoState(jnp.zeros_like(v), v), inputs
+        )
+
+    def conditional(params, state: NoiseMemoryState, inputs: ExtendedInputs):
+        """Mean and sd of this step's acceleration given the last residual."""
+        memory = state.known * params.rho
+        mean_acc = base_mean(params, state.v, inputs.car_following) + memory * state.residual
+        sd = params.sigma * jnp.sqrt(1.0 - state.known * params.rho**2)
+        return mean_acc, sd
+
+    def mean_acceleration(params, state: NoiseMemoryState, inputs: ExtendedInputs) -> Array:
+        return conditional(params, state, inputs)[0]
+
+    def transition_sample(key: Array, params, state: NoiseMemoryState, inputs: ExtendedInputs):
+        mean_acc, sd = conditional(params, state, inputs)
+        moved = noisy_step(key, EgoState(state.x, state.v), mean_acc, sd, inputs.dt)
+        applied = implied_acceleration(state.v, moved.x - state.x, inputs.dt)
+        residual = applied - base_mean(params, state.v, inputs.car_following)
+        known = (moved.v > STOP_SPEED).astype(moved.v.dtype)
+        return NoiseMemoryState(moved.x, moved.v, known * residual, known)
+
+    def transition_logpdf(params, state: NoiseMemoryState, next_state, inputs) -> Array:
+        mean_acc, sd = conditional(params, state, inputs)
+        return step_logpdf(EgoState(state.x, state.v), next_state, mean_acc, sd, inputs.dt)
+
+    def lift(params, state: EgoState, inputs: ExtendedInputs) -> NoiseMemoryState:
+        previous = CarFollowingInputs(
+            inputs.lag_gap[1], inputs.lag_lead_v[1], inputs.has_leader, inputs.dt
+        )
+        previous_v = inputs.lag_v[1]
+        applied = implied_acceleration(previous_v, inputs.prev_dx, inputs.dt)
+        residual = applied - base_mean(params, previous_v, previous)
+        known = (state.v > STOP_SPEED).astype(state.v.dtype)
+        return NoiseMemoryState(state.x, state.v, known * residual, known)
+
+    def initial_sample(key: Array, params, obs: EgoState) -> NoiseMemoryState:
+        del key, params
+        return NoiseMemoryState(obs.x, obs.v, jnp.zeros_like(obs.v), jnp.zeros_like(obs.v))
+
+    model = DriverModel(
+        name=f"{base.name}+{CAUSE}",
+        params_type=params_type("AutocorrelatedNoiseParams", specs),
+        specs=specs,
+        mean_acceleration=mean_acceleration,
+        transition_sample=transition_sample,
+        transition_logpdf=transition_logpdf,
+        observation_logpdf=base.observation_logpdf,
+        initial_sample=initial_sample,
+    )
+    return ExtendedModel(CAUSE, base, model, ("rho",), lift)

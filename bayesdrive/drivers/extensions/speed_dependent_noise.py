@@ -1,0 +1,47 @@
+r"""Speed-dependent execution noise: the acceleration error grows with speed.
+
+.. math::
+
+    a \sim N\big(a_{base},\ \sigma(v)^2\big), \qquad \sigma(v) = \sigma\,(1 + k\, v),
+
+so :math:`\sigma` is the noise at standstill and :math:`k` the relative increase per m/s of the
+current speed (k = 0.1 doubles the noise at 10 m/s).
+
+=================  ====  =======  ============  =====================================
+name               unit  default  prior bounds  meaning
+=================  ====  =======  ============  =====================================
+noise_speed_slope  s/m   0.0      [0, 0.5]      relative noise increase per m/s
+=================  ====  =======  ============  =====================================
+"""
+
+from __future__ import annotations
+
+import functools
+
+from jax import Array
+
+from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.extensions.compose import ExtendedModel, base_params, gaussian_extension
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+
+__all__ = ["CAUSE", "SPEED_NOISE_SPECS", "noise_sd", "with_speed_dependent_noise"]
+
+CAUSE = "speed_dependent_noise"
+SPEED_NOISE_SPECS = (
+    ParamSpec("noise_speed_slope", "s/m", 0.0, 0.0, 0.5, "relative noise increase per m/s"),
+)
+
+
+def noise_sd(params, state) -> Array:
+    """sigma(v) = sigma (1 + k v) at the state's current speed."""
+    return params.sigma * (1.0 + params.noise_speed_slope * state.v)
+
+
+@functools.cache
+def with_speed_dependent_noise(base: DriverModel) -> ExtendedModel:
+    """``base`` with execution noise sd sigma (1 + k v) (module docstring)."""
+
+    def mean_acceleration(params, state: EgoState, inputs: ExtendedInputs) -> Array:
+        return base.mean_acceleration(base_params(base, params), state, inputs.car_following)
+
+    return gaussian_extension(base, CAUSE, SPEED_NOISE_SPECS, mean_acceleration, noise_sd=noise_sd)
