@@ -240,6 +240,7 @@ def fetch(
             TimeRemainingColumn(),
             console=err_console,
             transient=True,
+            disable=not err_console.is_terminal,  # no bar (nor blank lines) in logs and pipes
         ) as progress:
             task = progress.add_task(name, total=sum(f.size for f in wanted))
             result = fetch_dataset(
