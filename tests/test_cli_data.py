@@ -213,6 +213,16 @@ def test_info_strict_refuses_flagged_data(tmp_path):
     assert "strict mode refuses flagged data" in one_line(strict.stderr)
 
 
+def test_info_refuses_column_map_options_for_another_reader(tmp_path):
+    table = tmp_path / "cars.csv"
+    write_two_cars_in_feet(table)
+    result = runner.invoke(
+        app, ["data", "info", str(table), "--format", "openacc", "--units", "ft"]
+    )
+    assert result.exit_code == 2
+    assert "options of --format columns, not of openacc" in one_line(result.stderr)
+
+
 def test_info_rejects_a_malformed_column_map(tmp_path):
     table = tmp_path / "cars.csv"
     write_two_cars_in_feet(table)

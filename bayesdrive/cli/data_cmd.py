@@ -31,6 +31,7 @@ DATA_DIR_HELP = (
     "Folder holding the data sets (default: $BAYESDRIVE_DATA_DIR, else ../shared/data beside the "
     "repository); for a held-out data set, the holdout folder ($BAYESDRIVE_HOLDOUT_DIR)."
 )
+COLUMN_MAP_FORMAT = "columns"
 JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
 
 
@@ -145,7 +146,10 @@ def info(
     columns: str | None = typer.Option(
         None,
         "--columns",
-        help="Column map for an arbitrary CSV: SCHEMA=FILE_COLUMN,... (e.g. vehicle_id=ID,t=time).",
+        help=(
+            "Column map for an arbitrary CSV: SCHEMA=FILE_COLUMN,... (e.g. vehicle_id=ID,t=time); "
+            "--columns, --units and --headway imply --format columns."
+        ),
     ),
     units: str | None = typer.Option(
         None, "--units", help="Length unit of an arbitrary CSV: m, ft, or a factor to metres."
@@ -158,8 +162,14 @@ def info(
     """Figures of a data set: scenes, vehicles, time, speeds, gaps, flags and notes."""
     try:
         options = _reader_options(columns, units, headway)
-        if columns is not None and format is None:
-            format = "columns"  # a column map only means something to the column-map reader
+        if options:
+            # These options belong to the column-map reader; other readers know their units.
+            if format not in (None, COLUMN_MAP_FORMAT):
+                raise DataError(
+                    f"--columns, --units and --headway are options of --format "
+                    f"{COLUMN_MAP_FORMAT}, not of {format}"
+                )
+            format = COLUMN_MAP_FORMAT
         if path_or_name in registry.HOLDOUT and not Path(path_or_name).exists():
             traj = registry.load_holdout(
                 path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options
