@@ -76,6 +76,7 @@ GRID_STEPS: dict[str, float] = {
     "a_max": 0.1,
     "b_pref": 0.5,
     "sigma": 0.1,
+    "c": 0.1,  # the Cooperative IDM's cooperation, on [0, 1]
 }
 
 
