@@ -37,7 +37,7 @@ JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then noth
 
 def _error(error: Exception) -> typer.Exit:
     # Messages quote file contents and paths: never let rich read them as markup.
-    return fail(escape(str(error)))
+    return fail(str(error))
 
 
 def _root(dataset: registry.DataSet, explicit: str | None) -> Path:
