@@ -3,6 +3,8 @@ independent scipy formula and against its own sampler."""
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -69,31 +71,30 @@ def _step_inputs(gap, lead_v, dt=DT):
     )
 
 
+@jax.jit
+@functools.partial(jax.vmap, in_axes=(None, 0, 0, 0, 0))
+def _model_logpdf(params, v, dx, next_v, inputs):
+    state = EgoState(jnp.zeros(()), v)
+    return IDM.transition_logpdf(params, state, EgoState(dx, next_v), inputs)
+
+
 def _logpdf(params, v, dx, next_v, inputs):
-    """The model's density of observed (dx, next_v) from (x=0, v), vmapped over steps."""
+    """The model's density of observed (dx, next_v) from (x=0, v), one value per step."""
 
-    def one(v, dx, next_v, inputs):
-        state = EgoState(jnp.zeros(()), v)
-        return IDM.transition_logpdf(params, state, EgoState(dx, next_v), inputs)
+    def f(values):
+        return jnp.asarray(values, dtype=float)
 
-    return np.asarray(
-        jax.vmap(one)(
-            jnp.asarray(v, dtype=float),
-            jnp.asarray(dx, dtype=float),
-            jnp.asarray(next_v, dtype=float),
-            inputs,
-        ),
-        dtype=np.float64,
-    )
+    return np.asarray(_model_logpdf(params, f(v), f(dx), f(next_v), inputs), dtype=np.float64)
+
+
+@jax.jit
+@functools.partial(jax.vmap, in_axes=(None, 0, 0))
+def _model_mean(params, v, inputs):
+    return IDM.mean_acceleration(params, EgoState(jnp.zeros(()), v), inputs)
 
 
 def _mean_acc(params, v, inputs):
-    return np.asarray(
-        jax.vmap(lambda v, i: IDM.mean_acceleration(params, EgoState(jnp.zeros(()), v), i))(
-            jnp.asarray(v, dtype=float), inputs
-        ),
-        dtype=np.float64,
-    )
+    return np.asarray(_model_mean(params, jnp.asarray(v, dtype=float), inputs), dtype=np.float64)
 
 
 def test_step_logpdf_matches_an_independent_scipy_formula():
@@ -158,8 +159,8 @@ def test_step_density_integrates_to_one_with_the_stop_mass():
 def _sample_steps(key, case, n):
     params, inputs, a = _scalar_state(case)
     state = EgoState(jnp.zeros(()), jnp.asarray(case["v"], dtype=float))
-    draws = jax.vmap(lambda k: IDM.transition_sample(k, params, state, inputs))(
-        jax.random.split(key, n)
+    draws = jax.jit(jax.vmap(IDM.transition_sample, in_axes=(0, None, None, None)))(
+        jax.random.split(key, n), params, state, inputs
     )
     return params, a, np.asarray(draws.x, np.float64), np.asarray(draws.v, np.float64)
 
