@@ -14,6 +14,7 @@ not a dependency). It is only defined with a leader (the training steps all have
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -162,40 +163,57 @@ def _init_net(key: Array, hidden: tuple[int, ...], rows: dict[str, np.ndarray]) 
     )
 
 
+class _Rows(NamedTuple):
+    v: Array
+    next_v: Array
+    dx: Array
+    gap: Array
+    lead_v: Array
+
+
+def _negative_loglik(net: MLP, rows: _Rows, dt: Array) -> Array:
+    state = EgoState(x=jnp.zeros_like(rows.v), v=rows.v)
+    next_state = EgoState(x=rows.dx, v=rows.next_v)
+    inputs = CarFollowingInputs(rows.gap, rows.lead_v, jnp.ones_like(rows.v), dt)
+    logpdf = blackbox_model(net).transition_logpdf(BlackboxParams(), state, next_state, inputs)
+    return -jnp.mean(logpdf)
+
+
+@partial(jax.jit, static_argnames=("config",))
+def _adam_fit(
+    net: MLP, rows: _Rows, dt: Array, batch_keys: Array, config: TrainConfig
+) -> tuple[MLP, Array]:
+    def loss(layers: tuple, index: Array) -> Array:
+        # Only weights and biases are trained; the standardisation stays at the data's values.
+        trainable = net._replace(weights=layers[0], biases=layers[1])
+        return _negative_loglik(trainable, jax.tree.map(lambda a: a[index], rows), dt)
+
+    def step(carry, batch_key):
+        layers, adam = carry
+        index = jax.random.randint(batch_key, (config.batch_size,), 0, rows.v.shape[0])
+        value, grads = jax.value_and_grad(loss)(layers, index)
+        updates, adam = _adam_update(grads, adam, config.learning_rate)
+        return (jax.tree.map(jnp.add, layers, updates), adam), value
+
+    layers = (net.weights, net.biases)
+    zeros = jax.tree.map(jnp.zeros_like, layers)
+    start = (layers, _AdamState(jnp.zeros((), jnp.int32), zeros, zeros))
+    (trained, _), losses = jax.lax.scan(step, start, batch_keys)
+    return net._replace(weights=trained[0], biases=trained[1]), losses
+
+
 def train_blackbox(key: Array, arrays: FollowerArrays, config: TrainConfig) -> TrainResult:
     """Fit the policy by maximum likelihood on every usable step of ``arrays`` (use the fitting
-    window) with minibatch Adam; the same key gives the same network."""
+    window) with minibatch Adam (minibatches drawn with replacement); the same key gives the same
+    network."""
     key_init, key_batches = jax.random.split(key)
     rows = _usable_steps(arrays)
     net = _init_net(key_init, config.hidden, rows)
-    data = {name: jnp.asarray(values) for name, values in rows.items()}
-    num_rows = len(rows["v"])
-    dt = jnp.float32(arrays.dt)
-
-    def loss(layers: tuple, index: Array) -> Array:
-        # Only weights and biases are trained; the standardisation stays at the data's values.
-        model = blackbox_model(net._replace(weights=layers[0], biases=layers[1]))
-        state = EgoState(x=jnp.zeros_like(data["v"][index]), v=data["v"][index])
-        next_state = EgoState(x=data["dx"][index], v=data["next_v"][index])
-        inputs = CarFollowingInputs(
-            data["gap"][index], data["lead_v"][index], jnp.ones_like(state.v), dt
-        )
-        return -jnp.mean(model.transition_logpdf(BlackboxParams(), state, next_state, inputs))
-
-    @jax.jit
-    def run(layers: tuple, batch_keys: Array) -> tuple[tuple, Array]:
-        zeros = jax.tree.map(jnp.zeros_like, layers)
-
-        def step(carry, batch_key):
-            params, adam = carry
-            index = jax.random.randint(batch_key, (config.batch_size,), 0, num_rows)
-            value, grads = jax.value_and_grad(loss)(params, index)
-            updates, adam = _adam_update(grads, adam, config.learning_rate)
-            return (jax.tree.map(jnp.add, params, updates), adam), value
-
-        start = (layers, _AdamState(jnp.zeros((), jnp.int32), zeros, zeros))
-        (trained, _), losses = jax.lax.scan(step, start, batch_keys)
-        return trained, losses
-
-    layers, losses = run((net.weights, net.biases), jax.random.split(key_batches, config.steps))
-    return TrainResult(net._replace(weights=layers[0], biases=layers[1]), np.asarray(losses))
+    trained, losses = _adam_fit(
+        net,
+        _Rows(**{name: jnp.asarray(values) for name, values in rows.items()}),
+        jnp.float32(arrays.dt),
+        jax.random.split(key_batches, config.steps),
+        config,
+    )
+    return TrainResult(trained, np.asarray(losses))

@@ -41,6 +41,7 @@ __all__ = [
     "SceneArrays",
     "broadcast_params",
     "draw_particles",
+    "platoon_scene",
     "rollout",
     "rollout_keys",
     "scene_arrays",
@@ -113,6 +114,34 @@ def scene_arrays(scenario: Scenario) -> SceneArrays:
         merge_present=f32(scenario.merge_present),
         merge_length=f32(scenario.merge_length),
         dt=f32(scenario.dt),
+    )
+
+
+def platoon_scene(
+    head_v: np.ndarray, x0: np.ndarray, v0: np.ndarray, *, length: float, dt: float
+) -> SceneArrays:
+    """A synthetic platoon: the head starts at x = 0 and drives the speeds ``head_v`` (T + 1,)
+    (positions by the trapezoid rule); the simulated vehicles start at ``x0`` with speeds ``v0``
+    (front to back); every car is ``length`` metres long. For tests and speed benchmarks."""
+    head_v = np.asarray(head_v, np.float64)
+    steps, num_vehicles = len(head_v) - 1, len(x0)
+    head_x = np.concatenate([[0.0], np.cumsum(0.5 * (head_v[1:] + head_v[:-1]) * dt)])
+    f32 = partial(jnp.asarray, dtype=jnp.float32)
+    no_merge_lane = jnp.zeros((0, steps + 1), jnp.float32)
+    return SceneArrays(
+        head_x=f32(head_x),
+        head_v=f32(head_v),
+        head_present=jnp.ones(steps + 1, jnp.float32),
+        x0=f32(x0),
+        v0=f32(v0),
+        lead_length=jnp.full(num_vehicles, length, jnp.float32),
+        road_end=jnp.full(num_vehicles, jnp.inf, jnp.float32),
+        step_mask=jnp.ones(steps, jnp.float32),
+        merge_x=no_merge_lane,
+        merge_v=no_merge_lane,
+        merge_present=no_merge_lane,
+        merge_length=jnp.zeros(0, jnp.float32),
+        dt=f32(dt),
     )
 
 
