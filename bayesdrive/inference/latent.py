@@ -1,0 +1,400 @@
+r"""The latent-state engine: a particle filter over hidden states, and PMMH over the parameters.
+
+With measurement noise on positions (:func:`bayesdrive.drivers.measurement_noise.with_measurement_noise`)
+the true states are hidden, so the likelihood of a parameter vector is an integral over state paths.
+:func:`state_filter_loglik` estimates it with a bootstrap particle filter over states (Gordon et al.
+1993): particles move by the model's ``transition_sample``, are weighted by its
+``observation_logpdf`` and resampled systematically when the effective sample size falls below half
+the particles. The estimate of the likelihood (not of its log) is unbiased, which is what particle
+marginal Metropolis-Hastings needs (Andrieu, Doucet & Holenstein 2010): :func:`pmmh` runs a
+random-walk Metropolis chain over the static parameters in which the exact likelihood is replaced
+by that estimate, and still targets the exact posterior.
+
+**What is estimated.** :math:`p(y_{1:T} \mid y_0, v_0; \theta)` for every run of consecutive
+usable steps (a *segment*): the first reading of a segment starts the latent state (the model's
+``initial_sample``), every later reading is scored. Masked steps (padding, flagged samples, steps
+outside the window) end a segment; the next usable step starts a new one, so the log-likelihood is
+the sum over segments and padding contributes exactly 0.
+
+**Frames and inputs.** Latent positions are offsets from the observed position of the same step
+(see :mod:`bayesdrive.drivers.measurement_noise`): a particle at offset :math:`e_t` moves to
+:math:`e_t + \Delta` on step t's axis, which is :math:`e_t + \Delta - (y_{t+1} - y_t)` on step t+1's
+axis, with the observed increment ``dx`` computed in float64 by the data layer; every observation
+is then ``x = 0``. The inputs are the base model's (:class:`~bayesdrive.drivers.base.CarFollowingInputs`
+or the Cooperative IDM's ``MergeInputs``) with their ego distances read as positions on step t's
+axis: ``gap`` is the leader's rear bumper relative to the observed ego front, i.e. the observed
+bumper gap of the data layer, and each particle sees ``gap - e_t`` (``shift_ego``) -- the gap to
+its own latent position, never to the noisy reading.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.scipy.special import logsumexp
+
+from bayesdrive.data.views import FollowerArrays
+from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.drivers.measurement_noise import shift_ego
+from bayesdrive.inference.likelihood import step_inputs
+from bayesdrive.inference.resampling import systematic
+from bayesdrive.inference.weights import effective_sample_size
+
+__all__ = [
+    "ADAPTATION_DECAY",
+    "ADAPTATION_FLOOR",
+    "ADAPTATION_OFFSET",
+    "RESAMPLE_BELOW",
+    "FilterInfo",
+    "PMMHResult",
+    "PositionObservations",
+    "latent_data",
+    "noisy_readings",
+    "pmmh",
+    "state_filter_loglik",
+]
+
+# Resample when the effective sample size falls below this fraction of the particles.
+RESAMPLE_BELOW = 0.5
+# PMMH warm-up adaptation (adaptive Metropolis, Haario et al. 2001, with Robbins-Monro gains as in
+# Andrieu & Thoms 2008): the proposal covariance tracks 2.38^2/d times the chain's covariance with
+# gain (i + 1 + ADAPTATION_OFFSET)^-ADAPTATION_DECAY (the offset makes the initial proposal count
+# like ~20 draws, so a few early rejections cannot collapse it), plus a floor of ADAPTATION_FLOOR
+# times the initial step sd so that a chain stuck during warm-up keeps proposing moves.
+ADAPTATION_DECAY = 0.6
+ADAPTATION_OFFSET = 20.0
+ADAPTATION_FLOOR = 0.05
+
+
+class PositionObservations(NamedTuple):
+    """One vehicle's noisy readings, step t = the move from sample t to t+1 (leading axis: step).
+
+    dx: observed position increment y[t+1] - y[t] (m), computed in float64 by the data layer.
+    v: recorded speed at sample t (m/s); used only as the latent speed where a segment starts.
+    mask: 1 where the move t -> t+1 is real and scored, 0 for padding and excluded steps.
+    """
+
+    dx: Array
+    v: Array
+    mask: Array
+
+
+class FilterInfo(NamedTuple):
+    """Per-step diagnostics of one filter run (leading axis: step; masked steps hold N, False, 0).
+
+    ess: effective sample size after weighting by the reading at t+1, before any resampling.
+    resampled: whether the particles were resampled at that step.
+    log_increments: log p(y[t+1] | earlier readings of the segment); they sum to the estimate.
+    """
+
+    ess: Array
+    resampled: Array
+    log_increments: Array
+
+
+class PMMHResult(NamedTuple):
+    """PMMH chains after warm-up, dims (chain, draw, vehicle[, param]).
+
+    samples: (chain, draw, vehicle, param) parameter draws, columns in the order of ``names``.
+    log_likelihood: (chain, draw, vehicle) the likelihood estimate each draw carries.
+    acceptance_rate: (chain, vehicle) fraction of accepted proposals after warm-up.
+    names: the inferred parameters.
+    """
+
+    samples: Array
+    log_likelihood: Array
+    acceptance_rate: Array
+    names: tuple[str, ...]
+
+
+def latent_data(arrays: FollowerArrays) -> tuple[PositionObservations, CarFollowingInputs]:
+    """Readings and inputs for the latent engine from the padded (vehicle, step) arrays.
+
+    The data layer's bumper gap, leader rear minus observed ego front, is exactly the leader's rear
+    on each step's local axis (module docstring); arrays are cast to the default float type.
+    """
+    steps = step_inputs(arrays)
+    return (
+        PositionObservations(dx=steps.dx, v=steps.v, mask=steps.mask),
+        CarFollowingInputs(
+            gap=steps.gap, lead_v=steps.lead_v, has_leader=steps.has_leader, dt=steps.dt
+        ),
+    )
+
+
+def _check_series(observations: PositionObservations, inputs: Any, leading: tuple[int, ...]):
+    """Every field of the readings and the inputs must share the leading shape ``leading``."""
+    fields = {
+        **{f"observations.{k}": v for k, v in observations._asdict().items()},
+        **{f"inputs.{k}": v for k, v in inputs._asdict().items()},
+    }
+    wrong = {k: jnp.shape(v) for k, v in fields.items() if jnp.shape(v)[: len(leading)] != leading}
+    if wrong:
+        raise ValueError(
+            f"readings and inputs must share the leading shape {leading}; mismatched: {wrong}"
+        )
+
+
+def _where(condition: Array, new: Any, old: Any) -> Any:
+    """``new`` where ``condition`` holds, else ``old``, leaf by leaf (condition is a scalar)."""
+    return jax.tree.map(lambda a, b: jnp.where(condition, a, b), new, old)
+
+
+def state_filter_loglik(
+    key: Array,
+    model: DriverModel,
+    params: Any,
+    observations: PositionObservations,
+    inputs: Any,
+    num_state_particles: int,
+) -> tuple[Array, FilterInfo]:
+    """Bootstrap-filter estimate of one vehicle's log-likelihood for fixed ``params``.
+
+    ``observations`` and ``inputs`` have a leading step axis (T,); ``params`` is the model's
+    parameter tuple. Returns the log of an unbiased likelihood estimate (module docstring for what
+    is conditioned on) and per-step :class:`FilterInfo`. Each step's randomness comes from
+    ``fold_in(key, step)``, so padding a series with masked steps leaves the estimate unchanged.
+    Pure and traceable: ``jit`` and ``vmap`` it freely (``num_state_particles`` static).
+    """
+    if num_state_particles < 2:
+        raise ValueError(f"num_state_particles must be at least 2, got {num_state_particles}")
+    num_steps = jnp.shape(observations.mask)[0]
+    _check_series(observations, inputs, (num_steps,))
+    n = num_state_particles
+    uniform = jnp.full((n,), -jnp.log(n))
+    zero = jnp.zeros((), dtype=observations.dx.dtype)
+
+    def step(carry, xs):
+        states, log_weights, loglik, previous_mask = carry
+        t, obs, inp = xs
+        init_key, move_key, resample_key = jax.random.split(jax.random.fold_in(key, t), 3)
+
+        # A segment starts after a masked step (and at t = 0): fresh particles, equal weights.
+        first_reading = EgoState(x=zero, v=obs.v)
+        fresh = jax.vmap(lambda k: model.initial_sample(k, params, first_reading))(
+            jax.random.split(init_key, n)
+        )
+        starts = previous_mask <= 0
+        states = _where(starts, fresh, states)
+        log_weights = jnp.where(starts, uniform, log_weights)
+
+        def move(k, state):
+            moved = model.transition_sample(k, params, state, shift_ego(inp, state.x))
+            # Re-centre on the next observed position.
+            return moved._replace(x=moved.x - obs.dx)
+
+        moved = jax.vmap(move)(jax.random.split(move_key, n), states)
+        # The next reading sits at 0 on its own axis; its speed is no observation (NaN says so).
+        reading = EgoState(x=zero, v=jnp.full_like(zero, jnp.nan))
+        obs_logp = jax.vmap(lambda s: model.observation_logpdf(params, s, reading))(moved)
+
+        weighted = log_weights + obs_logp
+        increment = logsumexp(weighted)  # log_weights are normalised
+        weighted = weighted - increment
+        ess = effective_sample_size(weighted)
+        resample = ess < RESAMPLE_BELOW * n
+        ancestors = jnp.where(resample, systematic(resample_key, weighted, n), jnp.arange(n))
+        moved = jax.tree.map(lambda a: a[ancestors], moved)
+        weighted = jnp.where(resample, uniform, weighted)
+
+        used = obs.mask > 0
+        increment = jnp.where(used, increment, 0.0)
+        carry = (
+            _where(used, moved, states),
+            jnp.where(used, weighted, log_weights),
+            loglik + increment,
+            obs.mask,
+        )
+        return carry, FilterInfo(
+            ess=jnp.where(used, ess, float(n)),
+            resampled=used & resample,
+            log_increments=increment,
+        )
+
+    placeholder = EgoState(x=jnp.zeros((n,), zero.dtype), v=jnp.zeros((n,), zero.dtype))
+    start = (placeholder, uniform, zero, jnp.zeros_like(observations.mask[0]))
+    (_, _, loglik, _), info = jax.lax.scan(
+        step, start, (jnp.arange(num_steps), observations, inputs)
+    )
+    return loglik, info
+
+
+def pmmh(
+    key: Array,
+    model: DriverModel,
+    names: Sequence[str],
+    observations: PositionObservations,
+    inputs: Any,
+    *,
+    num_iterations: int,
+    num_state_particles: int,
+    proposal_scale: float | Sequence[float],
+    num_chains: int = 4,
+    num_warmup: int = 0,
+    init: Array | None = None,
+    fixed: Any = None,
+) -> PMMHResult:
+    """Particle marginal Metropolis-Hastings for every vehicle at once.
+
+    ``observations`` and ``inputs`` have leading axes (vehicle, step). For each chain and vehicle a
+    random-walk Metropolis chain moves the parameters ``names`` (the others from ``fixed``, a full
+    parameter tuple, default the model's defaults) by Gaussian steps. A proposal outside the
+    uniform prior box is rejected; inside, it is accepted with probability
+    min(1, L(proposal) / L(current)), both likelihoods estimated by :func:`state_filter_loglik` with
+    ``num_state_particles`` particles, and the current estimate is kept until the next acceptance
+    (which is what makes PMMH exact).
+
+    The steps start with sd ``proposal_scale`` times each parameter's prior width (a scalar or one
+    value per name). During the ``num_warmup`` discarded iterations the proposal covariance adapts
+    to 2.38^2/d times the chain's running covariance (adaptive Metropolis; see
+    :data:`ADAPTATION_DECAY`); it is frozen for the ``num_iterations`` kept ones, so those form an
+    ordinary, exact PMMH chain. Chains start at ``init`` (broadcast to
+    (chain, vehicle, param)) or, by default, at independent prior draws. Vectorised over chains and
+    vehicles with ``vmap``, iterations with ``lax.scan``; compiled once per model, settings and
+    shape.
+    """
+    names = tuple(names)
+    prior = model.prior(names)
+    num_vehicles, num_steps = jnp.shape(observations.mask)
+    _check_series(observations, inputs, (num_vehicles, num_steps))
+    scale = jnp.broadcast_to(jnp.asarray(proposal_scale, dtype=prior.lower.dtype), (len(names),))
+    if not bool(jnp.all(scale > 0)):
+        raise ValueError(f"proposal_scale must be positive, got {proposal_scale!r}")
+    if num_iterations < 1 or num_warmup < 0 or num_chains < 1:
+        raise ValueError(
+            f"need num_iterations >= 1, num_warmup >= 0, num_chains >= 1; got {num_iterations}, "
+            f"{num_warmup}, {num_chains}"
+        )
+    if num_state_particles < 2:
+        raise ValueError(f"num_state_particles must be at least 2, got {num_state_particles}")
+
+    init_key, chains_key = jax.random.split(key)
+    shape = (num_chains, num_vehicles)
+    if init is None:
+        start = prior.sample(init_key, shape)
+    else:
+        start = jnp.broadcast_to(jnp.asarray(init, dtype=prior.lower.dtype), (*shape, len(names)))
+        outside = ~np.asarray(jnp.isfinite(jax.vmap(jax.vmap(prior.logpdf))(start)))
+        if outside.any():
+            chain, vehicle = np.argwhere(outside)[0]
+            raise ValueError(
+                f"init for chain {chain}, vehicle {vehicle} is {np.asarray(start[chain, vehicle])} "
+                f"for {names}, outside the prior box [{np.asarray(prior.lower)}, "
+                f"{np.asarray(prior.upper)}]"
+            )
+    thetas, logliks, acceptance = _run_chains(
+        jax.random.split(chains_key, shape),
+        start,
+        scale * (prior.upper - prior.lower),
+        model.defaults() if fixed is None else fixed,
+        observations,
+        inputs,
+        model=model,
+        names=names,
+        num_state_particles=num_state_particles,
+        num_warmup=num_warmup,
+        num_iterations=num_iterations,
+    )
+    # (chain, vehicle, draw, ...) -> (chain, draw, vehicle, ...)
+    return PMMHResult(
+        samples=jnp.swapaxes(thetas, 1, 2),
+        log_likelihood=jnp.swapaxes(logliks, 1, 2),
+        acceptance_rate=acceptance,
+        names=names,
+    )
+
+
+class _Proposal(NamedTuple):
+    """The adaptive random walk's state: running mean of the chain and the proposal covariance."""
+
+    mean: Array
+    cov: Array
+
+
+@partial(
+    jax.jit,
+    static_argnames=("model", "names", "num_state_particles", "num_warmup", "num_iterations"),
+)
+def _run_chains(
+    keys: Array,
+    start: Array,
+    step_sd: Array,
+    fixed: Any,
+    observations: PositionObservations,
+    inputs: Any,
+    *,
+    model: DriverModel,
+    names: tuple[str, ...],
+    num_state_particles: int,
+    num_warmup: int,
+    num_iterations: int,
+) -> tuple[Array, Array, Array]:
+    """:func:`pmmh`'s chains: keys and starts (chain, vehicle[, param]), data (vehicle, ...)."""
+    prior = model.prior(names)
+    floor = jnp.diag((ADAPTATION_FLOOR * step_sd) ** 2)
+    optimal_scale = 2.38**2 / len(names)  # Gelman, Roberts & Gilks 1996
+
+    def loglik(k: Array, theta: Array, obs: PositionObservations, inp: Any) -> Array:
+        params = fill_params(model, names, theta, fixed)
+        value, _ = state_filter_loglik(k, model, params, obs, inp, num_state_particles)
+        return jnp.where(jnp.isnan(value), -jnp.inf, value)
+
+    def chain(k: Array, theta0: Array, obs: PositionObservations, inp: Any):
+        def iteration(carry, i):
+            theta, current, proposal = carry
+            propose_key, filter_key, accept_key = jax.random.split(jax.random.fold_in(k, i), 3)
+            root = jnp.linalg.cholesky(proposal.cov + floor)
+            # Iteration 0 proposes the start itself: its estimate is accepted unless not finite.
+            moves = jnp.where(i > 0, 1.0, 0.0)
+            candidate_theta = theta + moves * root @ jax.random.normal(propose_key, theta.shape)
+            inside = jnp.isfinite(prior.logpdf(candidate_theta))
+            # Under vmap the filter runs outside the box too; -inf makes sure it cannot win.
+            candidate = jnp.where(inside, loglik(filter_key, candidate_theta, obs, inp), -jnp.inf)
+            accept = jnp.log(jax.random.uniform(accept_key)) < candidate - current
+            theta = jnp.where(accept, candidate_theta, theta)
+            current = jnp.where(accept, candidate, current)
+
+            # Robbins-Monro steps with decaying gain during warm-up, none afterwards.
+            gain = jnp.where(
+                i < num_warmup, (i + 1.0 + ADAPTATION_OFFSET) ** -ADAPTATION_DECAY, 0.0
+            )
+            centred = theta - proposal.mean
+            target = optimal_scale * jnp.outer(centred, centred)
+            proposal = _Proposal(
+                mean=proposal.mean + gain * centred,
+                cov=proposal.cov + gain * (target - proposal.cov),
+            )
+            return (theta, current, proposal), (theta, current, accept)
+
+        unknown = jnp.full((), -jnp.inf, step_sd.dtype)
+        first = (theta0, unknown, _Proposal(mean=theta0, cov=jnp.diag(step_sd**2)))
+        _, (thetas, logliks, accepted) = jax.lax.scan(
+            iteration, first, jnp.arange(num_warmup + num_iterations)
+        )
+        kept = slice(num_warmup, None)
+        return thetas[kept], logliks[kept], jnp.mean(accepted[kept])
+
+    over_vehicles = jax.vmap(chain, in_axes=(0, 0, 0, 0))
+    return jax.vmap(over_vehicles, in_axes=(0, 0, None, None))(keys, start, observations, inputs)
+
+
+def noisy_readings(key: Array, arrays: FollowerArrays, sigma_obs: float) -> FollowerArrays:
+    """``arrays`` of exactly observed states, read through Gaussian position noise of sd ``sigma_obs``.
+
+    Each sample t gets its own reading error e_t ~ N(0, sigma_obs^2), shared by the two steps that
+    meet at it: the increment becomes dx + e[t+1] - e[t] and the gap (to the exactly observed
+    leader) gap - e[t]. Speeds, inputs and masks are unchanged. For simulation studies and tests.
+    """
+    num_vehicles, num_steps = arrays.mask.shape
+    errors = sigma_obs * np.asarray(
+        jax.random.normal(key, (num_vehicles, num_steps + 1)), dtype=np.float64
+    )
+    return arrays._replace(
+        dx=arrays.dx + errors[:, 1:] - errors[:, :-1], gap=arrays.gap - errors[:, :-1]
+    )
