@@ -20,6 +20,10 @@ vehicle and parameter, with :math:`s = \sqrt{(sd_a^2 + sd_b^2)/2}`:
 * ``mc_tolerance`` = :math:`3\sqrt{mcse_a^2 + mcse_b^2}`, what Monte Carlo error alone explains;
 * ``agree`` = :math:`|\bar\theta_b - \bar\theta_a| \le \max(0.1\,s,\ \text{mc\_tolerance})` and the
   sds within 10% (:math:`\max(sd_a, sd_b) \le 1.1 \min(sd_a, sd_b)`).
+
+**Exact reference** (:func:`grid_posterior`): with one inferred parameter the posterior is a
+1-D integral, computed by quadrature on a fine grid over the prior interval, the answer every
+engine must reproduce up to Monte Carlo error.
 """
 
 from __future__ import annotations
@@ -28,11 +32,16 @@ import itertools
 from collections.abc import Mapping
 
 import arviz
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import scipy.stats
 import xarray as xr
 
+from bayesdrive.data.views import FollowerArrays
+from bayesdrive.drivers.base import DriverModel
+from bayesdrive.inference.likelihood import fixed_params, series_loglik, step_inputs
 from bayesdrive.inference.output import metadata
 
 __all__ = [
@@ -42,6 +51,7 @@ __all__ = [
     "agreement_summary",
     "agreement_table",
     "convergence_table",
+    "grid_posterior",
     "same_data",
 ]
 
@@ -193,3 +203,30 @@ def agreement_summary(table: pd.DataFrame) -> pd.DataFrame:
         median_sd_ratio=("sd_ratio", "median"),
         max_wasserstein_sd=("wasserstein_sd", "max"),
     ).reset_index()
+
+
+def grid_posterior(
+    arrays: FollowerArrays,
+    model: DriverModel,
+    name: str,
+    *,
+    vehicle: int = 0,
+    fixed: Mapping[str, float] | None = None,
+    points: int = 4001,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact posterior of one parameter of one vehicle on a grid: (grid, normalised density).
+
+    Uniform prior on the model's bounds for ``name``, the others at ``fixed`` (else defaults);
+    the likelihood is the engines' (:func:`~bayesdrive.inference.likelihood.series_loglik`),
+    normalised by the trapezoid rule in float64.
+    """
+    spec = model.spec(name)
+    grid = np.linspace(spec.lower, spec.upper, points)
+    series = jax.tree.map(lambda a: a[vehicle], step_inputs(arrays))
+    base = fixed_params(model, fixed)
+    log_lik = jax.jit(
+        jax.vmap(lambda th: series_loglik(model, (name,), base, th[None], series).sum())
+    )(jnp.asarray(grid, dtype=float))
+    log_lik = np.asarray(log_lik, dtype=np.float64)
+    density = np.exp(log_lik - log_lik.max())
+    return grid, density / np.trapezoid(density, grid)

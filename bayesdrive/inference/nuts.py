@@ -236,7 +236,7 @@ def run(
     """
     check_model(model)
     names = param_names(model, params)
-    num_samples = -(-num_particles // num_chains)
+    num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
         raise ValueError(
             "need num_chains >= 1, num_warmup >= 1 and at least 2 draws per chain, got "

@@ -1,0 +1,90 @@
+"""The emcee engine: seeded reproducibility, exact answer in one dimension, the result layout.
+
+The exact check mirrors tests/test_nuts.py: sigma of one IDM vehicle (64 steps, sigma = 0.5,
+seed 3) against quadrature. emcee's draws are thinned by the autocorrelation time, so they are
+treated as independent: the mean must lie within 4 sd / sqrt(draws) of the exact mean and the sd
+within 4 / sqrt(2 draws) relative (each fails with probability about 1e-4 for a correct sampler).
+The same check must fail for the deliberately wrong sd-doubled likelihood.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bayesdrive.drivers.base import fill_params
+from bayesdrive.drivers.idm import IDM
+from bayesdrive.inference import ensemble
+from bayesdrive.inference.agreement import grid_posterior
+from bayesdrive.inference.sbc import sd_doubled
+from bayesdrive.inference.synthetic import simulate_following
+
+SEED = 3
+OPTIONS = {"num_steps": 1200, "num_particles": 500}
+
+
+@pytest.fixture(scope="module")
+def vehicle():
+    params = jax.vmap(lambda th: fill_params(IDM, ("sigma",), th))(jnp.array([[0.5]]))
+    return simulate_following(jax.random.key(SEED), IDM, params, num_steps=64)
+
+
+@pytest.fixture(scope="module")
+def result(vehicle):
+    return ensemble.run(jax.random.key(SEED), vehicle, model=IDM, params=["sigma"], **OPTIONS)
+
+
+def matches_exact(vehicle, draws: np.ndarray) -> bool:
+    grid, density = grid_posterior(vehicle, IDM, "sigma")
+    mean = np.trapezoid(grid * density, grid)
+    sd = np.sqrt(np.trapezoid((grid - mean) ** 2 * density, grid))
+    n = draws.size
+    return abs(draws.mean() - mean) <= 4 * sd / np.sqrt(n) and abs(draws.std() / sd - 1) <= 4 / (
+        np.sqrt(2 * n)
+    )
+
+
+def test_emcee_matches_exact_posterior(vehicle, result):
+    assert matches_exact(vehicle, result.posterior["sigma"])
+
+
+def test_sd_doubled_likelihood_fails_the_same_check(vehicle):
+    wrong = ensemble.run(
+        jax.random.key(SEED), vehicle, model=sd_doubled(IDM), params=["sigma"], **OPTIONS
+    )
+    assert not matches_exact(vehicle, wrong.posterior["sigma"])
+
+
+def test_same_seed_gives_identical_chains_and_other_seeds_differ(vehicle, result):
+    again = ensemble.run(jax.random.key(SEED), vehicle, model=IDM, params=["sigma"], **OPTIONS)
+    np.testing.assert_array_equal(again.posterior["sigma"], result.posterior["sigma"])
+    np.testing.assert_array_equal(again.sample_stats["seed"][1], result.sample_stats["seed"][1])
+    other = ensemble.run(jax.random.key(SEED + 1), vehicle, model=IDM, params=["sigma"], **OPTIONS)
+    assert not np.array_equal(other.posterior["sigma"], result.posterior["sigma"])
+
+
+def test_layout_single_chain_thinned_by_autocorrelation(result):
+    draws = result.posterior["sigma"]
+    assert draws.shape[0] == 1 and draws.shape[2] == 1
+    tau = result.sample_stats["autocorr_time"][1]
+    thin = result.sample_stats["thin"][1]
+    assert result.sample_stats["autocorr_time"][0] == ("vehicle", "param")
+    assert thin[0] == int(np.ceil(tau.max()))
+    burn, steps, walkers = (result.options[k] for k in ("num_burn", "num_steps", "num_walkers"))
+    assert walkers == 32 and burn == steps // 2
+    # Kept: every thin-th step after burn-in, all walkers; at most num_particles of them.
+    available = walkers * len(range(burn + thin[0] - 1, steps, thin[0]))
+    assert result.sample_stats["kept_draws"][1][0] == available
+    assert draws.shape[1] == min(available, OPTIONS["num_particles"])
+    assert bool(result.sample_stats["autocorr_reliable"][1][0]) == (
+        steps - burn > ensemble.AUTOCORR_RELIABLE_FACTOR * tau.max()
+    )
+
+
+def test_walker_rule():
+    assert [ensemble.num_walkers_for(d) for d in (1, 6, 8, 9, 12)] == [32, 32, 32, 36, 48]
+
+
+def test_too_few_walkers_are_refused(vehicle):
+    with pytest.raises(ValueError, match="num_walkers"):
+        ensemble.run(jax.random.key(0), vehicle, model=IDM, params=["sigma", "tau"], num_walkers=3)
