@@ -12,7 +12,8 @@ from scipy import stats
 from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import lm
-from bayesdrive.inference.output import REQUIRED_METADATA, build_tree
+from bayesdrive.inference.fit import fit
+from bayesdrive.inference.output import metadata
 from bayesdrive.inference.synthetic import simulate_following
 
 # Away from the defaults and from the prior centre, so neither start is already the answer; v_des
@@ -35,7 +36,7 @@ def long_data():
 
 @pytest.fixture(scope="module")
 def long_fit(long_data):
-    return long_data, lm.run(jax.random.key(101), long_data, model=IDM, num_draws=2000)
+    return long_data, lm.run(jax.random.key(101), long_data, model=IDM, num_particles=2000)
 
 
 @pytest.fixture(scope="module")
@@ -86,8 +87,8 @@ def test_laplace_sd_halves_when_the_same_data_are_seen_four_times(long_fit):
     quarter = FIT_STEPS // 4
     first = arrays._replace(mask=np.where(np.arange(FIT_STEPS) < quarter, arrays.mask, 0.0))
     repeated = arrays._replace(**{f: np.tile(getattr(arrays, f)[:, :quarter], 4) for f in PER_STEP})
-    once = lm.run(jax.random.key(7), first, model=IDM, num_draws=2000)
-    four = lm.run(jax.random.key(7), repeated, model=IDM, num_draws=2000)
+    once = lm.run(jax.random.key(7), first, model=IDM, num_particles=2000)
+    four = lm.run(jax.random.key(7), repeated, model=IDM, num_particles=2000)
     assert stat(once, "converged").all() and stat(four, "converged").all()
     fitted = slice(0, 5)  # every parameter but sigma
     np.testing.assert_allclose(
@@ -114,8 +115,8 @@ def test_laplace_sd_shrinks_like_one_over_sqrt_t_on_fresh_data(long_fit):
     step = np.arange(FIT_STEPS)
     short = arrays._replace(mask=np.where((step >= 1000) & (step < 2000), arrays.mask, 0.0))
     long = arrays._replace(mask=np.where(step >= 1000, arrays.mask, 0.0))
-    fit_short = lm.run(jax.random.key(8), short, model=IDM, num_draws=2000)
-    fit_long = lm.run(jax.random.key(8), long, model=IDM, num_draws=2000)
+    fit_short = lm.run(jax.random.key(8), short, model=IDM, num_particles=2000)
+    fit_long = lm.run(jax.random.key(8), long, model=IDM, num_particles=2000)
     both = stat(fit_short, "converged") & stat(fit_long, "converged")
     assert both.sum() >= 10
     ratios = [
@@ -127,9 +128,9 @@ def test_laplace_sd_shrinks_like_one_over_sqrt_t_on_fresh_data(long_fit):
 
 def test_same_key_same_bits_and_the_fit_itself_needs_no_key(short_data):
     arrays = short_data
-    first = lm.run(jax.random.key(1), arrays, model=IDM, num_draws=50)
-    again = lm.run(jax.random.key(1), arrays, model=IDM, num_draws=50)
-    other = lm.run(jax.random.key(2), arrays, model=IDM, num_draws=50)
+    first = lm.run(jax.random.key(1), arrays, model=IDM, num_particles=50)
+    again = lm.run(jax.random.key(1), arrays, model=IDM, num_particles=50)
+    other = lm.run(jax.random.key(2), arrays, model=IDM, num_particles=50)
     for name in IDM.param_names:
         np.testing.assert_array_equal(first.posterior[name], again.posterior[name])
         assert not np.array_equal(first.posterior[name], other.posterior[name])
@@ -158,8 +159,8 @@ def test_masked_and_censored_steps_never_enter_the_fit(short_data):
         # observed stops stay masked in: censored, so their increments must not count
         next_v=np.where(stops, 0.0, arrays.next_v),
     )
-    fit_reference = lm.run(jax.random.key(3), reference, model=IDM, num_draws=20)
-    fit_poisoned = lm.run(jax.random.key(3), poisoned, model=IDM, num_draws=20)
+    fit_reference = lm.run(jax.random.key(3), reference, model=IDM, num_particles=20)
+    fit_poisoned = lm.run(jax.random.key(3), poisoned, model=IDM, num_particles=20)
     np.testing.assert_array_equal(stat(fit_poisoned, "censored_steps"), [30, 30])
     np.testing.assert_array_equal(stat(fit_reference, "censored_steps"), [0, 0])
     np.testing.assert_array_equal(
@@ -177,13 +178,15 @@ def test_fixed_sigma_is_used_and_not_reported_as_inferred(short_data):
         model=IDM,
         params=fitted,
         fixed={"sigma": TRUTH["sigma"]},
-        num_draws=500,
+        num_particles=500,
     )
     assert tuple(result.posterior) == fitted
     # With sigma fixed at its true value, the draws' spread equals that of a fit estimating
     # sigma = s (~ the truth) scaled by truth / s, up to Monte Carlo error (500 draws: ~6 % on an
     # sd, so rtol 0.2).
-    free = lm.run(jax.random.key(4), arrays, model=IDM, params=(*fitted, "sigma"), num_draws=500)
+    free = lm.run(
+        jax.random.key(4), arrays, model=IDM, params=(*fitted, "sigma"), num_particles=500
+    )
     s = stat(free, "sigma_hat")
     for name in fitted:
         ratio = result.posterior[name][0].std(axis=0) / free.posterior[name][0].std(axis=0)
@@ -196,6 +199,8 @@ def test_bad_requests_are_refused_clearly(short_data):
         lm.run(jax.random.key(0), arrays, model=IDM, params=("v_des", "c"))
     with pytest.raises(ValueError, match="other than 'sigma'"):
         lm.run(jax.random.key(0), arrays, model=IDM, params=("sigma",))
+    with pytest.raises(NotImplementedError, match="prior box only"):
+        lm.run(jax.random.key(0), arrays, model=IDM, prior=IDM.prior())
     with pytest.raises(TypeError, match="MergeInputs"):
         lm.run(jax.random.key(0), arrays, model=CIDM, params=("v_des", "c"))
     few = arrays._replace(mask=np.where(np.arange(512) < 4, arrays.mask, 0.0))
@@ -203,19 +208,19 @@ def test_bad_requests_are_refused_clearly(short_data):
         lm.run(jax.random.key(0), few, model=IDM)
 
 
-def test_result_fits_the_shared_result_tree(short_data):
-    arrays = short_data
-    result = lm.run(jax.random.key(6), arrays, model=IDM, num_draws=30, log_likelihood_draws=10)
-    metadata = {key: "x" for key in REQUIRED_METADATA} | {"params": list(IDM.param_names)}
-    tree = build_tree(
-        posterior=result.posterior,
-        sample_stats=result.sample_stats,
-        log_likelihood=result.log_likelihood,
-        log_likelihood_draws=result.log_likelihood_draws,
-        arrays=arrays,
-        metadata=metadata,
+def test_lm_runs_through_fit(short_data):
+    tree = fit(
+        jax.random.key(6),
+        short_data,
+        engine="lm",
+        num_particles=30,
+        seed=6,
+        window="all",
+        log_likelihood_draws=10,
     )
     assert tree["posterior"]["tau"].shape == (1, 30, 2)
     assert tree["log_likelihood"]["dx"].shape == (1, 10, 2, 512)
     # The scored draws' log-likelihood is the model's: finite on every step here.
     assert np.isfinite(tree["log_likelihood"]["dx"].values).all()
+    assert metadata(tree)["engine"] == "lm"
+    assert tree["sample_stats"]["converged"].dims == ("vehicle",)

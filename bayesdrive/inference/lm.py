@@ -214,15 +214,19 @@ def run(
     model: DriverModel,
     params: Sequence[str] | None = None,
     fixed: Mapping[str, float] | None = None,
+    num_particles: int = 1000,
+    prior: Any = None,
     progress: Callable[[int, int], None] | None = None,
-    num_draws: int = 1000,
     log_likelihood_draws: int = 200,
     max_nfev: int | None = None,
 ) -> EngineResult:
     """Levenberg-Marquardt per vehicle of ``arrays`` and Laplace draws (module docstring).
 
     ``params`` are the inferred parameters (all of the model's by default); ``sigma`` among them is
-    estimated from the residuals, the others are fitted. ``sample_stats`` holds per vehicle
+    estimated from the residuals, the others are fitted. ``num_particles`` is the number of
+    posterior draws. Only the model's uniform prior box is supported (``prior`` must be None): it
+    defines the transformed space, and the fit maximises the likelihood inside it.
+    ``max_nfev`` caps scipy's evaluations per start. ``sample_stats`` holds per vehicle
     ``cost`` (half the residual sum of squares, scipy's convention), ``nfev`` (over both starts),
     ``status`` (scipy's code), ``converged`` (status > 0 and identified), ``identified``,
     ``best_start`` (0 = defaults, 1 = prior centre), ``sigma_hat``, ``num_residuals``,
@@ -235,8 +239,13 @@ def run(
     fitted = tuple(n for n in names if n != NOISE)
     if not fitted:
         raise ValueError(f"lm fits parameters other than {NOISE!r}; got only {list(names)}")
-    if num_draws < 1:
-        raise ValueError(f"num_draws must be >= 1, got {num_draws}")
+    if num_particles < 1:
+        raise ValueError(f"num_particles (posterior draws) must be >= 1, got {num_particles}")
+    if prior is not None:
+        raise NotImplementedError(
+            "lm fits inside the model's uniform prior box only; a custom prior "
+            f"({type(prior).__name__}) needs a sampling engine (smc, nuts, emcee)"
+        )
     fixed_values = fixed_params(model, fixed)
     box = model.prior(fitted)
     lower = np.asarray(box.lower, np.float64)
@@ -263,7 +272,7 @@ def run(
     # Compiled once per padded shape (and cached across runs with the same model and names).
     bounds = (jnp.asarray(lower, dtype=float), jnp.asarray(width, dtype=float))
     static = {"model": model, "names": fitted}
-    scored = thinned_draws(num_draws, log_likelihood_draws)
+    scored = thinned_draws(num_particles, log_likelihood_draws)
     steps = step_inputs(arrays)
     started = time.perf_counter()
     first = jax.tree.map(lambda a: a[0], series)
@@ -309,15 +318,15 @@ def run(
     # Draws: sigma^2 ~ SSR / chi2(n - p) (or the fixed sigma), then z | sigma Gaussian, from one
     # numpy generator per vehicle seeded from the key (JAX's gamma sampler compiles for seconds).
     seeds = np.asarray(jax.random.bits(key, (num_vehicles,), dtype=jnp.uint32)).astype(np.int64)
-    draws = np.empty((num_vehicles, num_draws, len(names)))
+    draws = np.empty((num_vehicles, num_particles, len(names)))
     estimate = np.empty((num_vehicles, len(names)))
     for n, (fit, covariance) in enumerate(zip(fits, covariances, strict=True)):
         rng = np.random.default_rng(seeds[n])
         if NOISE in names:
-            sigma_draws = np.sqrt(sum_squares[n] / rng.chisquare(dof[n], num_draws))
+            sigma_draws = np.sqrt(sum_squares[n] / rng.chisquare(dof[n], num_particles))
         else:
-            sigma_draws = np.full(num_draws, float(fixed_values.sigma))
-        normals = rng.standard_normal((num_draws, len(fitted)))
+            sigma_draws = np.full(num_particles, float(fixed_values.sigma))
+        normals = rng.standard_normal((num_particles, len(fitted)))
         z = fit.z + sigma_draws[:, None] * (normals @ np.linalg.cholesky(covariance).T)
         theta = _box(z, lower, width)
         theta_hat = _box(fit.z, lower, width)
@@ -362,7 +371,7 @@ def run(
         compile_time_s=compile_time,
         wall_time_s=wall_time,
         options={
-            "num_draws": num_draws,
+            "num_particles": num_particles,
             "log_likelihood_draws": len(scored),
             "max_nfev": max_nfev,
             "starts": list(START_NAMES),
