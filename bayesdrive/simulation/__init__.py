@@ -1,1 +1,17 @@
 """Closed-loop simulation: scenarios from held-out data, rollouts, baselines and metrics."""
+
+from bayesdrive.simulation.baselines import BASELINES, Policy, baseline_policy
+from bayesdrive.simulation.metrics import evaluate_policy
+from bayesdrive.simulation.rollout import rollout, scene_arrays
+from bayesdrive.simulation.scenarios import merge_scenarios, platoon_scenarios
+
+__all__ = [
+    "BASELINES",
+    "Policy",
+    "baseline_policy",
+    "evaluate_policy",
+    "merge_scenarios",
+    "platoon_scenarios",
+    "rollout",
+    "scene_arrays",
+]

@@ -8,8 +8,8 @@ here knows the IDM: any :class:`~bayesdrive.drivers.base.DriverModel` runs. ``la
 steps, ``vmap`` the vehicles within a step and the rollouts; one compilation serves every scenario
 of the same shape.
 
-Positions are float32 metres from a local origin (the head's position at t0), so a 5 s horizon
-never adds small increments to large numbers.
+Positions are float32 metres from the scenario's origin (the head's position at t0 for a platoon,
+the merge point for a merge scene), so a 5 s horizon never adds small increments to large numbers.
 
 **Keys** (:func:`rollout_keys`): the key splits into one key per rollout; a rollout key splits
 into ``init`` (one key per vehicle for ``initial_sample``) and ``steps`` (one key per step, each
@@ -33,6 +33,7 @@ import numpy as np
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.drivers.cidm import MergeInputs
 from bayesdrive.simulation.scenarios import Scenario
 
 __all__ = [
@@ -52,7 +53,7 @@ HARD_BRAKING_MPS2 = -3.0
 
 
 class SceneArrays(NamedTuple):
-    """What the simulator needs of one scene (float32; positions from the local origin).
+    """What the simulator needs of one scene (float32; positions from the scenario's origin).
 
     head_x, head_v, head_present: (T + 1,) the replayed leader of the first simulated vehicle
         (head_present = 0 where it is absent: the first vehicle then drives on free road).
@@ -83,7 +84,7 @@ class SceneArrays(NamedTuple):
 class Rollout(NamedTuple):
     """Simulated trajectories and events, leading axes (rollout, vehicle).
 
-    x, v, gap: (R, N, T + 1) position (local origin), speed and bumper gap to the leader; index 0
+    x, v, gap: (R, N, T + 1) position (from the scenario's origin), speed and bumper gap to the leader; index 0
         is the initial state. collision, hard_braking, off_road: (R, N, T) booleans for steps 1..T.
     """
 
@@ -172,9 +173,6 @@ def _inputs(scene: SceneArrays, t: Array, state: EgoState):
     following = CarFollowingInputs(gap=gap, lead_v=lead_v, has_leader=has_leader, dt=dt)
     if scene.merge_x.shape[0] == 0:
         return following
-    # Imported here: only merge scenes need the Cooperative IDM's input type.
-    from bayesdrive.drivers.cidm import MergeInputs
-
     num_vehicles = state.x.shape[0]
 
     def per_vehicle(values: Array) -> Array:
