@@ -8,7 +8,6 @@ from hypothesis import strategies as st
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.simulation import rollout as rollout_module
 from bayesdrive.simulation.baselines import CONSTANT_ACCELERATION, ConstantAccelerationParams
 from bayesdrive.simulation.rollout import (
     broadcast_params,
@@ -16,15 +15,14 @@ from bayesdrive.simulation.rollout import (
     rollout,
     rollout_keys,
 )
+from bayesdrive.simulation.rollout import platoon_scene as make_platoon_scene
 
 DT = 0.1
 LENGTH = 4.5
 
 
 def platoon_scene(head_v, x0, v0, length=LENGTH):
-    return rollout_module.platoon_scene(
-        head_v, np.asarray(x0), np.asarray(v0), length=length, dt=DT
-    )
+    return make_platoon_scene(head_v, np.asarray(x0), np.asarray(v0), length=length, dt=DT)
 
 
 def braking_head(speed: float, brake_at_s: float, decel: float, floor: float, steps: int):

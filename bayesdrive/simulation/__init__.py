@@ -1,8 +1,12 @@
-"""Closed-loop simulation: scenarios from held-out data, rollouts, baselines and metrics."""
+"""Closed-loop simulation: scenarios from held-out data, rollouts, baselines and metrics.
+
+The simulator itself is :func:`bayesdrive.simulation.rollout.rollout` (not re-exported here: the
+name would hide its module).
+"""
 
 from bayesdrive.simulation.baselines import BASELINES, Policy, baseline_policy
 from bayesdrive.simulation.metrics import evaluate_policy
-from bayesdrive.simulation.rollout import rollout, scene_arrays
+from bayesdrive.simulation.rollout import scene_arrays
 from bayesdrive.simulation.scenarios import merge_scenarios, platoon_scenarios
 
 __all__ = [
@@ -12,6 +16,5 @@ __all__ = [
     "evaluate_policy",
     "merge_scenarios",
     "platoon_scenarios",
-    "rollout",
     "scene_arrays",
 ]
