@@ -42,12 +42,15 @@ CRITERION = (
 )
 
 
-def worst_convergence(table: pd.DataFrame) -> dict[str, dict[str, float]]:
-    """Per parameter, the worst vehicle's figures: max R-hat, min ESS, max MCSE / sd, etc."""
-    worst: dict[str, dict[str, float]] = {}
+def worst_convergence(table: pd.DataFrame) -> dict[str, dict[str, float | None]]:
+    """Per parameter, the worst vehicle's figures: max R-hat, min ESS, max MCSE / sd, etc.
+
+    R-hat is None for single-chain results (emcee, particle engines).
+    """
+    worst: dict[str, dict[str, float | None]] = {}
     for name, rows in table.groupby("param", sort=False):
-        entry = {
-            "max_rhat": float(rows["rhat"].max()),
+        entry: dict[str, float | None] = {
+            "max_rhat": None if rows["rhat"].isna().all() else float(rows["rhat"].max()),
             "min_ess_bulk": float(rows["ess_bulk"].min()),
             "min_ess_tail": float(rows["ess_tail"].min()),
             "max_mcse_over_sd": float((rows["mcse_mean"] / rows["sd"]).max()),
@@ -111,8 +114,8 @@ def _print_agreement(summary: pd.DataFrame) -> None:
     console.print(f"criterion: {escape(CRITERION)}")
 
 
-def _format(value: float) -> str:
-    if np.isnan(value):
+def _format(value: float | None) -> str:
+    if value is None or np.isnan(value):
         return "-"
     return f"{value:.0f}" if abs(value) >= 100 or float(value).is_integer() else f"{value:.3f}"
 

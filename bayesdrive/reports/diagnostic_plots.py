@@ -114,8 +114,10 @@ def plot_agreement_heatmap(table: pd.DataFrame, path: Path) -> Path:
     pairs = list(dict.fromkeys(zip(table["a"], table["b"], strict=True)))
     params = list(dict.fromkeys(table["param"]))
     vehicles = list(dict.fromkeys(table["vehicle"]))
-    cmap = ListedColormap(["#e8f5e9", "#fff3b0", "#ffb74d", "#d32f2f"])
-    norm = BoundaryNorm([0.0, MEAN_TOLERANCE_SD, 0.5, 1.0, 1e9], cmap.N)
+    colours = ["#e8f5e9", "#fff3b0", "#ffb74d", "#d32f2f"]
+    # The last band is open-ended: anything above 1 sd takes its colour.
+    cmap = ListedColormap(colours).with_extremes(over=colours[-1])
+    norm = BoundaryNorm([0.0, MEAN_TOLERANCE_SD, 0.5, 1.0, 2.0], cmap.N)
     figure = Figure(
         figsize=(1.2 + 0.75 * len(params) * len(pairs), 1.6 + 0.28 * len(vehicles)),
         layout="constrained",
