@@ -4,7 +4,7 @@ import logging
 
 import typer
 
-from bayesdrive.cli import data_cmd, diagnose_cmd, evaluate_cmd, sbc_cmd
+from bayesdrive.cli import data_cmd, diagnose_cmd, evaluate_cmd, fit_cmd, sbc_cmd
 
 app = typer.Typer(
     help="Learn distributions over rule-based driver-model parameters from real trajectories.",
@@ -12,6 +12,7 @@ app = typer.Typer(
     pretty_exceptions_show_locals=False,
 )
 app.add_typer(data_cmd.app, name="data")
+app.command("fit")(fit_cmd.fit)
 app.command("evaluate")(evaluate_cmd.evaluate)
 app.command("diagnose")(diagnose_cmd.diagnose)
 app.command("sbc")(sbc_cmd.sbc)

@@ -24,7 +24,7 @@ from bayesdrive.inference import ensemble, lm, nuts, pf, smc
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import EngineResult, build_tree, metadata
 
-__all__ = ["ENGINES", "Engine", "fit", "summary"]
+__all__ = ["ENGINES", "Engine", "first_vehicles", "fit", "summary"]
 
 
 class Engine(Protocol):
@@ -66,6 +66,7 @@ def fit(
     fixed: Mapping[str, float] | None = None,
     seed: int | None = None,
     prior: Any = None,
+    max_vehicles: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     **engine_options: Any,
 ) -> xr.DataTree:
@@ -76,7 +77,9 @@ def fit(
     ``window`` should name the window they were built for; it is only recorded). Parameters not
     inferred take ``fixed`` values, else the model's defaults. ``seed`` is recorded in the metadata
     beside the key's own data. ``prior`` (default: the model's uniform box) needs
-    ``logpdf(theta)`` and ``sample(key, shape)``. ``engine_options`` go to the engine (e.g.
+    ``logpdf(theta)`` and ``sample(key, shape)``. ``max_vehicles`` keeps only the first vehicles
+    that have usable steps (quick runs). ``progress(done, total)`` is called as vehicles finish.
+    ``engine_options`` go to the engine (e.g.
     ``ess_threshold`` for smc, ``epochs`` for pf). Returns the result tree
     (:mod:`bayesdrive.inference.output`).
     """
@@ -92,6 +95,8 @@ def fit(
         source, data_format, flagged = data.source, data.format, len(data.flags)
     else:
         arrays, source, data_format, flagged = data, "FollowerArrays", "arrays", None
+    if max_vehicles is not None:
+        arrays = first_vehicles(arrays, max_vehicles)
     result = ENGINES[engine](
         key,
         arrays,
@@ -125,11 +130,24 @@ def fit(
             "num_vehicles": len(arrays.vehicle_ids),
             "usable_steps": int(np.asarray(arrays.mask).sum()),
             "flagged_samples": flagged,
+            "max_vehicles": max_vehicles,
             "engine_options": result.options,
             "compile_time_s": result.compile_time_s,
             "wall_time_s": result.wall_time_s,
         },
     )
+
+
+def first_vehicles(arrays: FollowerArrays, count: int) -> FollowerArrays:
+    """The first ``count`` vehicles of ``arrays`` (all of them when there are fewer)."""
+    if count < 1:
+        raise ValueError(f"the number of vehicles must be positive, got {count}")
+    per_vehicle = {
+        name: value[:count]
+        for name, value in arrays._asdict().items()
+        if isinstance(value, np.ndarray)
+    }
+    return arrays._replace(vehicle_ids=arrays.vehicle_ids[:count], **per_vehicle)
 
 
 def _describe(values: np.ndarray) -> dict[str, float]:
@@ -167,6 +185,7 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "data_source",
         "window",
         "flagged_samples",
+        "max_vehicles",
         "usable_steps",
         "wall_time_s",
         "compile_time_s",

@@ -1,0 +1,146 @@
+"""``bayesdrive fit``: per-vehicle parameter distributions from trajectories, saved to a folder.
+
+DATA is a file, a folder or a data set name (held-out names are refused: nothing is fitted on
+them). OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
+(:func:`bayesdrive.inference.fit.summary`) and the filter diagnostics ess.png,
+unique_particles.png and convergence.png. Bad input ends with a one-line ``error: ...`` on
+standard error and exit code 2.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import typer
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from bayesdrive.cli.common import console, emit_json, err_console, fail
+from bayesdrive.data import registry
+from bayesdrive.data.errors import DataError
+from bayesdrive.drivers.registry import MODELS, get_model
+from bayesdrive.inference.fit import ENGINES, summary
+from bayesdrive.inference.fit import fit as fit_model
+from bayesdrive.inference.output import save_result
+from bayesdrive.reports.filter_plots import write_filter_plots
+
+__all__ = ["fit"]
+
+JSON_HELP = "Write summary.json's content to OUT too ('-' for standard output, then nothing else)."
+# Vehicles listed in the printed table; summary.json has all of them.
+SHOWN_VEHICLES = 10
+
+
+def _progress() -> Progress:
+    # On stderr: stdout may carry the JSON.
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err_console,
+        transient=True,
+    )
+
+
+def _print(result: dict[str, Any], out: Path) -> None:
+    params = result["params"]
+    table = Table(
+        title=escape(
+            f"{result['engine']} on {result['model']}: {len(result['vehicles'])} vehicle(s) of "
+            f"{result['data_source']} ({result['window']} window), {result['num_particles']} "
+            "particles; posterior mean ± sd"
+        )
+    )
+    table.add_column("vehicle")
+    for name in params:
+        table.add_column(name, justify="right")
+    for vehicle, entry in list(result["vehicles"].items())[:SHOWN_VEHICLES]:
+        table.add_row(
+            escape(vehicle), *(f"{entry[n]['mean']:.3g} ± {entry[n]['sd']:.2g}" for n in params)
+        )
+    console.print(table)
+    hidden = len(result["vehicles"]) - SHOWN_VEHICLES
+    if hidden > 0:
+        console.print(f"... and {hidden} more vehicle(s) in summary.json")
+    console.print(
+        f"flagged samples in the data (left out): {result['flagged_samples']}; "
+        f"usable steps: {result['usable_steps']}"
+    )
+    console.print(
+        f"inference {result['wall_time_s']:.2f} s, compilation {result['compile_time_s']:.2f} s; "
+        f"seed {result['seed']}"
+    )
+    console.print(
+        escape(
+            f"wrote {out}/result.nc, summary.json, ess.png, unique_particles.png, convergence.png"
+        )
+    )
+
+
+def fit(
+    data: str = typer.Argument(..., help="A file, a folder, or a data set name."),
+    out: str = typer.Option(..., "--out", help="Folder for result.nc, summary.json and plots."),
+    model: str = typer.Option("idm", "--model", help=f"Driver model: {', '.join(MODELS)}."),
+    engine: str = typer.Option("smc", "--engine", help=f"Engine: {', '.join(ENGINES)}."),
+    params: str | None = typer.Option(
+        None, "--params", help="Comma-separated parameters to infer (default: all)."
+    ),
+    particles: int = typer.Option(1000, "--particles", help="Particles per vehicle."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the engine's random key."),
+    format: str | None = typer.Option(
+        None, "--format", help="Reader format (default: detected or the data set's)."
+    ),
+    window: str = typer.Option("fit", "--window", help="Steps to fit on: fit or all."),
+    vehicles: int | None = typer.Option(
+        None, "--vehicles", help="Only the first N vehicles with usable steps (quick runs)."
+    ),
+    epochs: int | None = typer.Option(None, "--epochs", help="pf only: epochs (default 1)."),
+    data_dir: str | None = typer.Option(None, "--data-dir", help="Folder holding data sets."),
+    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+) -> None:
+    """Fit per-vehicle parameter distributions and write result.nc, summary.json and plots."""
+    folder = Path(out)
+    if window not in ("fit", "all"):
+        raise fail(
+            f"--window must be 'fit' or 'all' (held-out steps are never fitted), not {window!r}"
+        )
+    if epochs is not None and engine != "pf":
+        raise fail("--epochs applies to --engine pf only")
+    names = None if params is None else tuple(p.strip() for p in params.split(",") if p.strip())
+    options = {} if epochs is None else {"epochs": epochs}
+    try:
+        driver = get_model(model)
+        traj = registry.load(data, format=format, data_dir=data_dir)
+        with _progress() as bar:
+            task = bar.add_task(f"{engine}: compiling, then fitting vehicles", total=None)
+            tree = fit_model(
+                jax.random.key(seed),
+                traj,
+                model=driver,
+                engine=engine,
+                params=names,
+                num_particles=particles,
+                window=window,
+                seed=seed,
+                max_vehicles=vehicles,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+                **options,
+            )
+    except (DataError, KeyError, ValueError, NotImplementedError) as error:
+        raise fail(str(error.args[0] if isinstance(error, KeyError) else error)) from None
+    except TypeError as error:  # a model whose inputs car-following data cannot provide
+        raise fail(f"model {model!r} cannot be fitted on car-following data: {error}") from None
+
+    result = summary(tree)
+    emit_json(result, str(folder / "summary.json"))
+    write_filter_plots(tree, folder)
+    try:
+        save_result(tree, folder / "result.nc")
+    except ImportError as error:
+        raise fail(f"cannot write {folder / 'result.nc'}: {error}") from None
+    if not emit_json(result, json_out):
+        _print(result, folder)
