@@ -193,6 +193,20 @@ def test_fixed_sigma_is_used_and_not_reported_as_inferred(short_data):
         np.testing.assert_allclose(ratio, TRUTH["sigma"] / s, rtol=0.2, err_msg=name)
 
 
+def test_a_fit_on_the_edge_of_the_prior_box_is_flagged():
+    # True a_max = 0.1 m/s^2, half its prior's lower bound (0.2): the best fit in the box sits on
+    # the bound, where the logit map is flat, so no Gaussian describes it; lm must say so.
+    arrays = simulated(jax.random.key(700), 2, 512, truth=TRUTH | {"a_max": 0.1})
+    result = lm.run(jax.random.key(7), arrays, model=IDM, num_particles=200)
+    a_max = IDM.param_names.index("a_max")
+    expected_at_bound = np.zeros((2, len(IDM.param_names)), dtype=bool)
+    expected_at_bound[:, a_max] = True
+    np.testing.assert_array_equal(stat(result, "at_bound"), expected_at_bound)
+    np.testing.assert_allclose(stat(result, "estimate")[:, a_max], IDM.spec("a_max").lower)
+    assert not stat(result, "identified").any()
+    assert not stat(result, "converged").any()
+
+
 def test_bad_requests_are_refused_clearly(short_data):
     arrays = short_data
     with pytest.raises(ValueError, match="no parameter"):

@@ -40,9 +40,12 @@ So the covariance is :math:`s^2 (J^\top J)^{-1}` in the fitted space at :math:`\
 sd of :math:`\sigma` is the sampling spread of the RMS (about :math:`s/\sqrt{2(n-p)}`); with a fixed
 :math:`\sigma` only z is drawn. It is a Gaussian approximation in the transformed space: skewed in
 parameter space near a bound, and blind to multimodality. Where :math:`J^\top J` is numerically
-singular (a parameter the data cannot inform, e.g. v_des with speeds far below it), its small
-eigenvalues are floored at ``1e-10`` of the largest, the draws in that direction spread to the box
-edges, and ``sample_stats.identified`` is False (``converged`` too). The draws come from one
+singular, its small eigenvalues are floored at ``1e-10`` of the largest, the draws in that
+direction spread to the box edges, and ``sample_stats.identified`` is False (``converged`` too).
+That happens when the data cannot inform a parameter (v_des in congestion) and, above all, when the
+best fit lies on the edge of the box, where the sigmoid is flat (``sample_stats.at_bound``): on the
+NGSIM I-80 fit windows most vehicles have one, e.g. b_pref at its upper bound. A Gaussian cannot
+describe such a posterior; use a sampling engine there. The draws come from one
 numpy generator per vehicle, seeded from the PRNG key (``sample_stats.seed``); the fit itself is
 deterministic and needs no key.
 """
@@ -87,6 +90,10 @@ log = logging.getLogger(__name__)
 NOISE = "sigma"
 # Relative eigenvalue floor of J^T J below which a direction counts as not identified.
 IDENTIFIED_RTOL = 1e-10
+# An estimate within this fraction of its box width from a bound counts as at the bound.
+AT_BOUND = 1e-4
+# Vehicle ids named in the not-converged warning (the count is always given).
+WARN_IDS = 10
 START_NAMES = ("defaults", "prior_centre")
 
 
@@ -230,7 +237,9 @@ def run(
     ``cost`` (half the residual sum of squares, scipy's convention), ``nfev`` (over both starts),
     ``status`` (scipy's code), ``converged`` (status > 0 and identified), ``identified``,
     ``best_start`` (0 = defaults, 1 = prior centre), ``sigma_hat``, ``num_residuals``,
-    ``censored_steps``, ``estimate`` [vehicle, param] (the fit itself, sigma = sigma_hat) and
+    ``censored_steps``, ``estimate`` [vehicle, param] (the fit itself, sigma = sigma_hat),
+    ``at_bound`` [vehicle, param] (estimate within 1e-4 of the box width of a prior bound, or
+    beyond it for sigma_hat) and
     ``seed``, the numpy seed of the vehicle's draws (split from ``key``, which is used for the
     posterior draws only).
     """
@@ -308,11 +317,13 @@ def run(
     status = np.array([f.status for f in fits])
     converged = (status > 0) & identified & np.isfinite(sum_squares)
     if not converged.all():
+        failed = [v for v, ok in zip(arrays.vehicle_ids, converged, strict=True) if not ok]
         log.warning(
-            "lm: %d of %d vehicle(s) not converged or not identified: %s",
-            int((~converged).sum()),
+            "lm: %d of %d vehicle(s) not converged or not identified (see sample_stats.status, "
+            "identified, at_bound), e.g. %s",
+            len(failed),
             num_vehicles,
-            [v for v, ok in zip(arrays.vehicle_ids, converged, strict=True) if not ok],
+            failed[:WARN_IDS],
         )
 
     # Draws: sigma^2 ~ SSR / chi2(n - p) (or the fixed sigma), then z | sigma Gaussian, from one
@@ -337,6 +348,11 @@ def run(
             else:
                 draws[n, :, column] = theta[:, fitted.index(name)]
                 estimate[n, column] = theta_hat[fitted.index(name)]
+
+    box_of = {s.name: (s.lower, s.upper) for s in model.specs}
+    edges = np.array([box_of[n] for n in names])
+    margin = AT_BOUND * (edges[:, 1] - edges[:, 0])
+    at_bound = (estimate <= edges[:, 0] + margin) | (estimate >= edges[:, 1] - margin)
 
     log_likelihood = np.asarray(
         _score_draws(
@@ -364,6 +380,7 @@ def run(
             "num_residuals": (vehicle, num_residuals),
             "censored_steps": (vehicle, np.asarray(censored, dtype=int)),
             "estimate": (("vehicle", "param"), estimate),
+            "at_bound": (("vehicle", "param"), at_bound),
             "seed": (vehicle, seeds),
         },
         log_likelihood=particle_log_likelihood(log_likelihood),
