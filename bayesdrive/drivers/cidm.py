@@ -23,10 +23,9 @@ limit of that rule: the candidate with the largest TTM). It **yields** when, wit
 i.e. the ego has not passed the merge point and the merging vehicle arrives first, early enough.
 So :math:`c = 0` never yields (no TTM of a candidate is negative; for a stopped ego
 :math:`0 \cdot \infty` is undefined and compares false) and :math:`c = 1` yields to every vehicle
-that arrives first. The
-paper prints the inequality the other way round (:math:`TTM_{ego} < c\,TTM_{other}`, under which a
-larger c would yield *less*, contradicting its own reading of c as cooperation); its code does
-what is written here, and so do we.
+that arrives first. The paper prints the inequality the other way round
+(:math:`TTM_{ego} < c\,TTM_{other}`, under which a larger c would yield *less*); its code does what
+is written here, and so do we.
 
 Yielding means following the IDM towards the merging vehicle projected onto the ego's lane at the
 same distance to the merge point, and never accelerating harder than the IDM towards the real
