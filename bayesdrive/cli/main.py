@@ -4,7 +4,15 @@ import logging
 
 import typer
 
-from bayesdrive.cli import data_cmd, diagnose_cmd, evaluate_cmd, fit_cmd, sbc_cmd
+from bayesdrive.cli import (
+    criticize_cmd,
+    data_cmd,
+    diagnose_cmd,
+    evaluate_cmd,
+    fit_cmd,
+    sbc_cmd,
+    simulate_cmd,
+)
 
 app = typer.Typer(
     help="Learn distributions over rule-based driver-model parameters from real trajectories.",
@@ -14,8 +22,10 @@ app = typer.Typer(
 app.add_typer(data_cmd.app, name="data")
 app.command("fit")(fit_cmd.fit)
 app.command("evaluate")(evaluate_cmd.evaluate)
+app.command("simulate")(simulate_cmd.simulate)
 app.command("diagnose")(diagnose_cmd.diagnose)
 app.command("sbc")(sbc_cmd.sbc)
+app.command("criticize")(criticize_cmd.criticize_command)
 
 
 @app.callback()

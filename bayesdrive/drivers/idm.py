@@ -69,6 +69,7 @@ __all__ = [
     "IDM",
     "STOP_SPEED",
     "IDMParams",
+    "equilibrium_gap",
     "idm_acceleration",
     "noisy_step",
     "step_logpdf",
@@ -114,6 +115,12 @@ def idm_acceleration(params, v: Array, gap: Array, lead_v: Array, has_leader: Ar
     safe_gap = jnp.maximum(jnp.where(has_leader > 0, gap, 1.0), MIN_GAP)
     interaction = jnp.where(has_leader > 0, (desired_gap / safe_gap) ** 2, 0.0)
     return params.a_max * (free - interaction)
+
+
+def equilibrium_gap(params, v: Array) -> Array:
+    """The bumper gap at which the IDM holds speed ``v`` behind a leader at the same speed:
+    d_e = (d_min + tau v) / sqrt(1 - (v / v_des)^delta), for 0 <= v < v_des."""
+    return (params.d_min + params.tau * v) / jnp.sqrt(1.0 - (v / params.v_des) ** DELTA)
 
 
 def noisy_step(key: Array, state: EgoState, mean_acc: Array, sigma: Array, dt: Array) -> EgoState:
