@@ -22,8 +22,9 @@ from bayesdrive.cli.common import console, emit_json, err_console, fail
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.drivers.registry import MODELS, get_model
-from bayesdrive.inference.fit import ENGINES, summary
+from bayesdrive.inference.fit import ENGINES, get_engine, summary
 from bayesdrive.inference.fit import fit as fit_model
+from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import save_result
 from bayesdrive.reports.filter_plots import write_filter_plots
 
@@ -110,10 +111,14 @@ def fit(
         )
     if epochs is not None and engine != "pf":
         raise fail("--epochs applies to --engine pf only")
-    names = None if params is None else tuple(p.strip() for p in params.split(",") if p.strip())
     options = {} if epochs is None else {"epochs": epochs}
     try:
+        # Checked before reading any data, so a typo fails at once.
+        get_engine(engine)
         driver = get_model(model)
+        names = (
+            None if params is None else param_names(driver, [p.strip() for p in params.split(",")])
+        )
         traj = registry.load(data, format=format, data_dir=data_dir)
         with _progress() as bar:
             task = bar.add_task(f"{engine}: compiling, then fitting vehicles", total=None)

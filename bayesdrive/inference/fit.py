@@ -24,7 +24,7 @@ from bayesdrive.inference import ensemble, lm, nuts, pf, smc
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import EngineResult, build_tree, metadata
 
-__all__ = ["ENGINES", "Engine", "first_vehicles", "fit", "summary"]
+__all__ = ["ENGINES", "Engine", "first_vehicles", "fit", "get_engine", "summary"]
 
 
 class Engine(Protocol):
@@ -52,6 +52,13 @@ ENGINES: dict[str, Engine] = {
     "emcee": ensemble.run,
     "lm": lm.run,
 }
+
+
+def get_engine(name: str) -> Engine:
+    """The engine called ``name``; a ValueError lists the known ones."""
+    if name not in ENGINES:
+        raise ValueError(f"unknown engine {name!r}; choose one of {sorted(ENGINES)}")
+    return ENGINES[name]
 
 
 def fit(
@@ -83,8 +90,7 @@ def fit(
     ``ess_threshold`` for smc, ``epochs`` for pf). Returns the result tree
     (:mod:`bayesdrive.inference.output`).
     """
-    if engine not in ENGINES:
-        raise ValueError(f"unknown engine {engine!r}; choose one of {sorted(ENGINES)}")
+    run_engine = get_engine(engine)
     names = param_names(model, params)
     fixed = dict(fixed or {})
     both = sorted(set(fixed) & set(names))
@@ -97,7 +103,7 @@ def fit(
         arrays, source, data_format, flagged = data, "FollowerArrays", "arrays", None
     if max_vehicles is not None:
         arrays = first_vehicles(arrays, max_vehicles)
-    result = ENGINES[engine](
+    result = run_engine(
         key,
         arrays,
         model=model,

@@ -3,7 +3,8 @@
 Each function takes a result tree (:mod:`bayesdrive.inference.output`) with the particle engines'
 ``sample_stats`` and writes one PNG atomically. Figures are built on matplotlib's object API with
 the Agg canvas, so nothing touches pyplot's global state. Steps outside a vehicle's usable mask are
-left out of every trace; thin lines are vehicles, the thick line their median.
+left out of every trace; thin lines are vehicles, the thick line their median (drawn where at
+least half of them have data).
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ def _draw(ax: Axes, seconds: np.ndarray, values: np.ndarray, *, points: bool = F
     for row in values[:MAX_TRACES]:
         ax.plot(seconds, row, color="0.55", alpha=0.5, **style)
     if not points:
-        live = np.isfinite(values).any(axis=0)
+        # Where fewer than half the vehicles still have data, a "median" is one or two series.
+        live = np.isfinite(values).sum(axis=0) >= max(1, len(values) / 2)
         median = np.full(values.shape[1], np.nan)
         median[live] = np.nanmedian(values[:, live], axis=0)
         ax.plot(seconds, median, color="C0", lw=2.0, label="median over vehicles")
