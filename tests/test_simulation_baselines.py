@@ -1,12 +1,15 @@
 """Baselines: the black box learns what it is shown; constant velocity crashes in real jams."""
 
+import dataclasses
+import shutil
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from bayesdrive.data import registry
-from bayesdrive.data.views import FollowerArrays
+from bayesdrive.data.views import FollowerArrays, split_time
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.simulation.baselines import baseline_policy, particle_policy, per_vehicle_policy
@@ -101,6 +104,33 @@ def test_policies_name_the_vehicles_they_have_no_parameters_for():
     np.testing.assert_allclose(params.tau, 1.5)
     with pytest.raises(KeyError, match=r"\['c'\]"):
         draws.params_for(jax.random.key(0), ("a", "c"), 3)
+
+
+@pytest.mark.realdata
+def test_idm_lm_gives_each_vehicle_its_own_fit_on_its_fitting_window(data_dir, tmp_path):
+    for name in ("1_11_24_44_55_54.csv", "11_24_44_55_54_59.csv"):
+        shutil.copy(data_dir / "ngsim_i80_chains" / name, tmp_path / name)
+    traj = registry.load(tmp_path)
+    vehicles = ["11", "24", "44"]
+    policy = baseline_policy("idm-lm", jax.random.key(0), traj, vehicles)
+    params = policy.params_for(jax.random.key(1), tuple(vehicles), 3)
+    assert params.tau.shape == (3, 3)
+    np.testing.assert_array_equal(params.sigma, 0.0)  # deterministic at the fit
+    np.testing.assert_array_equal(params.tau, np.broadcast_to(params.tau[0], (3, 3)))
+    assert len(set(np.asarray(params.tau[0]).tolist())) == 3  # one fit per vehicle
+    # Only fitting windows are fitted: changing every sample after the last vehicle's split
+    # (leaders' inputs included) leaves the fits as they were.
+    last_split = max(split_time(traj.vehicle(v)["t"].to_numpy()) for v in traj.vehicle_ids)
+    tracks = traj.tracks.copy()
+    late = tracks["t"] >= last_split
+    tracks.loc[late, "v"] += 1.0
+    tracks.loc[late, "x"] += 5.0
+    changed = baseline_policy(
+        "idm-lm", jax.random.key(0), dataclasses.replace(traj, tracks=tracks), vehicles
+    )
+    again = changed.params_for(jax.random.key(1), tuple(vehicles), 3)
+    for a, b in zip(params, again, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.realdata

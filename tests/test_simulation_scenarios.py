@@ -20,10 +20,11 @@ LENGTH = 4.5
 
 
 def chain_trajectories(
-    spans: dict[str, tuple[float, float]], leaders: dict, flags=()
+    spans: dict[str, tuple[float, float]], leaders: dict, flags=(), gap_offset: float = 0.0
 ) -> Trajectories:
     """Vehicles driving 10 m/s in one lane, 20 m apart front to front, present over ``spans``
-    (start, end) seconds; ``leaders[v]`` is the leader id, or a function of t giving it."""
+    (start, end) seconds; ``leaders[v]`` is the leader id, or a function of t giving it. The
+    measured gap column is the position gap plus ``gap_offset`` (drifted positions)."""
     rows = []
     for order, (vid, (start, end)) in enumerate(spans.items()):
         for t in np.round(np.arange(start, end, DT), 6):
@@ -38,7 +39,7 @@ def chain_trajectories(
                     "a": 0.0,
                     "lane_id": 1,
                     "leader_id": lead,
-                    "gap": 20.0 - LENGTH if lead is not None else np.nan,
+                    "gap": 20.0 - LENGTH + gap_offset if lead is not None else np.nan,
                     "length": LENGTH,
                     "driver": "human",
                 }
@@ -120,6 +121,18 @@ def test_a_vehicle_is_simulated_in_at_most_one_scenario_at_a_time():
     ]
 
 
+def test_followers_are_re_anchored_to_the_measured_gap_at_the_start():
+    # Positions put the cars 15.5 m apart bumper to bumper, the measured gap says 18.5 m: each
+    # follower moves back 3 m more than the one ahead; speeds and the window are untouched.
+    traj = chain_trajectories(dict.fromkeys("ABCD", (0.0, 30.0)), FOLLOWS, gap_offset=3.0)
+    found = platoon_scenarios(traj, vehicles_per_scenario=3, horizon_s=2.0)
+    first = found.scenarios[0]
+    np.testing.assert_allclose(first.anchor_shift, [-3.0, -6.0, -9.0])
+    np.testing.assert_allclose(first.x[:-1, 0] - first.x[1:, 0] - LENGTH, 18.5)
+    np.testing.assert_allclose(first.x[1] - first.x[1, 0], 10.0 * DT * np.arange(21), atol=1e-9)
+    assert found.summary()["anchor_shift_m"] == {"median": 6.0, "max": 9.0}
+
+
 def test_a_horizon_off_the_sampling_grid_is_refused():
     traj = chain_trajectories(dict.fromkeys("AB", (0.0, 30.0)), FOLLOWS)
     with pytest.raises(DataError, match="not a positive multiple"):
@@ -168,6 +181,10 @@ def test_openacc_platoons_replay_car_1_and_simulate_the_four_followers(data_dir)
     assert found.scenarios
     check_real_platoons(traj, found)
     assert {s.vehicle_ids[0].rsplit(":", 1)[1] for s in found.scenarios} == {"1"}
+    # Integrated-speed positions drift from the measured spacing; scenarios start at the latter.
+    for scenario in found.scenarios:
+        start_gap = scenario.x[:-1, 0] - scenario.x[1:, 0] - scenario.length[:-1]
+        np.testing.assert_allclose(start_gap, scenario.gap[:, 0], atol=1e-9)
     assert not platoon_scenarios(traj, vehicles_per_scenario=5, horizon_s=5.0).scenarios
 
 

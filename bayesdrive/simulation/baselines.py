@@ -202,12 +202,18 @@ def lm_policy(
     unfit = sorted(set(vehicle_ids) - set(arrays.vehicle_ids))
     if unfit:
         raise DataError(
-            f"{traj.source}: idm-lm: vehicle(s) {unfit} have no usable car-following step in their fitting "
-            "window, so they cannot be fitted"
+            f"{traj.source}: idm-lm: vehicle(s) {unfit} have no usable car-following step in "
+            "their fitting window, so they cannot be fitted"
         )
     names = tuple(n for n in IDM.param_names if n != "sigma")
     fit = lm.run(
-        key, arrays, model=IDM, params=names, progress=progress, num_draws=1, log_likelihood_draws=1
+        key,
+        arrays,
+        model=IDM,
+        params=names,
+        progress=progress,
+        num_particles=1,
+        log_likelihood_draws=1,
     )
     estimate = fit.sample_stats["estimate"][1]
     by_vehicle = {

@@ -8,6 +8,13 @@ loop (``f_k`` follows the *simulated* ``f_{k-1}``). The window lies inside the h
 every simulated vehicle (``t0 >= split_time`` of each, :mod:`bayesdrive.data.views`), so nothing
 scored was fitted. ``N`` (``vehicles_per_scenario``) counts the simulated vehicles only.
 
+Positions are re-anchored at t0: each follower's observed track is shifted by a constant so that
+its bumper gap to its leader at t0 equals the measured ``gap``. Where positions and gaps agree
+(NGSIM: positions define the gaps) the shift is 0; OpenACC positions are integrated Doppler speeds
+that drift from the measured inter-vehicle spacing by metres over a recording (reader notes), so
+without it a simulation would start from a gap off by up to tens of metres, even negative. Within a
+window the drift is small; :attr:`ScenarioSet.summary` reports the shifts.
+
 Chains come from the follower -> leader links of the whole data set, so deduplicated NGSIM
 vehicles join chains from different files into longer platoons (connected components); lane
 changes and cut-ins end a chain because the link must hold at every sample of the window.
@@ -80,6 +87,8 @@ class Scenario(NamedTuple):
     gap: (N, T + 1) observed bumper gap of each simulated vehicle to its leader (the data's
         ``gap``; NaN where it has none).
     length: (N + 1,) vehicle lengths (m).
+    anchor_shift: (N,) constant added to each simulated vehicle's observed positions so that its
+        bumper gap at t0 is the measured gap (platoons; 0 for merge scenes).
     origin: the position subtracted before simulating in float32 (the head's start for a
         platoon, 0 = the merge point for a merge scene, whose model needs that axis).
     merge_x, merge_v, merge_present: (K, T + 1) replayed merge-lane vehicles; merge_length (K,).
@@ -94,6 +103,7 @@ class Scenario(NamedTuple):
     v: np.ndarray
     gap: np.ndarray
     length: np.ndarray
+    anchor_shift: np.ndarray
     head_present: np.ndarray
     step_mask: np.ndarray
     origin: float
@@ -137,6 +147,13 @@ class ScenarioSet(NamedTuple):
         """Distinct simulated vehicle ids, in order of first appearance."""
         return list(dict.fromkeys(v for s in self.scenarios for v in s.simulated_ids))
 
+    def anchor_shift_summary(self) -> dict[str, float] | None:
+        """Median and largest |shift| (m) that re-anchored observed positions (None: no scenes)."""
+        if not self.scenarios:
+            return None
+        shifts = np.abs(np.concatenate([s.anchor_shift for s in self.scenarios]))
+        return {"median": float(np.median(shifts)), "max": float(shifts.max())}
+
     def summary(self) -> dict[str, Any]:
         """JSON-ready description of the set: counts and the rules that chose it."""
         return {
@@ -149,6 +166,7 @@ class ScenarioSet(NamedTuple):
             "horizon_s": self.horizon_s,
             "candidates": self.candidates,
             "flagged_samples_skipped": self.flagged_samples_skipped,
+            "anchor_shift_m": self.anchor_shift_summary(),
             "selection_rule": self.selection_rule,
             "split_rule": self.split_rule,
         }
@@ -266,6 +284,13 @@ def _scenario(chain, start: int, steps: int, tracks, dt: float) -> Scenario:
         return values[start - track.first : start - track.first + steps + 1]
 
     x = np.stack([window(t, t.x) for t in members])
+    gap = np.stack([window(t, t.gap) for t in members[1:]])
+    length = np.array([window(t, t.length)[0] for t in members])
+    # Re-anchor each follower so its bumper gap at t0 is the measured one (module docstring).
+    shift = np.zeros(len(chain))
+    for k in range(1, len(chain)):
+        shift[k] = x[k - 1, 0] - length[k - 1] - gap[k - 1, 0] - x[k, 0]
+        x[k] += shift[k]
     no_merge_lane = np.zeros((0, steps + 1))
     return Scenario(
         scenario_id=f"{chain[0]}+{len(chain) - 1}@{start * dt:.1f}s",
@@ -275,8 +300,9 @@ def _scenario(chain, start: int, steps: int, tracks, dt: float) -> Scenario:
         dt=dt,
         x=x,
         v=np.stack([window(t, t.v) for t in members]),
-        gap=np.stack([window(t, t.gap) for t in members[1:]]),
-        length=np.array([window(t, t.length)[0] for t in members]),
+        gap=gap,
+        length=length,
+        anchor_shift=shift[1:],
         head_present=np.ones(steps + 1),
         step_mask=np.ones(steps),
         origin=float(x[0, 0]),
@@ -513,6 +539,7 @@ def _merge_scenario(
         v=np.stack([head_v, np.where(in_scene, _on_steps(car, car.v, window, 0.0), 0.0)]),
         gap=np.where(in_scene, _on_steps(car, car.gap, window, np.nan), np.nan)[None],
         length=np.array([length(leader_ids), float(np.nanmax(car.length))]),
+        anchor_shift=np.zeros(1),
         head_present=head_present.astype(np.float64),
         step_mask=(np.arange(len(window) - 1) < real).astype(np.float64),
         origin=0.0,
