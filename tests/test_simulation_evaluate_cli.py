@@ -11,7 +11,7 @@ from bayesdrive.cli import evaluate_cmd
 from bayesdrive.cli.main import app
 from bayesdrive.data import registry
 from bayesdrive.data.views import SPLIT_RULE, follower_arrays
-from bayesdrive.inference.output import build_tree
+from bayesdrive.inference.output import build_tree, save_result
 
 runner = CliRunner()
 
@@ -143,6 +143,15 @@ def test_a_posterior_from_the_same_split_runs_and_others_are_refused(scene_dir, 
     wrong_model = evaluate(scene_dir, "--model", "cidm", "--posterior", good, *SMALL)
     assert wrong_model.exit_code == 2
     assert "not --model 'cidm'" in one_line(wrong_model.stderr)
+
+
+@pytest.mark.realdata
+def test_a_posterior_read_from_its_netcdf_file(scene_dir, tmp_path):
+    pytest.importorskip("h5py", reason="h5netcdf needs h5py to read or write netCDF4 files")
+    path = save_result(posterior_file(registry.load(scene_dir)), tmp_path / "result.nc")
+    result = evaluate(scene_dir, "--model", "idm", "--posterior", path, *SMALL, "--json", "-")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["policy_details"]["result"] == str(path)
 
 
 @pytest.mark.realdata
