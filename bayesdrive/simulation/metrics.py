@@ -11,7 +11,9 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   least once.
 * **Hard braking**: vehicle-steps with realised acceleration <= -3 m/s^2, beside the same count
   in the data (observed speeds of the same vehicles and steps).
-* **Off road**: vehicle-steps past the end of the vehicle's lane.
+* **Off road**: vehicle-steps past the end of the vehicle's lane. No simulated vehicle of the
+  current scene types drives on a lane that ends (in merge scenes the merging car replays), so
+  this is 0 by construction there; it counts for scenes that simulate merging cars.
 
 Across scenarios: mean and sample sd (ddof = 1; None with a single scenario) of the per-scenario
 values, totals of the counts, and speed and gap distributions of all simulated vehicle-steps
@@ -42,7 +44,7 @@ __all__ = [
     "distribution_samples",
     "evaluate_policy",
     "kde",
-    "observed",
+    "observed_data",
     "rmse_by_step",
     "scenario_metrics",
     "summarize",
@@ -52,7 +54,7 @@ __all__ = [
 class Observed(NamedTuple):
     """The data a rollout is scored against, on the rollout's axes.
 
-    x, v, gap: (N, T + 1) observed position (from the scene's local origin), speed and bumper gap
+    x, v, gap: (N, T + 1) observed position (from the scenario's origin), speed and bumper gap
     of the simulated vehicles (gap NaN where there is no leader). step_mask: (T,) 1 for real
     steps (0: past the end of the scene). dt: step length (s).
     """
@@ -97,7 +99,7 @@ class DistributionSamples(NamedTuple):
     observed_gap: np.ndarray
 
 
-def observed(scenario: Scenario) -> Observed:
+def observed_data(scenario: Scenario) -> Observed:
     """The observed simulated vehicles of a scenario, positions from the scenario's origin."""
     return Observed(
         x=scenario.x[1:] - scenario.origin,
@@ -283,7 +285,7 @@ def evaluate_policy(
         simulated = rollout(
             key_rollout, policy.model, params, scene_arrays(scenario), num_rollouts=num_rollouts
         )
-        data = observed(scenario)
+        data = observed_data(scenario)
         metrics.append(scenario_metrics(scenario.scenario_id, simulated, data))
         samples.append(distribution_samples(simulated, data))
         if on_scenario is not None:

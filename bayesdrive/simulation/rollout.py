@@ -163,14 +163,22 @@ def rollout_keys(key: Array, num_steps: int, num_vehicles: int) -> RolloutKeys:
     )
 
 
+def _from_leaders(head: Array, followers: Array) -> Array:
+    """Each simulated vehicle's leader's values: the head's for the first, vehicle k-1's for
+    vehicle k; for one step (head (), followers (N,)) or a path (head (T + 1,), followers
+    (N, T + 1))."""
+    return jnp.concatenate([jnp.asarray(head)[None], followers[:-1]])
+
+
 def _inputs(scene: SceneArrays, t: Array, state: EgoState):
-    """The model inputs of every simulated vehicle at step t (leaders: head, then vehicle k-1)."""
-    lead_x = jnp.concatenate([scene.head_x[t][None], state.x[:-1]])
-    lead_v = jnp.concatenate([scene.head_v[t][None], state.v[:-1]])
-    has_leader = jnp.ones_like(state.x).at[0].set(scene.head_present[t])
-    gap = lead_x - state.x - scene.lead_length
-    dt = jnp.broadcast_to(scene.dt, state.x.shape)
-    following = CarFollowingInputs(gap=gap, lead_v=lead_v, has_leader=has_leader, dt=dt)
+    """The model inputs of every simulated vehicle at step t."""
+    gap = _from_leaders(scene.head_x[t], state.x) - state.x - scene.lead_length
+    following = CarFollowingInputs(
+        gap=gap,
+        lead_v=_from_leaders(scene.head_v[t], state.v),
+        has_leader=_from_leaders(scene.head_present[t], jnp.ones_like(state.x)),
+        dt=jnp.broadcast_to(scene.dt, state.x.shape),
+    )
     if scene.merge_x.shape[0] == 0:
         return following
     num_vehicles = state.x.shape[0]
@@ -189,14 +197,6 @@ def _inputs(scene: SceneArrays, t: Array, state: EgoState):
     )
 
 
-def _gaps(scene: SceneArrays, x: Array) -> tuple[Array, Array]:
-    """Bumper gaps (N, T + 1) of simulated positions x (N, T + 1) to their leaders, and whether
-    there is a leader (only the first vehicle can lack one, where the head is absent)."""
-    lead_x = jnp.concatenate([scene.head_x[None], x[:-1]])
-    has_leader = jnp.ones_like(x).at[0].set(scene.head_present)
-    return lead_x - x - scene.lead_length[:, None], has_leader > 0
-
-
 def _one_rollout(key: Array, model: DriverModel, params: Any, scene: SceneArrays) -> Rollout:
     num_steps = scene.step_mask.shape[0]
     num_vehicles = scene.x0.shape[0]
@@ -213,7 +213,8 @@ def _one_rollout(key: Array, model: DriverModel, params: Any, scene: SceneArrays
     _, path = jax.lax.scan(step, start, (jnp.arange(num_steps), keys.steps))
     x = jnp.concatenate([start.x[:, None], path.x.T], axis=1)
     v = jnp.concatenate([start.v[:, None], path.v.T], axis=1)
-    gap, has_leader = _gaps(scene, x)
+    gap = _from_leaders(scene.head_x, x) - x - scene.lead_length[:, None]
+    has_leader = _from_leaders(scene.head_present, jnp.ones_like(x)) > 0
     real = scene.step_mask[None, :] > 0
     acceleration = jnp.diff(v, axis=1) / scene.dt
     return Rollout(
