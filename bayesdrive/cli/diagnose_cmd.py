@@ -22,9 +22,7 @@ from rich.table import Table
 from bayesdrive.cli.common import console, emit_json, fail
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.inference.agreement import (
-    MC_TOLERANCE_SE,
-    MEAN_TOLERANCE_SD,
-    SD_TOLERANCE,
+    CRITERION,
     agreement_summary,
     agreement_table,
     convergence_table,
@@ -36,10 +34,6 @@ from bayesdrive.reports.diagnostic_plots import plot_agreement_heatmap, plot_mar
 __all__ = ["diagnose", "worst_convergence"]
 
 JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
-CRITERION = (
-    f"|mean_b - mean_a| <= max({MEAN_TOLERANCE_SD} * pooled sd, {MC_TOLERANCE_SE} * "
-    f"sqrt(mcse_a^2 + mcse_b^2)) and max(sd)/min(sd) <= {1 + SD_TOLERANCE}"
-)
 
 
 def worst_convergence(table: pd.DataFrame) -> dict[str, dict[str, float | None]]:

@@ -45,6 +45,7 @@ from bayesdrive.inference.likelihood import fixed_params, series_loglik, step_in
 from bayesdrive.inference.output import metadata
 
 __all__ = [
+    "CRITERION",
     "MC_TOLERANCE_SE",
     "MEAN_TOLERANCE_SD",
     "SD_TOLERANCE",
@@ -58,6 +59,10 @@ __all__ = [
 MEAN_TOLERANCE_SD = 0.1
 MC_TOLERANCE_SE = 3.0
 SD_TOLERANCE = 0.1
+CRITERION = (
+    f"|mean_b - mean_a| <= max({MEAN_TOLERANCE_SD} * pooled sd, {MC_TOLERANCE_SE} * "
+    f"sqrt(mcse_a^2 + mcse_b^2)) and max(sd)/min(sd) <= {1 + SD_TOLERANCE}"
+)
 
 
 def _posterior(tree: xr.DataTree) -> xr.Dataset:

@@ -99,7 +99,7 @@ def plot_marginals(
         for ax in list(axes.flat)[len(chosen) :]:
             ax.set_visible(False)
         handles, labels = axes.flat[0].get_legend_handles_labels()
-        figure.legend(handles, labels, loc="outside upper right", ncols=len(labels), fontsize=8)
+        figure.legend(handles, labels, loc="outside lower center", ncols=len(labels), fontsize=8)
         figure.suptitle(f"posterior of {name} per vehicle", fontsize=10)
         written.append(save_figure(figure, Path(out_dir) / f"marginals_{name}.png"))
     return written
