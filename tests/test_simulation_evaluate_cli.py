@@ -1,6 +1,7 @@
 """`bayesdrive evaluate` through typer's CliRunner on a small real scene set."""
 
 import json
+import os
 import shutil
 
 import numpy as np
@@ -125,6 +126,10 @@ def test_a_posterior_from_the_same_split_runs_and_others_are_refused(scene_dir, 
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)
     assert out["model"] == "idm" and out["policy_details"]["fixed"] == {"sigma": 0.2}
+    # The same folder spelled as a relative path is the same data source.
+    relative = results(posterior_file(traj, data_source=os.path.relpath(scene_dir)), "rel.nc")
+    accepted = evaluate(scene_dir, "--model", "idm", "--posterior", relative, *SMALL)
+    assert accepted.exit_code == 0, accepted.output
 
     refusals = {
         "window": (posterior_file(traj, window="all"), "fitted on the 'all' window"),

@@ -10,7 +10,6 @@ simulated vehicle. Bad input ends with a one-line ``error: ...`` on standard err
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -79,16 +78,37 @@ def _scenarios(traj: Trajectories, horizon: float, vehicles_per_scenario: int) -
     raise DataError(f"{traj.source}: no merge scenario of at least 1 s in the held-out episodes")
 
 
-def _same_source(recorded: Any, source: str) -> bool:
+def _location(source: Any, data_dir: str | None) -> Path | None:
+    """Where a recorded data source lives: an existing path, or a registered data set's folder."""
+    if not isinstance(source, str):
+        return None
+    if Path(source).exists():
+        return Path(source).resolve()
+    if source in registry.DATASETS:
+        try:
+            return registry.resolve(source, data_dir).resolve()
+        except DataError:
+            return None
+    return None
+
+
+def _same_source(recorded: Any, source: str, data_dir: str | None) -> bool:
+    """The same string, or a name and a path (or two paths) for the same files."""
     if recorded == source:
         return True
-    both_paths = isinstance(recorded, str) and os.path.exists(recorded) and os.path.exists(source)
-    return both_paths and Path(recorded).resolve() == Path(source).resolve()
+    where = _location(recorded, data_dir)
+    return where is not None and where == _location(source, data_dir)
 
 
-def check_posterior_split(meta: dict[str, Any], traj: Trajectories, scenarios: ScenarioSet):
+def check_posterior_split(
+    meta: dict[str, Any],
+    traj: Trajectories,
+    scenarios: ScenarioSet,
+    data_dir: str | None = None,
+) -> None:
     """Raise :class:`DataError` unless the posterior was fitted on the fitting side of the same
-    split of the same data the evaluation scores (rule, window and data source)."""
+    split of the same data the evaluation scores (rule, window and data source; a data set's name
+    and its folder count as the same source)."""
     problems = []
     if meta.get("split_rule") != scenarios.split_rule:
         problems.append(
@@ -97,7 +117,7 @@ def check_posterior_split(meta: dict[str, Any], traj: Trajectories, scenarios: S
         )
     if meta.get("window") != "fit":
         problems.append(f"it was fitted on the {meta.get('window')!r} window, not 'fit'")
-    if not _same_source(meta.get("data_source"), traj.source):
+    if not _same_source(meta.get("data_source"), traj.source, data_dir):
         problems.append(
             f"it was fitted on {meta.get('data_source')!r}, the evaluation reads {traj.source!r}"
         )
@@ -106,7 +126,7 @@ def check_posterior_split(meta: dict[str, Any], traj: Trajectories, scenarios: S
 
 
 def _posterior_policy(
-    path: Path, model_name: str, traj: Trajectories, scenarios: ScenarioSet
+    path: Path, model_name: str, traj: Trajectories, scenarios: ScenarioSet, data_dir: str | None
 ) -> Policy:
     tree = load_result(path)
     meta = metadata(tree)
@@ -114,7 +134,7 @@ def _posterior_policy(
         raise DataError(
             f"{path}: the posterior is of model {meta.get('model')!r}, not --model {model_name!r}"
         )
-    check_posterior_split(meta, traj, scenarios)
+    check_posterior_split(meta, traj, scenarios, data_dir)
     names = tuple(meta["params"])
     posterior = tree["posterior"].to_dataset()
     vehicles = [str(v) for v in posterior["vehicle"].values]
@@ -254,7 +274,8 @@ def evaluate(
         4,
         "--vehicles-per-scenario",
         min=1,
-        help="Simulated vehicles per platoon scenario (behind one replayed head).",
+        help="Simulated vehicles per platoon scenario, behind one replayed head (default 4: an "
+        "OpenACC platoon behind its leader).",
     ),
     data_dir: str | None = typer.Option(
         None, "--data-dir", help="Folder holding the data sets (held-out ones for a held-out name)."
@@ -267,7 +288,7 @@ def evaluate(
         traj, heldout_data = _load(data, data_dir)
         scenarios = _scenarios(traj, horizon, vehicles_per_scenario)
         if posterior is not None:
-            policy = _posterior_policy(Path(posterior), model, traj, scenarios)
+            policy = _posterior_policy(Path(posterior), model, traj, scenarios, data_dir)
         elif model in BASELINES:
             policy = _baseline(model, key_policy, traj, scenarios, heldout_data)
         else:
