@@ -274,8 +274,8 @@ def evaluate(
         4,
         "--vehicles-per-scenario",
         min=1,
-        help="Simulated vehicles per platoon scenario, behind one replayed head (default 4: an "
-        "OpenACC platoon behind its leader).",
+        help="Simulated vehicles per platoon scenario, behind one replayed head (4: an OpenACC "
+        "platoon behind its leader).",
     ),
     data_dir: str | None = typer.Option(
         None, "--data-dir", help="Folder holding the data sets (held-out ones for a held-out name)."
