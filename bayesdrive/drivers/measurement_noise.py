@@ -41,6 +41,7 @@ leader's own reading is taken as exact: its noise is not modelled.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -77,6 +78,7 @@ def shift_ego(inputs: Any, offset: Array) -> Any:
     return inputs._replace(**shifted)
 
 
+@functools.cache
 def with_measurement_noise(model: DriverModel) -> DriverModel:
     """``model`` observed through Gaussian position noise (module docstring for the math).
 
@@ -84,7 +86,8 @@ def with_measurement_noise(model: DriverModel) -> DriverModel:
     functions are the base model's, its observation density is
     :math:`\\mathcal N(obs.x;\\ state.x,\\ \\sigma_{obs}^2)` and its initial state is drawn around
     the first reading. Engines that condition on exact states must refuse it (they would ignore the
-    noise); :mod:`bayesdrive.inference.latent` filters over the hidden states.
+    noise); :mod:`bayesdrive.inference.latent` filters over the hidden states. Cached: wrapping the
+    same model twice returns the same object, so compiled engines are reused.
     """
     if SIGMA_OBS.name in model.param_names:
         raise ValueError(

@@ -29,7 +29,7 @@ its own latent position, never to the noisy reading.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from typing import Any, NamedTuple
 
@@ -41,8 +41,16 @@ from jax.scipy.special import logsumexp
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.drivers.idm import exact_observation_logpdf
 from bayesdrive.drivers.measurement_noise import shift_ego
-from bayesdrive.inference.likelihood import step_inputs
+from bayesdrive.inference.likelihood import (
+    fixed_params,
+    map_vehicles,
+    param_names,
+    static_key,
+    step_inputs,
+)
+from bayesdrive.inference.output import EngineResult, thinned_draws
 from bayesdrive.inference.resampling import systematic
 from bayesdrive.inference.weights import effective_sample_size
 
@@ -57,6 +65,7 @@ __all__ = [
     "latent_data",
     "noisy_readings",
     "pmmh",
+    "run",
     "state_filter_loglik",
 ]
 
@@ -99,18 +108,21 @@ class FilterInfo(NamedTuple):
 
 
 class PMMHResult(NamedTuple):
-    """PMMH chains after warm-up, dims (chain, draw, vehicle[, param]).
+    """PMMH chains after warm-up, dims (chain, draw, vehicle[, param]) (numpy arrays).
 
     samples: (chain, draw, vehicle, param) parameter draws, columns in the order of ``names``.
     log_likelihood: (chain, draw, vehicle) the likelihood estimate each draw carries.
     acceptance_rate: (chain, vehicle) fraction of accepted proposals after warm-up.
     names: the inferred parameters.
+    compile_time_s, wall_time_s: compilation (0 when cached) and the sampling itself.
     """
 
-    samples: Array
-    log_likelihood: Array
-    acceptance_rate: Array
+    samples: np.ndarray
+    log_likelihood: np.ndarray
+    acceptance_rate: np.ndarray
     names: tuple[str, ...]
+    compile_time_s: float
+    wall_time_s: float
 
 
 def latent_data(arrays: FollowerArrays) -> tuple[PositionObservations, CarFollowingInputs]:
@@ -239,8 +251,10 @@ def pmmh(
     num_warmup: int = 0,
     init: Array | None = None,
     fixed: Any = None,
+    vehicle_chunk: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> PMMHResult:
-    """Particle marginal Metropolis-Hastings for every vehicle at once.
+    """Particle marginal Metropolis-Hastings for every vehicle.
 
     ``observations`` and ``inputs`` have leading axes (vehicle, step). For each chain and vehicle a
     random-walk Metropolis chain moves the parameters ``names`` (the others from ``fixed``, a full
@@ -254,17 +268,20 @@ def pmmh(
     value per name). During the ``num_warmup`` discarded iterations the proposal covariance adapts
     to 2.38^2/d times the chain's running covariance (adaptive Metropolis; see
     :data:`ADAPTATION_DECAY`); it is frozen for the ``num_iterations`` kept ones, so those form an
-    ordinary, exact PMMH chain. Chains start at ``init`` (broadcast to
-    (chain, vehicle, param)) or, by default, at independent prior draws. Vectorised over chains and
-    vehicles with ``vmap``, iterations with ``lax.scan``; compiled once per model, settings and
-    shape.
+    ordinary, exact PMMH chain. Chains start at ``init`` (broadcast to (chain, vehicle, param)) or,
+    by default, at independent prior draws.
+
+    Each vehicle's randomness comes from its own key (``split(key, num_vehicles)``), so results do
+    not depend on ``vehicle_chunk``: how many vehicles one compiled call vectorises (default: all);
+    ``progress(done, total)`` is called after each chunk. Chains and vehicles are vectorised with
+    ``vmap``, iterations run in ``lax.scan``; compiled once per model, settings and shape.
     """
     names = tuple(names)
     prior = model.prior(names)
     num_vehicles, num_steps = jnp.shape(observations.mask)
     _check_series(observations, inputs, (num_vehicles, num_steps))
-    scale = jnp.broadcast_to(jnp.asarray(proposal_scale, dtype=prior.lower.dtype), (len(names),))
-    if not bool(jnp.all(scale > 0)):
+    scale = np.broadcast_to(np.asarray(proposal_scale, dtype=float), (len(names),))
+    if not np.all(scale > 0):
         raise ValueError(f"proposal_scale must be positive, got {proposal_scale!r}")
     if num_iterations < 1 or num_warmup < 0 or num_chains < 1:
         raise ValueError(
@@ -274,40 +291,100 @@ def pmmh(
     if num_state_particles < 2:
         raise ValueError(f"num_state_particles must be at least 2, got {num_state_particles}")
 
-    init_key, chains_key = jax.random.split(key)
-    shape = (num_chains, num_vehicles)
+    init_keys, chain_keys = jnp.swapaxes(
+        jax.vmap(jax.random.split)(jax.random.split(key, num_vehicles)), 0, 1
+    )
     if init is None:
-        start = prior.sample(init_key, shape)
+        start = jax.vmap(lambda k: prior.sample(k, (num_chains,)))(init_keys)
     else:
-        start = jnp.broadcast_to(jnp.asarray(init, dtype=prior.lower.dtype), (*shape, len(names)))
+        shape = (num_chains, num_vehicles, len(names))
+        start = jnp.swapaxes(jnp.broadcast_to(jnp.asarray(init, dtype=float), shape), 0, 1)
         outside = ~np.asarray(jnp.isfinite(jax.vmap(jax.vmap(prior.logpdf))(start)))
         if outside.any():
-            chain, vehicle = np.argwhere(outside)[0]
+            vehicle, chain = np.argwhere(outside)[0]
             raise ValueError(
-                f"init for chain {chain}, vehicle {vehicle} is {np.asarray(start[chain, vehicle])} "
+                f"init for chain {chain}, vehicle {vehicle} is {np.asarray(start[vehicle, chain])} "
                 f"for {names}, outside the prior box [{np.asarray(prior.lower)}, "
                 f"{np.asarray(prior.upper)}]"
             )
-    thetas, logliks, acceptance = _run_chains(
-        jax.random.split(chains_key, shape),
-        start,
-        scale * (prior.upper - prior.lower),
-        model.defaults() if fixed is None else fixed,
-        observations,
-        inputs,
+    fixed = model.defaults() if fixed is None else fixed
+    step_sd = scale * np.asarray(prior.upper - prior.lower)
+    fixed_key = static_key(fixed)
+    # Everything the compiled chain depends on besides the input shapes.
+    cache_key = (
+        None
+        if fixed_key is None
+        else (
+            "pmmh",
+            model,
+            names,
+            fixed_key,
+            tuple(step_sd.tolist()),
+            num_state_particles,
+            num_warmup,
+            num_iterations,
+        )
+    )
+    chain = partial(
+        _chain,
         model=model,
         names=names,
+        fixed=fixed,
+        step_sd=step_sd,
         num_state_particles=num_state_particles,
         num_warmup=num_warmup,
         num_iterations=num_iterations,
     )
-    # (chain, vehicle, draw, ...) -> (chain, draw, vehicle, ...)
-    return PMMHResult(
-        samples=jnp.swapaxes(thetas, 1, 2),
-        log_likelihood=jnp.swapaxes(logliks, 1, 2),
-        acceptance_rate=acceptance,
-        names=names,
+    # One lane per (vehicle, chain): a single vmap level compiles far faster than nested ones.
+    lane_keys = jax.vmap(lambda k: jax.random.split(k, num_chains))(chain_keys)
+    (thetas, logliks, acceptance), compile_time, run_time = _map_lanes(
+        chain,
+        (lane_keys, start),
+        (observations, inputs),
+        vehicle_chunk=num_vehicles if vehicle_chunk is None else vehicle_chunk,
+        progress=progress,
+        cache_key=cache_key,
     )
+    # (vehicle, chain, draw, ...) -> (chain, draw, vehicle, ...)
+    return PMMHResult(
+        samples=np.moveaxis(thetas, 0, 2),
+        log_likelihood=np.moveaxis(logliks, 0, 2),
+        acceptance_rate=acceptance.T,
+        names=names,
+        compile_time_s=compile_time,
+        wall_time_s=run_time,
+    )
+
+
+def _map_lanes(
+    per_lane: Callable[..., Any],
+    lane_inputs: tuple[Any, ...],
+    vehicle_inputs: tuple[Any, ...],
+    *,
+    vehicle_chunk: int,
+    progress: Callable[[int, int], None] | None = None,
+    cache_key: Any = None,
+) -> tuple[Any, float, float]:
+    """``per_lane`` over lanes: ``lane_inputs`` have leading axes (vehicle, lane), and each
+    vehicle's ``vehicle_inputs`` (leading axis vehicle) go to all its lanes. Runs through
+    :func:`~bayesdrive.inference.likelihood.map_vehicles` with the lanes of ``vehicle_chunk``
+    vehicles vectorised together; outputs come back as (vehicle, lane, ...)."""
+    num_vehicles, num_lanes = jax.tree.leaves(lane_inputs)[0].shape[:2]
+    flat = jax.tree.map(lambda a: a.reshape(num_vehicles * num_lanes, *a.shape[2:]), lane_inputs)
+    repeated = jax.tree.map(lambda a: jnp.repeat(a, num_lanes, axis=0), vehicle_inputs)
+    chunk = min(vehicle_chunk, num_vehicles) * num_lanes
+    out, compile_time, run_time = map_vehicles(
+        per_lane,
+        (*flat, *repeated),
+        chunk=chunk,
+        batch=chunk,
+        progress=None
+        if progress is None
+        else lambda done, total: progress(done // num_lanes, total // num_lanes),
+        cache_key=cache_key,
+    )
+    unflat = jax.tree.map(lambda a: a.reshape(num_vehicles, num_lanes, *a.shape[1:]), out)
+    return unflat, compile_time, run_time
 
 
 class _Proposal(NamedTuple):
@@ -317,71 +394,200 @@ class _Proposal(NamedTuple):
     cov: Array
 
 
-@partial(
-    jax.jit,
-    static_argnames=("model", "names", "num_state_particles", "num_warmup", "num_iterations"),
-)
-def _run_chains(
-    keys: Array,
-    start: Array,
-    step_sd: Array,
-    fixed: Any,
+def _chain(
+    key: Array,
+    theta0: Array,
     observations: PositionObservations,
     inputs: Any,
     *,
     model: DriverModel,
     names: tuple[str, ...],
+    fixed: Any,
+    step_sd: np.ndarray,
     num_state_particles: int,
     num_warmup: int,
     num_iterations: int,
 ) -> tuple[Array, Array, Array]:
-    """:func:`pmmh`'s chains: keys and starts (chain, vehicle[, param]), data (vehicle, ...)."""
+    """One PMMH chain of one vehicle from ``theta0``: the kept draws (draw, param), the estimates
+    they carry (draw,) and the acceptance rate after warm-up."""
     prior = model.prior(names)
+    step_sd = jnp.asarray(step_sd, dtype=prior.lower.dtype)
     floor = jnp.diag((ADAPTATION_FLOOR * step_sd) ** 2)
     optimal_scale = 2.38**2 / len(names)  # Gelman, Roberts & Gilks 1996
 
-    def loglik(k: Array, theta: Array, obs: PositionObservations, inp: Any) -> Array:
+    def loglik(k: Array, theta: Array) -> Array:
         params = fill_params(model, names, theta, fixed)
-        value, _ = state_filter_loglik(k, model, params, obs, inp, num_state_particles)
+        value, _ = state_filter_loglik(k, model, params, observations, inputs, num_state_particles)
         return jnp.where(jnp.isnan(value), -jnp.inf, value)
 
-    def chain(k: Array, theta0: Array, obs: PositionObservations, inp: Any):
-        def iteration(carry, i):
-            theta, current, proposal = carry
-            propose_key, filter_key, accept_key = jax.random.split(jax.random.fold_in(k, i), 3)
-            root = jnp.linalg.cholesky(proposal.cov + floor)
-            # Iteration 0 proposes the start itself: its estimate is accepted unless not finite.
-            moves = jnp.where(i > 0, 1.0, 0.0)
-            candidate_theta = theta + moves * root @ jax.random.normal(propose_key, theta.shape)
-            inside = jnp.isfinite(prior.logpdf(candidate_theta))
-            # Under vmap the filter runs outside the box too; -inf makes sure it cannot win.
-            candidate = jnp.where(inside, loglik(filter_key, candidate_theta, obs, inp), -jnp.inf)
-            accept = jnp.log(jax.random.uniform(accept_key)) < candidate - current
-            theta = jnp.where(accept, candidate_theta, theta)
-            current = jnp.where(accept, candidate, current)
+    def iteration(carry, i):
+        theta, current, proposal = carry
+        propose_key, filter_key, accept_key = jax.random.split(jax.random.fold_in(key, i), 3)
+        root = jnp.linalg.cholesky(proposal.cov + floor)
+        # Iteration 0 proposes the start itself: its estimate is accepted unless not finite.
+        moves = jnp.where(i > 0, 1.0, 0.0)
+        candidate_theta = theta + moves * root @ jax.random.normal(propose_key, theta.shape)
+        inside = jnp.isfinite(prior.logpdf(candidate_theta))
+        # Under vmap the filter runs outside the box too; -inf makes sure it cannot win.
+        candidate = jnp.where(inside, loglik(filter_key, candidate_theta), -jnp.inf)
+        accept = jnp.log(jax.random.uniform(accept_key)) < candidate - current
+        theta = jnp.where(accept, candidate_theta, theta)
+        current = jnp.where(accept, candidate, current)
 
-            # Robbins-Monro steps with decaying gain during warm-up, none afterwards.
-            gain = jnp.where(
-                i < num_warmup, (i + 1.0 + ADAPTATION_OFFSET) ** -ADAPTATION_DECAY, 0.0
-            )
-            centred = theta - proposal.mean
-            target = optimal_scale * jnp.outer(centred, centred)
-            proposal = _Proposal(
-                mean=proposal.mean + gain * centred,
-                cov=proposal.cov + gain * (target - proposal.cov),
-            )
-            return (theta, current, proposal), (theta, current, accept)
-
-        unknown = jnp.full((), -jnp.inf, step_sd.dtype)
-        first = (theta0, unknown, _Proposal(mean=theta0, cov=jnp.diag(step_sd**2)))
-        _, (thetas, logliks, accepted) = jax.lax.scan(
-            iteration, first, jnp.arange(num_warmup + num_iterations)
+        # Robbins-Monro steps with decaying gain during warm-up, none afterwards.
+        gain = jnp.where(i < num_warmup, (i + 1.0 + ADAPTATION_OFFSET) ** -ADAPTATION_DECAY, 0.0)
+        centred = theta - proposal.mean
+        target = optimal_scale * jnp.outer(centred, centred)
+        proposal = _Proposal(
+            mean=proposal.mean + gain * centred,
+            cov=proposal.cov + gain * (target - proposal.cov),
         )
-        kept = slice(num_warmup, None)
-        return thetas[kept], logliks[kept], jnp.mean(accepted[kept])
+        return (theta, current, proposal), (theta, current, accept)
 
-    over_vehicles = jax.vmap(chain, in_axes=(0, 0, 0, 0))
-    return jax.vmap(over_vehicles, in_axes=(0, 0, None, None))(keys, start, observations, inputs)
+    unknown = jnp.full((), -jnp.inf, step_sd.dtype)
+    first = (theta0, unknown, _Proposal(mean=theta0, cov=jnp.diag(step_sd**2)))
+    _, (thetas, logliks, accepted) = jax.lax.scan(
+        iteration, first, jnp.arange(num_warmup + num_iterations)
+    )
+    kept = slice(num_warmup, None)
+    return thetas[kept], logliks[kept], jnp.mean(accepted[kept])
+
+
+def run(
+    key: Array,
+    arrays: FollowerArrays,
+    *,
+    model: DriverModel,
+    params: Sequence[str] | None = None,
+    fixed: Mapping[str, float] | None = None,
+    num_particles: int = 1000,
+    prior: Any = None,
+    progress: Callable[[int, int], None] | None = None,
+    num_state_particles: int = 128,
+    num_chains: int = 4,
+    num_warmup: int = 1000,
+    proposal_scale: float | Sequence[float] = 0.01,
+    init: str = "prior",
+    log_likelihood_draws: int = 100,
+    vehicle_chunk: int = 16,
+) -> EngineResult:
+    """The ``pmmh`` engine of :func:`bayesdrive.inference.fit.fit`: :func:`pmmh` on ``arrays``.
+
+    ``model`` must observe positions with noise (:func:`~bayesdrive.drivers.measurement_noise.
+    with_measurement_noise`); ``prior`` must be None (the model's uniform box). Posterior draws are
+    (chain, draw, vehicle): ``num_particles`` draws in all, ``num_particles / num_chains`` (rounded
+    up) per chain after ``num_warmup`` warm-up iterations, each likelihood estimated with
+    ``num_state_particles`` state particles. ``init`` is "prior" (independent prior draws) or
+    "defaults" (every chain at the model's defaults). The ``log_likelihood`` group holds, for
+    ``log_likelihood_draws`` evenly spaced draws per chain, the filter's per-step log-increments
+    log p(y[t+1] | earlier readings): Monte Carlo estimates, not exact densities. ``sample_stats``:
+    ``acceptance_rate`` [chain, vehicle], ``log_likelihood_estimate`` [chain, draw, vehicle] (the
+    estimate each draw carries) and ``filter_ess`` [vehicle, step] (the state filter's effective
+    sample size, averaged over the scored draws).
+    """
+    if model.observation_logpdf is exact_observation_logpdf:
+        raise ValueError(
+            f"engine 'pmmh' filters hidden states, but model {model.name!r} observes them exactly; "
+            "use with_measurement_noise(model) (bayesdrive.drivers.measurement_noise)"
+        )
+    if prior is not None:
+        raise ValueError("engine 'pmmh' samples under the model's uniform prior box; prior=None")
+    if init not in ("prior", "defaults"):
+        raise ValueError(f"init must be 'prior' or 'defaults', got {init!r}")
+    names = param_names(model, params)
+    fixed_values = fixed_params(model, fixed)
+    num_draws = -(-num_particles // max(num_chains, 1))
+    observations, inputs = latent_data(arrays)
+    chains_key, score_key = jax.random.split(key)
+    result = pmmh(
+        chains_key,
+        model,
+        names,
+        observations,
+        inputs,
+        num_iterations=num_draws,
+        num_state_particles=num_state_particles,
+        proposal_scale=proposal_scale,
+        num_chains=num_chains,
+        num_warmup=num_warmup,
+        init=None if init == "prior" else jnp.asarray([model.spec(n).default for n in names]),
+        fixed=fixed_values,
+        vehicle_chunk=vehicle_chunk,
+        progress=progress,
+    )
+
+    scored = thinned_draws(num_draws, log_likelihood_draws)
+    draws = np.moveaxis(result.samples[:, scored], 2, 0)  # (vehicle, chain, draw, d)
+    num_vehicles = draws.shape[0]
+    lanes = num_chains * len(scored)
+    lane_keys = jax.vmap(lambda k: jax.random.split(k, lanes))(
+        jax.random.split(score_key, num_vehicles)
+    )
+    fixed_key = static_key(fixed_values)
+    (increments, ess), score_compile_time, score_run_time = _map_lanes(
+        partial(
+            _score_draw,
+            model=model,
+            names=names,
+            fixed=fixed_values,
+            num_state_particles=num_state_particles,
+        ),
+        (lane_keys, jnp.asarray(draws.reshape(num_vehicles, lanes, -1), dtype=float)),
+        (observations, inputs),
+        vehicle_chunk=vehicle_chunk,
+        cache_key=None
+        if fixed_key is None
+        else ("pmmh-score", model, names, fixed_key, num_state_particles),
+    )
+    by_draw = (num_vehicles, num_chains, len(scored), -1)
+    increments, ess = increments.reshape(by_draw), ess.reshape(by_draw)
+    return EngineResult(
+        posterior={name: result.samples[..., i].astype(np.float64) for i, name in enumerate(names)},
+        sample_stats={
+            "acceptance_rate": (("chain", "vehicle"), result.acceptance_rate),
+            "log_likelihood_estimate": (("chain", "draw", "vehicle"), result.log_likelihood),
+            "filter_ess": (("vehicle", "step"), ess.mean(axis=(1, 2))),
+        },
+        # (vehicle, chain, draw, step) -> (chain, draw, vehicle, step)
+        log_likelihood=np.moveaxis(increments, 0, 2),
+        log_likelihood_draws=scored,
+        compile_time_s=result.compile_time_s + score_compile_time,
+        wall_time_s=result.wall_time_s + score_run_time,
+        options={
+            "num_state_particles": num_state_particles,
+            "num_chains": num_chains,
+            "num_draws_per_chain": num_draws,
+            "num_warmup": num_warmup,
+            "proposal_scale": np.broadcast_to(proposal_scale, (len(names),)).tolist(),
+            "init": init,
+            "resampler": "systematic",
+            "resample_below": RESAMPLE_BELOW,
+            "adaptation": {
+                "decay": ADAPTATION_DECAY,
+                "offset": ADAPTATION_OFFSET,
+                "floor": ADAPTATION_FLOOR,
+            },
+            "log_likelihood_draws": len(scored),
+            "vehicle_chunk": vehicle_chunk,
+        },
+    )
+
+
+def _score_draw(
+    key: Array,
+    theta: Array,
+    observations: PositionObservations,
+    inputs: Any,
+    *,
+    model: DriverModel,
+    names: tuple[str, ...],
+    fixed: Any,
+    num_state_particles: int,
+) -> tuple[Array, Array]:
+    """The filter's per-step log-increments and ESS (step,) for one vehicle under one draw."""
+    params = fill_params(model, names, theta, fixed)
+    _, info = state_filter_loglik(key, model, params, observations, inputs, num_state_particles)
+    return info.log_increments, info.ess
 
 
 def noisy_readings(key: Array, arrays: FollowerArrays, sigma_obs: float) -> FollowerArrays:
