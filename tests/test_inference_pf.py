@@ -154,3 +154,14 @@ def test_pf_masked_steps_contribute_nothing(arrays):
     a, b = run(clean, seed=6), run(garbage, seed=6)
     for name in PARAMS:
         assert np.array_equal(a.posterior[name], b.posterior[name])
+
+
+def test_dither_steps_are_uniform_and_independent():
+    # 30000 particles x 6 parameters; tolerance 5 binomial standard errors.
+    steps = np.asarray(pf.dither_steps(jax.random.key(17), (30_000, 6)))
+    assert set(np.unique(steps)) == {-1, 0, 1}
+    for column in steps.T:
+        share = np.bincount(column + 1, minlength=3) / len(column)
+        assert np.all(np.abs(share - 1 / 3) < 5 * np.sqrt((1 / 3) * (2 / 3) / len(column)))
+    pairs = np.bincount(3 * (steps[:, 0] + 1) + steps[:, 5] + 1, minlength=9) / len(steps)
+    assert np.all(np.abs(pairs - 1 / 9) < 5 * np.sqrt((1 / 9) * (8 / 9) / len(steps)))

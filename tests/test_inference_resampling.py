@@ -11,7 +11,7 @@ from bayesdrive.inference.resampling import RESAMPLERS, count_distinct_sorted, s
 from bayesdrive.inference.weights import effective_sample_size, log_mean_weight, normalize
 
 SEED = 20240601
-REPEATS = 4000
+REPEATS = 2000
 # Weights spanning 30 orders of magnitude in log space, one exactly zero (log = -inf): the
 # resamplers must work on log weights without underflow and never pick a zero-weight particle.
 LOG_WEIGHTS = jnp.array([-1000.0, -1001.0, -1000.5, -jnp.inf, -1069.0, -999.2, -1002.0])
