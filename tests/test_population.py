@@ -11,18 +11,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import xarray as xr
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.inference import population
+from bayesdrive.inference.fit import fit
 from bayesdrive.inference.output import build_tree
-from bayesdrive.inference.population import (
-    attach_population,
-    hierarchical,
-    how_drivers_differ,
-    pooled_population,
-)
+from bayesdrive.inference.population import how_drivers_differ, pooled_population
 from bayesdrive.inference.synthetic import simulate_following
 
 SEED = 21
@@ -32,7 +28,7 @@ TAU_POP = jnp.array([0.4, 0.5])
 VEHICLES = 8
 
 
-def tree_from(posterior, arrays, population=None):
+def tree_from(posterior, arrays):
     chains, draws, _ = next(iter(posterior.values())).shape
     num_vehicles, steps = arrays.mask.shape
     tree = build_tree(
@@ -52,7 +48,7 @@ def tree_from(posterior, arrays, population=None):
             "flagged_samples": 0,
         },
     )
-    return tree if population is None else attach_population(tree, population)
+    return tree
 
 
 def constant_arrays(num_vehicles: int, steps: int = 2) -> FollowerArrays:
@@ -96,50 +92,54 @@ def simulated():
     theta = box.lower + (box.upper - box.lower) * jax.nn.sigmoid(z)
     params = jax.vmap(lambda th: fill_params(IDM, NAMES, th))(theta)
     arrays = simulate_following(jax.random.key(SEED + 1), IDM, params, num_steps=64)
-    fit = hierarchical(
+    tree = fit(
         jax.random.key(SEED + 2),
         arrays,
         model=IDM,
+        engine="hierarchical",
         params=NAMES,
+        num_particles=300,
+        seed=SEED + 2,
         num_chains=2,
         num_warmup=150,
-        num_samples=150,
         log_likelihood_draws=20,
     )
-    return arrays, fit
+    return arrays, tree
 
 
 def test_hierarchical_recovers_population_mean(simulated):
-    _, fit = simulated
-    dims, mu = fit.population["mu"]
-    assert dims == ("chain", "draw", "param") and mu.shape == (2, 150, 2)
+    _, tree = simulated
+    mu = tree["sample_stats"]["population_mu"]
+    assert mu.dims == ("chain", "draw", "param") and mu.shape == (2, 150, 2)
+    mu = mu.values
     low, high = np.quantile(mu.reshape(-1, 2), [0.005, 0.995], axis=0)
     assert np.all((low <= np.asarray(MU)) & (np.asarray(MU) <= high)), (low, high)
 
 
-def test_population_group_in_natural_units(simulated):
-    arrays, fit = simulated
-    result = fit.engine_result
-    tree = tree_from(result.posterior, arrays, fit.population)
-    population = tree["population"].to_dataset()
-    assert list(population["param"].values) == list(NAMES)
+def test_population_draws_in_natural_units(simulated):
+    arrays, tree = simulated
+    stats = tree["sample_stats"].to_dataset()
+    assert list(stats["param"].values) == list(NAMES)
     box = IDM.prior(NAMES)
     lower, upper = np.asarray(box.lower), np.asarray(box.upper)
     # The median is the box transform of mu; new drivers stay inside the prior box.
-    expected = lower + (upper - lower) / (1 + np.exp(-population["mu"].values))
-    np.testing.assert_allclose(population["median"].values, expected)
-    new = population["new_driver"].values
+    expected = lower + (upper - lower) / (1 + np.exp(-stats["population_mu"].values))
+    np.testing.assert_allclose(stats["population_median"].values, expected)
+    new = stats["population_new_driver"].values
     assert np.all((new >= lower) & (new <= upper))
-    assert result.posterior["tau"].shape == (2, 150, VEHICLES)
-    assert result.log_likelihood.shape == (2, 20, VEHICLES, arrays.mask.shape[1])
+    assert tree["posterior"]["tau"].shape == (2, 150, VEHICLES)
+    assert tree["log_likelihood"]["dx"].shape == (2, 20, VEHICLES, arrays.mask.shape[1])
     summary = how_drivers_differ(tree)
     assert summary["sigma"]["source"] == "hierarchical"
-    assert summary["sigma"]["median"] == pytest.approx(
-        population["median"].sel(param="sigma").mean()
-    )
-    assert isinstance(tree["population"], xr.DataTree)
+    median = stats["population_median"].sel(param="sigma").values.mean()
+    assert summary["sigma"]["median"] == pytest.approx(median)
 
 
 def test_one_vehicle_is_not_a_population():
     with pytest.raises(ValueError, match="at least 2 vehicles"):
-        hierarchical(jax.random.key(0), constant_arrays(1), model=IDM, params=["sigma"])
+        population.run(jax.random.key(0), constant_arrays(1), model=IDM, params=["sigma"])
+
+
+def test_custom_prior_is_refused():
+    with pytest.raises(ValueError, match="own population prior"):
+        population.run(jax.random.key(0), constant_arrays(2), model=IDM, prior=IDM.prior())

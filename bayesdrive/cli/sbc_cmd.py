@@ -30,6 +30,8 @@ from bayesdrive.reports.diagnostic_plots import plot_rank_histograms
 
 __all__ = ["sbc", "write_outcome"]
 
+# Engines whose prior is not the uniform box SBC draws from.
+POPULATION_ENGINES = ("hierarchical",)
 JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
 
 
@@ -110,6 +112,11 @@ def sbc(
     """Simulation-based calibration: are the engine's posteriors calibrated on the IDM?"""
     if engine not in ENGINES:
         raise fail(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
+    if engine in POPULATION_ENGINES:
+        raise fail(
+            f"{engine} fits replications jointly under its own population prior; SBC simulates "
+            "from the uniform prior box, so the ranks would test the prior, not the engine"
+        )
     names = [p.strip() for p in params.split(",") if p.strip()]
     options: dict[str, Any] = {} if particles is None else {"num_particles": particles}
     fit_model = sd_doubled(IDM) if sd_doubled_model else IDM
