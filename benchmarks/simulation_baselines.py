@@ -90,7 +90,8 @@ def run_data_set(name: str, held_out: bool, key, rollouts: int) -> dict:
 
 
 def rollout_speed(key, shapes: list[tuple[int, int, int]], repeats: int = 5) -> list[dict]:
-    """Compile and steady-state time of an IDM rollout per (rollouts, vehicles, steps)."""
+    """First-call (compilation included) and steady-state time of an IDM rollout per (rollouts,
+    vehicles, steps); the machine is shared, so these are upper bounds."""
     rows = []
     for num_rollouts, vehicles, steps in shapes:
         head_v = np.full(steps + 1, 15.0)
@@ -98,6 +99,7 @@ def rollout_speed(key, shapes: list[tuple[int, int, int]], repeats: int = 5) -> 
             head_v, -25.0 * np.arange(1, vehicles + 1), np.full(vehicles, 15.0), length=4.5, dt=0.1
         )
         params = broadcast_params(IDM.defaults(), num_rollouts, vehicles)
+        jax.clear_caches()  # the first call then always includes compilation
         started = time.perf_counter()
         jax.block_until_ready(rollout(key, IDM, params, scene, num_rollouts=num_rollouts))
         first = time.perf_counter() - started

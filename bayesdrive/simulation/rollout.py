@@ -39,6 +39,7 @@ from bayesdrive.simulation.scenarios import Scenario
 __all__ = [
     "HARD_BRAKING_MPS2",
     "Rollout",
+    "RolloutKeys",
     "SceneArrays",
     "broadcast_params",
     "draw_particles",
