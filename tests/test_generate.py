@@ -30,6 +30,7 @@ def test_preset_draws_follow_the_truncated_normals():
     assert np.asarray(params.sigma).min() > 0
     # parameters the preset does not name stay at the model's defaults
     assert np.all(np.asarray(params.tau) == float(IDM.defaults().tau))
+    assert np.asarray(params.tau).shape == (200, 50)
 
 
 def test_noise_free_followers_start_in_equilibrium():

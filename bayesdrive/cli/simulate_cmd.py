@@ -21,6 +21,7 @@ from bayesdrive.simulation.generate import (
     load_preset,
     pair_sweep,
 )
+from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "models" / "presets"
 SWEEP_DIFFERENCES = np.arange(-8.0, 8.1, 2.0)
@@ -35,18 +36,15 @@ def _preset_path(name: str) -> Path | None:
 
 
 def _posterior_draw(key, result: Path, num_scenes: int, num_vehicles: int):
-    from bayesdrive.inference.output import load_result
+    from bayesdrive.inference.output import load_result, metadata
 
     tree = load_result(result)
-    model = get_model(tree.attrs["model"])
-    posterior = tree["posterior"].to_dataset()
-    names = tuple(n for n in model.param_names if n in posterior)
-    # (vehicle, chain * draw, parameter): every fitted vehicle's particles, pooled as in the paper.
-    stacked = np.stack(
-        [posterior[n].transpose("vehicle", "chain", "draw").values for n in names], axis=-1
-    )
-    particles = stacked.reshape(stacked.shape[0], -1, len(names))
-    return model, draw_pooled(key, model, names, particles, num_scenes, num_vehicles)
+    meta = metadata(tree)
+    model = get_model(meta["model"])
+    names = tuple(meta["params"])
+    particles = np.stack(list(particles_by_vehicle(tree, names).values()))
+    fixed = fixed_params(model, meta)
+    return model, draw_pooled(key, model, names, particles, num_scenes, num_vehicles, fixed)
 
 
 def simulate(

@@ -25,7 +25,7 @@ from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, fill_params
 from bayesdrive.drivers.idm import equilibrium_gap
-from bayesdrive.simulation.rollout import Rollout, SceneArrays, rollout
+from bayesdrive.simulation.rollout import Rollout, SceneArrays, broadcast_params, rollout
 
 __all__ = [
     "CAR_LENGTH_M",
@@ -84,7 +84,8 @@ def draw_preset(
     standard = jax.random.truncated_normal(
         key, -mean / sd, jnp.inf, (num_rollouts, num_vehicles, len(names)), jnp.float32
     )
-    return fill_params(model, names, mean + sd * standard)
+    base = broadcast_params(model.defaults(), num_rollouts, num_vehicles)
+    return fill_params(model, names, mean + sd * standard, base)
 
 
 def draw_pooled(
@@ -100,7 +101,10 @@ def draw_pooled(
     (shape (vehicles, particles, len(names))) pooled, each generated driver one uniform draw."""
     pool = jnp.asarray(np.reshape(particles, (-1, particles.shape[-1])), jnp.float32)
     index = jax.random.randint(key, (num_rollouts, num_vehicles), 0, pool.shape[0])
-    return fill_params(model, names, pool[index], fixed)
+    base = broadcast_params(
+        model.defaults() if fixed is None else fixed, num_rollouts, num_vehicles
+    )
+    return fill_params(model, names, pool[index], base)
 
 
 def _steady_platoon(params: Any, num_steps: int, dt: float) -> SceneArrays:
