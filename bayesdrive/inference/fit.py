@@ -75,6 +75,7 @@ def fit(
     seed: int | None = None,
     prior: Any = None,
     max_vehicles: int | None = None,
+    vehicle_ids: Sequence[str] | None = None,
     progress: Callable[[int, int], None] | None = None,
     **engine_options: Any,
 ) -> xr.DataTree:
@@ -86,7 +87,8 @@ def fit(
     inferred take ``fixed`` values, else the model's defaults. ``seed`` is recorded in the metadata
     beside the key's own data. ``prior`` (default: the model's uniform box) needs
     ``logpdf(theta)`` and ``sample(key, shape)``. ``max_vehicles`` keeps only the first vehicles
-    that have usable steps (quick runs). ``progress(done, total)`` is called as vehicles finish.
+    that have usable steps (quick runs); ``vehicle_ids`` fits only those vehicles of a
+    :class:`Trajectories` (their leaders are still read). ``progress(done, total)`` is called as vehicles finish.
     ``engine_options`` go to the engine (e.g.
     ``ess_threshold`` for smc, ``epochs`` for pf). Returns the result tree
     (:mod:`bayesdrive.inference.output`).
@@ -98,7 +100,9 @@ def fit(
     if both:
         raise ValueError(f"parameter(s) {both} are both inferred and fixed")
     if isinstance(data, Trajectories):
-        arrays = follower_arrays(data, window=window)
+        arrays = follower_arrays(
+            data, window=window, vehicle_ids=None if vehicle_ids is None else list(vehicle_ids)
+        )
         source, data_format, flagged = data.source, data.format, len(data.flags)
     else:
         arrays, source, data_format, flagged = data, "FollowerArrays", "arrays", None
