@@ -7,11 +7,16 @@ of each mu must hold the truth (a correct fit misses one of the two with probabi
 seed is fixed, so the outcome is reproducible).
 """
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from bayesdrive.cli import diagnose_cmd
+from bayesdrive.cli.main import app
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.idm import IDM
@@ -143,3 +148,14 @@ def test_one_vehicle_is_not_a_population():
 def test_custom_prior_is_refused():
     with pytest.raises(ValueError, match="own population prior"):
         population.run(jax.random.key(0), constant_arrays(2), model=IDM, prior=IDM.prior())
+
+
+def test_diagnose_reports_how_drivers_differ(simulated, tmp_path, monkeypatch):
+    _, tree = simulated
+    path = tmp_path / "hierarchical.nc"
+    path.write_bytes(b"")
+    monkeypatch.setattr(diagnose_cmd, "load_result", lambda _: tree)
+    run = CliRunner().invoke(app, ["diagnose", str(path), "--json", "-"])
+    assert run.exit_code == 0, run.output
+    rows = json.loads(run.stdout)["results"]["hierarchical"]["how_drivers_differ"]
+    assert rows == how_drivers_differ(tree)  # floats survive JSON exactly

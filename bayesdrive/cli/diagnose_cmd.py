@@ -2,8 +2,9 @@
 
 For each saved result: R-hat (two or more chains), bulk and tail ESS and MCSE per vehicle and
 parameter (ArviZ), NUTS divergences, emcee autocorrelation times (see
-:mod:`bayesdrive.inference.agreement`). With two or more results on the same data and model, the
-agreement table of every pair: difference of means in posterior sds, sd ratio, Wasserstein
+:mod:`bayesdrive.inference.agreement`); for a hierarchical result also how drivers differ
+(:func:`~bayesdrive.inference.population.how_drivers_differ`). With two or more results on the
+same data and model, the agreement table of every pair: difference of means in posterior sds, sd ratio, Wasserstein
 distance, and the verdict |Δmean| <= max(0.1 sd, 3 combined MCSE) with sds within 10%.
 ``--out DIR`` writes the tables as CSV and the pictures (marginal overlays, agreement heat map).
 """
@@ -29,6 +30,7 @@ from bayesdrive.inference.agreement import (
     same_data,
 )
 from bayesdrive.inference.output import load_result, metadata
+from bayesdrive.inference.population import how_drivers_differ
 from bayesdrive.reports.diagnostic_plots import plot_agreement_heatmap, plot_marginals
 
 __all__ = ["diagnose", "worst_convergence"]
@@ -75,6 +77,21 @@ def _print_convergence(label: str, path: Path, worst: dict[str, dict[str, float]
         table.add_column(column.replace("_", " "), justify="right")
     for name, entry in worst.items():
         table.add_row(name, *(_format(entry[c]) for c in columns))
+    console.print(table)
+
+
+def _print_population(label: str, rows: dict[str, dict[str, Any]]) -> None:
+    table = Table(title=escape(f"{label}: how drivers differ"), title_justify="left")
+    for column in ("param", "median [90% CI]", "drivers 10-90%", "between sd", "within sd"):
+        table.add_column(column, justify="left" if column == "param" else "right")
+    for name, row in rows.items():
+        table.add_row(
+            name,
+            f"{row['median']:.3g} [{row['median_q05']:.3g}, {row['median_q95']:.3g}]",
+            f"{row['q10']:.3g} - {row['q90']:.3g}",
+            f"{row['between_sd']:.3g}",
+            f"{row['within_sd']:.3g}",
+        )
     console.print(table)
 
 
@@ -157,6 +174,8 @@ def diagnose(
             "worst": worst_convergence(table),
             "per_vehicle": _records(table),
         }
+        if "population_mu" in tree["sample_stats"]:
+            report["results"][label]["how_drivers_differ"] = how_drivers_differ(tree)
 
     agreement = None
     if len(trees) >= 2:
@@ -185,6 +204,8 @@ def diagnose(
         return
     for label, path in zip(labels, results, strict=True):
         _print_convergence(label, path, report["results"][label]["worst"])
+        if "how_drivers_differ" in report["results"][label]:
+            _print_population(label, report["results"][label]["how_drivers_differ"])
     if agreement is not None:
         _print_agreement(agreement_summary(agreement))
     if out is not None:
