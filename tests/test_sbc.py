@@ -13,11 +13,16 @@ sd-doubled likelihood with the same seed and must be rejected (smc here; every e
 ``benchmarks/bench_sbc.py``).
 """
 
+import json
+
 import jax
 import numpy as np
 import pytest
 import scipy.stats
+from typer.testing import CliRunner
 
+from bayesdrive.cli.main import app
+from bayesdrive.cli.sbc_cmd import write_outcome
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import ensemble, nuts, smc
@@ -139,3 +144,28 @@ def test_too_few_draws_for_the_ranks_is_an_error():
     draws = np.zeros((1, 50, 2))
     with pytest.raises(ValueError, match="fewer than the 99 ranks"):
         posterior_ranks({"tau": draws}, ("tau",), np.zeros((2, 1)), 99)
+
+
+def test_outcome_files_and_digest(outcome, tmp_path):
+    files = write_outcome(outcome, tmp_path, "study")
+    assert [f.name for f in files] == ["study_ranks.png", "study_ranks.csv", "study.json"]
+    digest = json.loads((tmp_path / "study.json").read_text())
+    assert digest["calibrated"] == outcome.calibrated and digest["seed"] == SEED
+    assert digest["bonferroni_level"] == pytest.approx(ALPHA / len(NAMES))
+    rows = (tmp_path / "study_ranks.csv").read_text().splitlines()
+    assert len(rows) == REPLICATIONS + 1
+    assert rows[0] == "replication,truth_tau,truth_a_max,truth_sigma,rank_tau,rank_a_max,rank_sigma"
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--engine", "nope"], "unknown engine"),
+        (["--engine", "hierarchical"], "own population prior"),
+        (["--engine", "smc", "--params", "tau,wings"], "no parameter"),
+    ],
+)
+def test_sbc_command_refuses_bad_requests(args, message):
+    run = CliRunner().invoke(app, ["sbc", *args, "--replications", "20"])
+    assert run.exit_code == 2
+    assert message in run.output
