@@ -88,6 +88,9 @@ def test_summary_reports_each_vehicle_and_parameter(tree):
     draws = tree["posterior"]["sigma"].values[0, :, 0]
     assert first["mean"] == pytest.approx(draws.mean())
     assert first["q05"] < first["mean"] < first["q95"]
+    assert (
+        set(result["log_evidence"]) == set(result["vehicles"]) == set(tree.posterior.vehicle.values)
+    )
 
 
 def test_arviz_loo_reads_the_log_likelihood_group(tree):

@@ -172,20 +172,19 @@ def _describe(values: np.ndarray) -> dict[str, float]:
 
 
 def summary(tree: xr.DataTree) -> dict[str, Any]:
-    """The figures of summary.json: the run's metadata and, per vehicle and parameter, the
-    posterior mean, sd and 5%/95% quantiles (plus the vehicle's log-evidence where the engine
-    reports one)."""
+    """The figures of summary.json: the run's metadata; ``vehicles``: per vehicle and parameter the
+    posterior mean, sd and 5%/95% quantiles; ``log_evidence`` per vehicle where the engine
+    reports one."""
     meta = metadata(tree)
     posterior = tree["posterior"].to_dataset()
     stats = tree["sample_stats"].to_dataset()
-    vehicles = {}
-    for i, vehicle in enumerate(posterior["vehicle"].values.tolist()):
-        entry: dict[str, Any] = {
+    vehicle_ids = [str(v) for v in posterior["vehicle"].values]
+    vehicles = {
+        vehicle: {
             name: _describe(posterior[name].values[:, :, i].ravel()) for name in meta["params"]
         }
-        if "log_evidence" in stats:
-            entry["log_evidence"] = float(stats["log_evidence"].values[i])
-        vehicles[str(vehicle)] = entry
+        for i, vehicle in enumerate(vehicle_ids)
+    }
     keys = (
         "engine",
         "model",
@@ -203,4 +202,9 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "engine_options",
         "created_at",
     )
-    return {**{k: meta.get(k) for k in keys}, "vehicles": vehicles}
+    result = {**{k: meta.get(k) for k in keys}, "vehicles": vehicles}
+    if "log_evidence" in stats:
+        result["log_evidence"] = dict(
+            zip(vehicle_ids, stats["log_evidence"].values.astype(float).tolist(), strict=True)
+        )
+    return result

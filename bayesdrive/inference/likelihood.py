@@ -27,6 +27,7 @@ from bayesdrive.drivers.idm import exact_observation_logpdf
 __all__ = [
     "StepInputs",
     "check_model",
+    "clear_compiled",
     "fixed_params",
     "map_vehicles",
     "param_names",
@@ -160,6 +161,11 @@ def score_draws(
 # once per process; small, because each entry holds an executable.
 _COMPILED: dict[Any, Any] = {}
 _COMPILED_MAX = 8
+
+
+def clear_compiled() -> None:
+    """Forget every cached compiled chunk (the next fit compiles again, e.g. to time it)."""
+    _COMPILED.clear()
 
 
 def map_vehicles(
