@@ -10,6 +10,7 @@ from bayesdrive.cli import (
     diagnose_cmd,
     evaluate_cmd,
     fit_cmd,
+    reproduce_cmd,
     sbc_cmd,
     simulate_cmd,
 )
@@ -23,6 +24,8 @@ app.add_typer(data_cmd.app, name="data")
 app.command("fit")(fit_cmd.fit)
 app.command("evaluate")(evaluate_cmd.evaluate)
 app.command("simulate")(simulate_cmd.simulate)
+app.command("reproduce")(reproduce_cmd.reproduce)
+app.command("report")(reproduce_cmd.report)
 app.command("diagnose")(diagnose_cmd.diagnose)
 app.command("sbc")(sbc_cmd.sbc)
 app.command("criticize")(criticize_cmd.criticize_command)

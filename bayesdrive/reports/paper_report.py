@@ -1,0 +1,224 @@
+"""The reproduction report: every experiment of the paper on held-out real data, as one HTML page.
+
+Built from the results :mod:`bayesdrive.reports.experiments` saved; figures are drawn here into the
+output folder and embedded in the page.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from bayesdrive.data.atomic import write_atomic
+from bayesdrive.inference.agreement import agreement_summary, agreement_table
+from bayesdrive.reports.filter_plots import plot_convergence
+from bayesdrive.reports.html import Report
+
+__all__ = ["build_report"]
+
+PAPER_NOTE = (
+    "The paper's published code did not filter in its 'ours' column, picked seeds on test error, "
+    "and scored a likelihood whose spread was off by a factor of 2; it reported a mean absolute "
+    "error at the last step as 'RMSE'. Here every model is fitted on each vehicle's fitting window "
+    "only, scored on its later held-out window, with seeds fixed in advance; the RMSE is the true "
+    "root mean square over vehicles and rollouts, and the paper's variant is shown beside it."
+)
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    return path
+
+
+def _mean_sd(entry: dict[str, Any]) -> str:
+    sd = entry.get("sd")
+    return f"{entry['mean']:.2f}" + (f" ± {sd:.2f}" if sd is not None else "")
+
+
+def highway_table(models: dict[str, Any]) -> pd.DataFrame:
+    rows = []
+    for name, result in models.items():
+        paper = result["paper_mae_last_step"]
+        rows.append(
+            {
+                "model": name,
+                "RMSE position at 5 s (m)": _mean_sd(result["rmse_position_m"]),
+                "RMSE speed at 5 s (m/s)": _mean_sd(result["rmse_speed_mps"]),
+                "paper's MAE position, last step (m)": _mean_sd(paper["position_m"]),
+                "collisions": result["collisions"]["total"],
+                "colliding vehicle-rollouts": f"{result['collisions']['fraction']:.2%}",
+                "hard braking per rollout": f"{result['hard_braking']['per_rollout']:.1f}",
+                "speed W1 to data (m/s)": f"{result['speed_distribution_mps']['wasserstein']:.2f}",
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def plot_rmse_curves(models: dict[str, Any], path: Path, title: str, dt: float) -> Path:
+    fig = Figure(figsize=(10, 3.8), layout="tight")
+    ax_x, ax_v = fig.subplots(1, 2)
+    for name, result in models.items():
+        for ax, key in ((ax_x, "rmse_position_m"), (ax_v, "rmse_speed_mps")):
+            mean = np.array(result[key]["by_step"]["mean"], dtype=float)
+            steps = np.arange(len(mean)) * dt
+            ax.plot(steps, mean, label=name, lw=2 if name.startswith("idm-smc") else 1)
+    ax_x.set(xlabel="horizon (s)", ylabel="position RMSE (m)")
+    ax_v.set(xlabel="horizon (s)", ylabel="speed RMSE (m/s)")
+    ax_x.legend(fontsize=7)
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def plot_parameters(table: pd.DataFrame, path: Path) -> Path:
+    """Per-vehicle posterior means, one box per data set and parameter (NGSIM vs free flow)."""
+    params = [c for c in table.columns if c not in ("data", "vehicle")]
+    fig = Figure(figsize=(12, 3.5), layout="tight")
+    axes = fig.subplots(1, len(params))
+    labels = list(pd.unique(table["data"]))
+    for ax, name in zip(axes, params, strict=True):
+        ax.boxplot([table.loc[table["data"] == lab, name] for lab in labels], widths=0.6)
+        ax.set_xticks(
+            range(1, len(labels) + 1), [lab.split(":")[0][:8] for lab in labels], fontsize=7
+        )
+        ax.set_title(name)
+    fig.suptitle("posterior mean per vehicle (smc), by data set")
+    return _save(fig, path)
+
+
+def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path:
+    """Write ``out/report.html`` from the results of :func:`experiments.run_all`."""
+    figures = out / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
+    settings = results["settings"]
+    report = Report(
+        "bayesdrive: the paper's experiments on real data",
+        intro=(
+            f"Run '{settings['name']}': {settings['smc_particles']} smc particles, "
+            f"{settings['rollouts']} rollouts per scenario, seeds {results['seeds']}."
+        ),
+    )
+
+    data = report.section("Data")
+    rows = [
+        {
+            "data set": name,
+            "format": info["format"],
+            "scenes": info["scenes"],
+            "vehicles": info["vehicles"],
+            "recorded s": round(info["duration_s"], 1),
+            "leader-follower pairs": info["leader_follower_pairs"],
+            "median speed (m/s)": round(info["speed_mps"]["median"], 2),
+            "flags": sum(info["flags"].values()),
+        }
+        for name, info in results["data"].items()
+    ]
+    data.table(pd.DataFrame(rows), caption="Data sets (bayesdrive data info)")
+
+    highway = report.section("Highway experiment (the paper's table of RMSE and collisions)")
+    highway.note(PAPER_NOTE)
+    for label, experiment in results["highway"].items():
+        scenes = experiment["scenario_set"]
+        highway.text(
+            f"{label}: {scenes.get('scenarios', len(experiment['models']))} scenarios of "
+            f"{scenes.get('vehicles_per_scenario')} simulated vehicles over 5 s, "
+            f"{experiment['rollouts']} rollouts each, seed {experiment['seed']}; "
+            f"{experiment['scenarios_dropped_without_posterior']} scenario(s) dropped because a "
+            "vehicle had no usable fitting window. Selection: "
+            f"{scenes.get('selection_rule', '')}"
+        )
+        highway.table(highway_table(experiment["models"]), caption=label)
+        path = figures / f"rmse_{label.replace(':', '_')}.png"
+        plot_rmse_curves(experiment["models"], path, f"RMSE over the horizon: {label}", 0.1)
+        highway.figure(path, f"RMSE over the horizon, mean across scenarios: {label}")
+        if "acc-contrast" in label:
+            highway.note(
+                "Contrast: these followers drive on adaptive cruise control, not human drivers."
+            )
+
+    merge = report.section("Merging experiment")
+    merge.note(
+        "The slot layout of the merge episodes is inferred, not documented: the main-lane car "
+        "just behind the merging car (V2) is taken as the driver who cooperates or not. The "
+        "episodes carry no vehicle ids, so held-out cooperating drivers have no fitting window of "
+        "their own; a per-driver C-IDM fit is therefore not scored here."
+    )
+    merge.table(highway_table(results["merge"]["models"]), caption="Held-out merge episodes")
+
+    params = report.section("Per-vehicle parameters and filter convergence")
+    table = pd.DataFrame(results["parameters"])
+    summary = table.drop(columns="vehicle").groupby("data").agg(["mean", "std"]).round(2)
+    summary.columns = [f"{a} {b}" for a, b in summary.columns]
+    params.table(
+        summary.reset_index(), caption="Mean and sd across vehicles of the posterior means"
+    )
+    params.figure(plot_parameters(table, figures / "parameters.png"), "Posterior means per vehicle")
+    for label, tree in results["trees"]["pf"].items():
+        path = figures / f"convergence_{label.replace(':', '_')}.png"
+        params.figure(plot_convergence(tree, path), f"The paper's filter: convergence, {label}")
+
+    departure = report.section("The paper's filter against the exact posterior")
+    for label in results["trees"]["smc"]:
+        trees = {"smc": results["trees"]["smc"][label], "pf": results["trees"]["pf"][label]}
+        agreement = agreement_table(trees)
+        departure.table(
+            agreement_summary(agreement), caption=f"{label}: pf against smc, per parameter"
+        )
+
+    turing = report.section("Turing test (automated: classifier two-sample test)")
+    turing.text(
+        "A logistic-regression classifier tries to tell real held-out vehicle segments from "
+        "simulated ones; 50% accuracy means indistinguishable. p-values by label permutation."
+    )
+    for label, rows in results["turing"].items():
+        frame = pd.DataFrame(
+            [
+                {
+                    "model": m,
+                    "accuracy": r["accuracy"],
+                    "95% CI (approx.)": f"{r['ci_low']:.2f}-{r['ci_high']:.2f}",
+                    "p (better than chance)": r["p_value"],
+                }
+                for m, r in rows.items()
+            ]
+        )
+        turing.table(frame, caption=label)
+
+    scenes = report.section("Scene generation")
+    scenes.note(
+        "The paper's tables are reproduced as printed; a b_pref of 9 m/s^2 and a free-flow tau of "
+        "5 s are odd for an IDM. Our own presets pool the exact posteriors."
+    )
+    scenes.table(pd.DataFrame(results["scenes"]["table"]), caption="Generated scenes")
+    for path in results["scenes"]["figures"]:
+        scenes.figure(Path(path), Path(path).stem.replace("_", " "))
+
+    holdout = report.section("Generalisation to held-out data sets")
+    rows = []
+    for name, entry in results["holdout"]["data_sets"].items():
+        if "error" in entry:
+            rows.append({"data set": name, "model": "-", "note": entry["error"][:120]})
+            continue
+        for model, r in entry["models"].items():
+            rows.append(
+                {
+                    "data set": name,
+                    "model": model,
+                    "scenarios": r["scenarios"],
+                    "RMSE position (m)": _mean_sd(r["rmse_position_m"]),
+                    "RMSE speed (m/s)": _mean_sd(r["rmse_speed_mps"]),
+                    "collisions": r["collisions"]["total"],
+                }
+            )
+    holdout.table(pd.DataFrame(rows), caption="Nothing was fitted or tuned on these folders")
+
+    prior = report.section("Prior sensitivity")
+    frame = pd.DataFrame(results["prior_sensitivity"]["rows"])
+    by_param = frame.groupby("param")[["shift_in_sd", "sd_ratio"]].agg(["median", "max"]).round(2)
+    by_param.columns = [f"{a} {b}" for a, b in by_param.columns]
+    prior.table(by_param.reset_index(), caption="Posterior shift under a prior twice as wide")
+
+    return report.write(out / "report.html", command=command)
