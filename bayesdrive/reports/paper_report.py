@@ -73,6 +73,13 @@ def plot_rmse_curves(models: dict[str, Any], path: Path, title: str, dt: float) 
     return _save(fig, path)
 
 
+def _short(label: str) -> str:
+    """A tick label: 'NGSIM', 'OpenACC human', 'OpenACC ACC'."""
+    name, _, part = label.partition(":")
+    short = {"ngsim_i80_chains": "NGSIM", "openacc_vicolungo": "OpenACC"}.get(name, name)
+    return f"{short}\n{part.replace('-contrast', '')}" if part else short
+
+
 def plot_parameters(table: pd.DataFrame, path: Path) -> Path:
     """Per-vehicle posterior means, one box per data set and parameter (NGSIM vs free flow)."""
     params = [c for c in table.columns if c not in ("data", "vehicle")]
