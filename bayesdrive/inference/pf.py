@@ -24,7 +24,8 @@ mean weight) is what the paper's filter would report, but it is not a valid evid
 is an artificial parameter random walk, so the filter targets no fixed-parameter posterior. Use
 ``smc`` for inference; this engine exists to reproduce the paper honestly.
 
-Vectorised over vehicles (``vmap``) and particles, with a ``lax.scan`` over steps.
+Vectorised over vehicles (``vmap``) and particles, with a ``lax.scan`` over steps; vehicles are
+sorted by series length into chunks and steps where a whole chunk has no data are skipped.
 """
 
 from __future__ import annotations
@@ -135,17 +136,17 @@ def dither_steps(key: Array, shape: tuple[int, int]) -> Array:
     return ((word[:, None] // powers) % 3).astype(jnp.int32) - 1
 
 
-class _VehicleOutput(NamedTuple):
-    index: Array  # (N, d) final grid indices
-    log_evidence: Array  # () sum of log mean weights (not a valid evidence: module docstring)
-    ess: Array  # (T,) of the weights before resampling
-    unique: Array  # (T,) distinct ancestors surviving resampling, NaN on masked steps
-    mean: Array  # (T, d) particle mean after the step
-    convergence: Array  # (T,)
+class _ChunkOutput(NamedTuple):
+    index: Array  # (C, N, d) final grid indices
+    log_evidence: Array  # (C,) sum of log mean weights (not a valid evidence: module docstring)
+    ess: Array  # (C, T) of the weights before resampling
+    unique: Array  # (C, T) distinct ancestors surviving resampling, NaN on masked steps
+    mean: Array  # (C, T, d) particle mean after the step
+    convergence: Array  # (C, T)
 
 
-def _pf_vehicle(
-    key: Array,
+def _pf_chunk(
+    keys: Array,
     series: StepInputs,
     start: Array,
     *,
@@ -154,14 +155,19 @@ def _pf_vehicle(
     fixed: Any,
     grid: Grid,
     width: Array,
-) -> _VehicleOutput:
-    """Algorithm 1 on one vehicle's (T,) series from start grid indices (N, d)."""
+) -> _ChunkOutput:
+    """Algorithm 1 on a chunk of C vehicles: (C,) keys, (C, T) series, (C, N, d) start indices.
+
+    Vehicles are vectorised; the scan over steps skips (``lax.cond`` on the whole chunk, so a
+    real branch) every step where none of them has data, which with vehicles sorted by length
+    removes most of the padding.
+    """
     first = jnp.asarray(grid.first, dtype=float)
     step_size = jnp.asarray(grid.step, dtype=float)
     last = jnp.asarray(grid.size - 1)
+    num_particles = start.shape[1]
 
-    def step(index, xs):
-        inputs, key = xs
+    def vehicle_step(index, inputs, key):
         key_resample, key_dither = jax.random.split(key)
         log_weight = particles_loglik(model, names, fixed, first + index * step_size, inputs)
         live = inputs.mask > 0
@@ -176,17 +182,36 @@ def _pf_vehicle(
         )
         return index, out
 
-    num_steps = series.mask.shape[0]
-    index, (ess, log_mean, unique, means) = jax.lax.scan(
-        step, start, (series, jax.random.split(key, num_steps))
-    )
-    return _VehicleOutput(
+    def idle_step(index):
+        """What a step without data gives: particles kept, equal weights, no resampling."""
+        chunk = index.shape[0]
+        return index, (
+            jnp.full(chunk, float(num_particles)),
+            jnp.zeros(chunk),
+            jnp.full(chunk, jnp.nan),
+            jnp.mean(first + index * step_size, axis=1),
+        )
+
+    def step(index, xs):
+        inputs, step_keys = xs
+        return jax.lax.cond(
+            jnp.any(inputs.mask > 0),
+            lambda: jax.vmap(vehicle_step)(index, inputs, step_keys),
+            lambda: idle_step(index),
+        )
+
+    num_steps = series.mask.shape[1]
+    step_keys = jax.vmap(lambda k: jax.random.split(k, num_steps))(keys)
+    time_major = jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), (series, step_keys))
+    index, (ess, log_mean, unique, means) = jax.lax.scan(step, start, time_major)
+    ess, log_mean, unique, means = (jnp.swapaxes(a, 0, 1) for a in (ess, log_mean, unique, means))
+    return _ChunkOutput(
         index=index,
-        log_evidence=jnp.sum(log_mean),
+        log_evidence=jnp.sum(log_mean, axis=1),
         ess=ess,
         unique=unique,
         mean=means,
-        convergence=convergence_curve(means, width),
+        convergence=jax.vmap(convergence_curve, in_axes=(0, None))(means, width),
     )
 
 
@@ -204,11 +229,12 @@ def run(
     grid_steps: Mapping[str, float] | None = None,
     log_likelihood_draws: int = 200,
     vehicle_chunk: int = 64,
-    vehicle_batch: int | None = None,
 ) -> EngineResult:
     """The paper's filter (module docstring) over every vehicle of ``arrays``.
 
-    Vehicles are vectorised ``vehicle_batch`` at a time (default: the whole chunk); ``prior``
+    Vehicles are sorted by the length of their series and run ``vehicle_chunk`` at a time,
+    vectorised; steps where no vehicle of a chunk has data are skipped. Every vehicle keeps its
+    own random stream, so results do not depend on the order or the chunk size. ``prior``
     (default the model's uniform box) gives epoch 0's particles, snapped to the grid.
     """
     check_model(model)
@@ -221,8 +247,8 @@ def run(
     box = model.prior(names)
     prior = box if prior is None else prior
     fixed_values = fixed_params(model, fixed)
-    per_vehicle = functools.partial(
-        _pf_vehicle,
+    per_chunk = functools.partial(
+        _pf_chunk,
         model=model,
         names=names,
         fixed=fixed_values,
@@ -233,6 +259,23 @@ def run(
     series = step_inputs(arrays)
     num_vehicles = series.mask.shape[0]
     key_prior, key_epochs = jax.random.split(key)
+    # Longest series first, then data-free copies of the shortest to fill the last chunk.
+    chunk = max(1, min(vehicle_chunk, num_vehicles))
+    live = np.asarray(arrays.mask) > 0
+    length = np.where(live.any(axis=1), live.shape[1] - np.argmax(live[:, ::-1], axis=1), 0)
+    by_length = np.argsort(-length, kind="stable")
+    order = np.concatenate([by_length, np.full(-num_vehicles % chunk, by_length[-1])])
+    is_padding = np.arange(len(order)) >= num_vehicles
+    ordered = jax.tree.map(lambda a: a[order], series)
+    ordered = ordered._replace(mask=jnp.where(is_padding[:, None], 0.0, ordered.mask))
+    restore = np.argsort(by_length, kind="stable")  # each vehicle's row in the sorted order
+
+    def grouped(values):  # (vehicle, ...) in sorted order -> (chunk, vehicle in chunk, ...)
+        return jax.tree.map(lambda a: a.reshape(-1, chunk, *a.shape[1:]), values)
+
+    def vehicle_progress(done_chunks: int, _total_chunks: int) -> None:
+        if progress is not None:
+            progress(min(done_chunks * chunk, num_vehicles), num_vehicles)
 
     draws = prior.sample(key_prior, (num_vehicles, num_particles))
     start = jnp.clip(jnp.round((draws - grid.first) / grid.step), 0, grid.size - 1).astype(
@@ -242,14 +285,16 @@ def run(
     epoch_log_evidence, pooled_means = [], []
     for epoch_key in jax.random.split(key_epochs, epochs):
         key_filter, key_pool = jax.random.split(epoch_key)
+        keys = jax.random.split(key_filter, num_vehicles)
         out, compiled_s, ran_s = map_vehicles(
-            per_vehicle,
-            (jax.random.split(key_filter, num_vehicles), series, start),
-            chunk=vehicle_chunk,
-            batch=vehicle_chunk if vehicle_batch is None else vehicle_batch,
-            progress=progress,
+            per_chunk,
+            (grouped(keys[order]), grouped(ordered), grouped(start[order])),
+            chunk=1,
+            batch=None,
+            progress=vehicle_progress,
             cache_key=cache_key,
         )
+        out = jax.tree.map(lambda a: a.reshape(-1, *a.shape[2:])[restore], out)
         compile_time += compiled_s
         run_time += ran_s
         epoch_log_evidence.append(out.log_evidence)
@@ -286,6 +331,5 @@ def run(
             "dither": "uniform {-1, 0, +1} grid steps per parameter, clipped to the grid",
             "log_likelihood_draws": len(scored),
             "vehicle_chunk": vehicle_chunk,
-            "vehicle_batch": vehicle_batch,
         },
     )
