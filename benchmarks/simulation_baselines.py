@@ -168,9 +168,9 @@ def markdown(results: list[dict], speed: list[dict], rollouts: int, seed: int) -
         )
         if sizes:
             lines.append(f"- {entry['data_set']}: {sizes} (simulated vehicles: scenarios)")
-    lines += ["", "## Rollout speed (IDM, after compilation)", ""]
+    lines += ["", "## Rollout speed (IDM; the machine is shared, so upper bounds)", ""]
     lines.append(
-        "| rollouts x vehicles x steps | first call (s) | median call (ms) | vehicle-steps/s |"
+        "| rollouts x vehicles x steps | first call incl. compilation (s) | median call (ms) | vehicle-steps/s |"
     )
     lines.append("|---|---|---|---|")
     for row in speed:
