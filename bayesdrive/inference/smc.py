@@ -9,7 +9,8 @@ random-walk Metropolis-Hastings moves that leave :math:`p(\theta \mid y_{1:t})` 
 proposal is Gaussian with the particles' weighted covariance times :math:`s^2`, starting from
 :math:`s = 2.38/\sqrt d` (Roberts, Gelman & Gilks 1997) and adapted per vehicle towards an
 acceptance rate of ``target_acceptance`` (log s moves by acceptance - target after every move).
-Each move scores the full masked likelihood of steps 1..t, vectorised over steps. Because the
+Each move scores the likelihood of steps 1..t, vectorised over steps within blocks of
+:data:`SCORE_BLOCK` steps, so it costs about t steps, not the padded length. Because the
 parameters are static, nothing here is approximate beyond Monte Carlo error: the log-evidence
 :math:`\sum_t \log \sum_i W_{t-1}^i\, p(y_t \mid \theta^i)` is unbiased on the natural scale, and
 at the end the set is resampled once more and moved ``num_moves`` times against the full
@@ -59,7 +60,10 @@ from bayesdrive.inference.weights import (
     weighted_mean_cov,
 )
 
-__all__ = ["SMCConfig", "run"]
+__all__ = ["SCORE_BLOCK", "SMCConfig", "run"]
+
+# Steps per block when a move re-scores the series seen so far (the data's length bucket).
+SCORE_BLOCK = 64
 
 
 class SMCConfig(NamedTuple):
@@ -112,9 +116,24 @@ def _smc_vehicle(
     # A floor on the proposal covariance keeps moves alive when resampling leaves one survivor.
     jitter = jnp.diag((1e-4 * width) ** 2)
 
+    # Moves score steps 0..t in blocks, so their cost grows with t instead of the padded length.
+    extra = -num_steps % SCORE_BLOCK
+    padded = jax.tree.map(lambda a: jnp.pad(a, (0, extra), mode="edge"), series)
+    padded = padded._replace(mask=jnp.pad(series.mask, (0, extra)))  # the extra steps are unused
+
     def log_lik_up_to(particles: Array, last_step: Array) -> Array:
-        seen = series._replace(mask=series.mask * (step_index <= last_step))
-        return jax.vmap(lambda th: series_loglik(model, names, fixed, th, seen).sum())(particles)
+        def add_block(block, total):
+            start = block * SCORE_BLOCK
+            part = jax.tree.map(
+                lambda a: jax.lax.dynamic_slice_in_dim(a, start, SCORE_BLOCK), padded
+            )
+            seen = part._replace(mask=part.mask * (start + jnp.arange(SCORE_BLOCK) <= last_step))
+            return total + jax.vmap(lambda th: series_loglik(model, names, fixed, th, seen).sum())(
+                particles
+            )
+
+        zero = jnp.zeros(particles.shape[0], particles.dtype)
+        return jax.lax.fori_loop(0, last_step // SCORE_BLOCK + 1, add_block, zero)
 
     def resample_move(key: Array, state: _Particles, last_step: Array):
         """Systematic resampling, then MH moves targeting p(theta | y_1..last_step)."""
@@ -189,7 +208,8 @@ def _smc_vehicle(
         (start, jnp.zeros((), theta.dtype)),
         (series, step_index, jax.random.split(key_steps, num_steps)),
     )
-    final, final_acceptance, _ = resample_move(key_final, state, num_steps - 1)
+    last_live = jnp.max(jnp.where(series.mask > 0, step_index, 0))
+    final, final_acceptance, _ = resample_move(key_final, state, last_live)
     return _VehicleOutput(
         theta=final.theta,
         log_evidence=log_evidence,
