@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import numpy as np
 import typer
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -33,9 +32,9 @@ from bayesdrive.simulation.baselines import (
     MERGE_ONLY,
     Policy,
     baseline_policy,
-    particle_policy,
 )
 from bayesdrive.simulation.metrics import evaluate_policy
+from bayesdrive.simulation.posterior import posterior_policy
 from bayesdrive.simulation.scenarios import (
     ScenarioSet,
     merge_scenarios,
@@ -135,32 +134,14 @@ def _posterior_policy(
             f"{path}: the posterior is of model {meta.get('model')!r}, not --model {model_name!r}"
         )
     check_posterior_split(meta, traj, scenarios, data_dir)
-    names = tuple(meta["params"])
-    posterior = tree["posterior"].to_dataset()
-    vehicles = [str(v) for v in posterior["vehicle"].values]
-    missing = [v for v in scenarios.simulated_ids if v not in vehicles]
-    if missing:
-        raise DataError(f"{path}: the posterior has no draws for simulated vehicle(s) {missing}")
-    stacked = np.stack([posterior[n].transpose("vehicle", "chain", "draw").values for n in names])
-    particles = {
-        vid: stacked[:, i].reshape(len(names), -1).T
-        for i, vid in enumerate(vehicles)
-        if vid in set(scenarios.simulated_ids)
-    }
     model = get_model(model_name)
     if model.name == CIDM.name and scenarios.kind != "merge":
         raise DataError(f"{path}: a Cooperative-IDM posterior needs merge scenes, not platoons")
-    fixed = model.params_type(
-        *(float((meta.get("fixed") or {}).get(s.name, s.default)) for s in model.specs)
-    )
-    policy = particle_policy(
-        model_name,
-        model,
-        names,
-        particles,
-        fixed,
-        f"{model_name} posterior from {path.name}, one draw per rollout and vehicle",
-    )
+    vehicles = {str(v) for v in tree["posterior"]["vehicle"].values}
+    missing = [v for v in scenarios.simulated_ids if v not in vehicles]
+    if missing:
+        raise DataError(f"{path}: the posterior has no draws for simulated vehicle(s) {missing}")
+    policy = posterior_policy(model_name, model, tree, meta)
     details = {
         **policy.details,
         "result": str(path),
