@@ -25,6 +25,15 @@ or the Cooperative IDM's ``MergeInputs``) with their ego distances read as posit
 axis: ``gap`` is the leader's rear bumper relative to the observed ego front, i.e. the observed
 bumper gap of the data layer, and each particle sees ``gap - e_t`` (``shift_ego``) -- the gap to
 its own latent position, never to the noisy reading.
+
+**Engine.** :func:`run` is the ``pmmh`` engine (the :class:`~bayesdrive.inference.fit.Engine`
+signature, returning an :class:`~bayesdrive.inference.output.EngineResult`). Chains and vehicles
+are flattened into lanes of one ``vmap`` level: nested ``vmap`` of the threefry RNG multiplies XLA
+compile time (about 2x per level on CPU). **Starting values matter**: far from the posterior the
+filter degenerates, its estimate's variance explodes and PMMH chains stick; warm-up from prior
+draws can take thousands of iterations (``benchmarks/bench_latent.py`` measures it). Choose
+``num_state_particles`` so that the estimate's sd at the posterior is about 1-1.7 nats (Doucet et
+al. 2015); the variance grows like kappa T / N.
 """
 
 from __future__ import annotations
@@ -467,7 +476,7 @@ def run(
     num_chains: int = 4,
     num_warmup: int = 1000,
     proposal_scale: float | Sequence[float] = 0.01,
-    init: str = "prior",
+    init: str | Array = "prior",
     log_likelihood_draws: int = 100,
     vehicle_chunk: int = 16,
 ) -> EngineResult:
@@ -477,8 +486,9 @@ def run(
     with_measurement_noise`); ``prior`` must be None (the model's uniform box). Posterior draws are
     (chain, draw, vehicle): ``num_particles`` draws in all, ``num_particles / num_chains`` (rounded
     up) per chain after ``num_warmup`` warm-up iterations, each likelihood estimated with
-    ``num_state_particles`` state particles. ``init`` is "prior" (independent prior draws) or
-    "defaults" (every chain at the model's defaults). The ``log_likelihood`` group holds, for
+    ``num_state_particles`` state particles. ``init`` is "prior" (independent prior draws),
+    "defaults" (every chain at the model's defaults) or starting values broadcast to
+    (chain, vehicle, param), e.g. from an exact-state fit. The ``log_likelihood`` group holds, for
     ``log_likelihood_draws`` evenly spaced draws per chain, the filter's per-step log-increments
     log p(y[t+1] | earlier readings): Monte Carlo estimates, not exact densities. ``sample_stats``:
     ``acceptance_rate`` [chain, vehicle], ``log_likelihood_estimate`` [chain, draw, vehicle] (the
@@ -492,8 +502,8 @@ def run(
         )
     if prior is not None:
         raise ValueError("engine 'pmmh' samples under the model's uniform prior box; prior=None")
-    if init not in ("prior", "defaults"):
-        raise ValueError(f"init must be 'prior' or 'defaults', got {init!r}")
+    if isinstance(init, str) and init not in ("prior", "defaults"):
+        raise ValueError(f"init must be 'prior', 'defaults' or an array, got {init!r}")
     names = param_names(model, params)
     fixed_values = fixed_params(model, fixed)
     num_draws = -(-num_particles // max(num_chains, 1))
@@ -510,7 +520,7 @@ def run(
         proposal_scale=proposal_scale,
         num_chains=num_chains,
         num_warmup=num_warmup,
-        init=None if init == "prior" else jnp.asarray([model.spec(n).default for n in names]),
+        init=_starting_values(model, names, init),
         fixed=fixed_values,
         vehicle_chunk=vehicle_chunk,
         progress=progress,
@@ -559,7 +569,7 @@ def run(
             "num_draws_per_chain": num_draws,
             "num_warmup": num_warmup,
             "proposal_scale": np.broadcast_to(proposal_scale, (len(names),)).tolist(),
-            "init": init,
+            "init": init if isinstance(init, str) else "given",
             "resampler": "systematic",
             "resample_below": RESAMPLE_BELOW,
             "adaptation": {
@@ -571,6 +581,13 @@ def run(
             "vehicle_chunk": vehicle_chunk,
         },
     )
+
+
+def _starting_values(model: DriverModel, names: tuple[str, ...], init: str | Array) -> Array | None:
+    """:func:`run`'s ``init`` as :func:`pmmh` takes it (None: prior draws)."""
+    if isinstance(init, str):
+        return None if init == "prior" else jnp.asarray([model.spec(n).default for n in names])
+    return jnp.asarray(init, dtype=float)
 
 
 def _score_draw(
