@@ -31,6 +31,7 @@ from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, P
 from bayesdrive.drivers.cidm import MergeInputs
 from bayesdrive.drivers.idm import IDM, IDMParams, exact_initial_sample, exact_observation_logpdf
 from bayesdrive.drivers.measurement_noise import shift_ego, with_measurement_noise
+from bayesdrive.inference.fit import fit
 from bayesdrive.inference.latent import (
     latent_data,
     noisy_readings,
@@ -39,7 +40,7 @@ from bayesdrive.inference.latent import (
     state_filter_loglik,
 )
 from bayesdrive.inference.likelihood import fixed_params
-from bayesdrive.inference.output import build_tree
+from bayesdrive.inference.output import metadata
 from bayesdrive.inference.synthetic import simulate_following
 
 # ---------------------------------------------------------------------------------------------
@@ -436,50 +437,37 @@ def test_pmmh_refuses_an_initial_point_outside_the_prior(noisy_idm_data):
         )
 
 
-def test_engine_result_has_the_shared_layout(noisy_idm_data):
-    """The ``pmmh`` engine's EngineResult builds the package's result tree (same settings as the
-    recovery run, so the compiled chains are reused; the layout is checked, not the values)."""
+def test_fit_with_the_pmmh_engine_gives_the_shared_layout(noisy_idm_data):
+    """``fit(..., engine="pmmh")`` builds the package's result tree (same settings as the recovery
+    run, so the compiled chains are reused; the layout is checked here, not the values)."""
     _, _, arrays = noisy_idm_data
-    result = run(
+    tree = fit(
         jax.random.key(PMMH_SEED),
         arrays,
         model=NOISY_IDM,
+        engine="pmmh",
         params=PMMH_NAMES,
-        fixed=KNOWN,
         num_particles=PMMH_NUM_CHAINS * PMMH_NUM_DRAWS,
+        window="all",
+        fixed=KNOWN,
+        seed=PMMH_SEED,
         num_state_particles=48,
         num_chains=PMMH_NUM_CHAINS,
         num_warmup=200,
         proposal_scale=(0.01, 0.01),
-        init="defaults",
+        init=jnp.asarray(PMMH_START),
         log_likelihood_draws=4,
     )
-    tree = build_tree(
-        posterior=result.posterior,
-        sample_stats=result.sample_stats,
-        log_likelihood=result.log_likelihood,
-        log_likelihood_draws=result.log_likelihood_draws,
-        arrays=arrays,
-        metadata={
-            "engine": "pmmh",
-            "model": NOISY_IDM.name,
-            "params": list(PMMH_NAMES),
-            "fixed": KNOWN,
-            "seed": PMMH_SEED,
-            "data_source": "simulated",
-            "window": "all",
-            "num_particles": PMMH_NUM_CHAINS * PMMH_NUM_DRAWS,
-            "flagged_samples": None,
-        },
-    )
+    assert metadata(tree)["engine"] == "pmmh"
+    assert metadata(tree)["seed"] == PMMH_SEED
     posterior = tree["posterior"].to_dataset()
     assert posterior["sigma_obs"].shape == (PMMH_NUM_CHAINS, PMMH_NUM_DRAWS, PMMH_NUM_VEHICLES)
     log_lik = tree["log_likelihood"].to_dataset()["dx"].values
     assert log_lik.shape == (PMMH_NUM_CHAINS, 4, PMMH_NUM_VEHICLES, arrays.mask.shape[1])
     assert np.all(np.isfinite(log_lik))
-    acceptance = tree["sample_stats"].to_dataset()["acceptance_rate"].values
-    assert acceptance.shape == (PMMH_NUM_CHAINS, PMMH_NUM_VEHICLES)
-    ess = tree["sample_stats"].to_dataset()["filter_ess"].values
+    stats = tree["sample_stats"].to_dataset()
+    assert stats["acceptance_rate"].shape == (PMMH_NUM_CHAINS, PMMH_NUM_VEHICLES)
+    ess = stats["filter_ess"].values
     assert np.all((ess >= 1.0) & (ess <= 48.0))
 
 

@@ -20,7 +20,7 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import ensemble, lm, nuts, pf, population, smc
+from bayesdrive.inference import ensemble, latent, lm, nuts, pf, population, smc
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import EngineResult, build_tree, metadata
 
@@ -52,6 +52,7 @@ ENGINES: dict[str, Engine] = {
     "emcee": ensemble.run,
     "lm": lm.run,
     "hierarchical": population.run,
+    "pmmh": latent.run,
 }
 
 
