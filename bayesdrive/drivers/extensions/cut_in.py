@@ -10,7 +10,7 @@ speeds :math:`v, v_l` and the leader's acceleration capped at the ego's,
 .. math::
 
     a_{CAH} = \begin{cases}
-      \dfrac{v^2 \tilde a_l}{v_l^2 - 2 s \tilde a_l} & v_l (v - v_l) \le -2 s \tilde a_l \\[1ex]
+      \dfrac{v^2 \tilde a_l}{v_l^2 - 2 s \tilde a_l} & v_l (v - v_l) < -2 s \tilde a_l \\[1ex]
       \tilde a_l - \dfrac{(v - v_l)^2\, \Theta(v - v_l)}{2 s} & \text{otherwise,}
     \end{cases}
 
@@ -57,11 +57,12 @@ def cah_acceleration(v: Array, gap: Array, lead_v: Array, lead_acc: Array, a_max
     """The constant-acceleration heuristic (module docstring)."""
     gap = jnp.maximum(gap, MIN_GAP)
     lead_acc = jnp.minimum(lead_acc, a_max)
-    braking_leader_stops_first = lead_v * (v - lead_v) <= -2.0 * gap * lead_acc
-    # Both branches are computed; keep the unused one's denominator away from zero.
-    denominator = lead_v**2 - 2.0 * gap * lead_acc
-    safe_denominator = jnp.where(braking_leader_stops_first, denominator, 1.0)
-    first = v**2 * lead_acc / jnp.maximum(safe_denominator, 1e-6)
+    # Strict inequality, as in Treiber's reference implementation: it keeps the first branch's
+    # denominator positive (a stopped, non-accelerating leader falls to the second branch).
+    braking_leader_stops_first = lead_v * (v - lead_v) < -2.0 * gap * lead_acc
+    # Both branches are computed; the unused one's denominator must stay finite for gradients.
+    denominator = jnp.where(braking_leader_stops_first, lead_v**2 - 2.0 * gap * lead_acc, 1.0)
+    first = v**2 * lead_acc / denominator
     closing = jnp.maximum(v - lead_v, 0.0)
     second = lead_acc - closing**2 / (2.0 * gap)
     return jnp.where(braking_leader_stops_first, first, second)

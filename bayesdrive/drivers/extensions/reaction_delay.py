@@ -48,7 +48,8 @@ def delayed(lagged: Array, delay_steps: Array) -> Array:
     """Linear interpolation of ``lagged`` (index k = k steps ago) at a fractional lag."""
     last = lagged.shape[-1] - 1
     lower = jnp.clip(jnp.floor(delay_steps), 0, last - 1).astype(jnp.int32)
-    fraction = jnp.clip(delay_steps - lower, 0.0, 1.0)
+    # In [0, 1] for delays inside the window; not clipped, so the slope at zero delay is exact.
+    fraction = delay_steps - lower
     below = jnp.take(lagged, lower, axis=-1)
     above = jnp.take(lagged, lower + 1, axis=-1)
     return (1.0 - fraction) * below + fraction * above

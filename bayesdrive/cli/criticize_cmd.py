@@ -1,0 +1,156 @@
+"""``bayesdrive criticize``: what the base model gets wrong on a data set, and which extension fixes it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.table import Table
+
+from bayesdrive.cli.common import console, emit_json, err_console, fail
+
+__all__ = ["criticize_command", "print_report"]
+
+
+def criticize_command(
+    data: Annotated[str, typer.Argument(help="A data file or folder, or a data set name.")],
+    format: Annotated[
+        str | None, typer.Option("--format", "-f", help="Reader format (detected if omitted).")
+    ] = None,
+    model: Annotated[str, typer.Option("--model", help="Base driver model.")] = "idm",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of every random draw.")] = 0,
+    particles: Annotated[
+        int, typer.Option("--particles", help="Particles per vehicle and model.")
+    ] = 256,
+    vehicles: Annotated[
+        int | None, typer.Option("--vehicles", help="Use only the first N vehicles.")
+    ] = None,
+    causes: Annotated[
+        str | None, typer.Option("--causes", help="Comma-separated causes (default: all).")
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Folder for the check pictures.")
+    ] = None,
+    json_out: Annotated[
+        str | None, typer.Option("--json", help="Write the report as JSON (- = stdout).")
+    ] = None,
+) -> None:
+    """Fit the base model, run the checks, fit the extensions they point to, name the cause."""
+    # Imported here so `bayesdrive --help` stays fast (JAX is heavy to import).
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from bayesdrive.criticism.criticize import CriticizeConfig, criticize
+    from bayesdrive.data.errors import DataError
+    from bayesdrive.drivers.extensions import CAUSES
+    from bayesdrive.drivers.registry import get_model
+
+    try:
+        traj = _load(data, format)
+    except (DataError, FileNotFoundError) as error:
+        raise fail(str(error)) from None
+    try:
+        base = get_model(model)
+    except KeyError as error:
+        raise fail(str(error.args[0])) from None
+    if base.name != "idm":
+        raise fail(f"criticize supports car-following base models: 'idm' (got {model!r})")
+    chosen = tuple(c.strip() for c in causes.split(",")) if causes else CAUSES
+    unknown = [c for c in chosen if c not in CAUSES]
+    if unknown:
+        raise fail(f"unknown cause(s) {unknown}; known: {', '.join(CAUSES)}")
+    if vehicles is not None:
+        traj = traj.subset(traj.vehicle_ids[:vehicles])
+    config = CriticizeConfig(num_particles=particles, causes=chosen)
+
+    quiet = json_out == "-"
+    with Progress(
+        SpinnerColumn(),
+        TextColumn("{task.description}"),
+        TimeElapsedColumn(),
+        console=err_console,
+        disable=quiet,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("reading", total=None)
+        try:
+            result = criticize(
+                traj,
+                seed=seed,
+                model=base,
+                config=config,
+                progress=lambda message: bar.update(task, description=message),
+            )
+        except DataError as error:
+            raise fail(str(error)) from None
+    if out is not None:
+        from bayesdrive.reports.criticism_plots import plot_criticism
+
+        written = plot_criticism(result, out)
+        result.report["figures"] = [str(p) for p in written]
+    if emit_json(result.report, json_out):
+        return
+    print_report(result.report)
+
+
+def _load(data: str, format: str | None):
+    """A path is read with the readers; anything else is looked up as a data-set name."""
+    from bayesdrive.data.readers import read
+    from bayesdrive.data.registry import load
+
+    if Path(data).exists():
+        return read(data, format=format)
+    return load(data, format=format)
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def print_report(report: dict[str, Any]) -> None:
+    """The human-readable criticism: checks, candidate causes with their gains, the verdict."""
+    data = report["data"]
+    console.rule("[bold]Model criticism")
+    console.print(
+        f"{data['source']} ({data['format']}): {data['vehicles']} vehicles, "
+        f"{data['scored_steps_fit']} fitting and {data['scored_steps_heldout']} held-out steps; "
+        f"base model {report['model']}, seed {report['seed']}"
+    )
+    checks = Table(title="Checks on held-out windows (base model)")
+    for column in ("check", "number", "p", "points to"):
+        checks.add_column(column)
+    for check in report["checks"]:
+        checks.add_row(
+            check["title"],
+            _fmt(check["statistic"]),
+            _fmt(check["p_value"]),
+            ", ".join(check["points_to"]),
+        )
+    console.print(checks)
+
+    causes = Table(title="Causes (ordered by held-out gain)")
+    for column in ("cause", "screened", "elpd gain", "se", "p", "significant", "RMSE change (m)"):
+        causes.add_column(column)
+    for cause in report["causes"]:
+        gain = cause["gain"] or {}
+        causes.add_row(
+            cause["name"],
+            "yes" if cause["screened_in"] else "no",
+            _fmt(gain.get("elpd"), 4),
+            _fmt(gain.get("se")),
+            _fmt(gain.get("p_value")),
+            {True: "[green]yes[/green]", False: "no"}.get(gain.get("significant"), "-"),
+            _fmt(gain.get("rmse_position_change")),
+        )
+    console.print(causes)
+    console.print(f"[dim]{report['settings']['significance']}[/dim]")
+    verdict = report["verdict"]
+    console.print(f"[bold]Verdict:[/bold] {verdict}")
+    if report.get("verdict_is_possible_processing_artefact"):
+        console.print(
+            f"[yellow]Caution:[/yellow] {report['verdict_is_possible_processing_artefact']}"
+        )

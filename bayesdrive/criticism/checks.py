@@ -1,0 +1,460 @@
+r"""Checks that show where a fitted base model misfits, on held-out windows: a number and a picture each.
+
+Everything starts from the **one-step posterior predictive** of every scored held-out step: for
+``num_draws`` draws :math:`\theta_m` of the fitting-window posterior, the base model predicts the
+position increment as :math:`N(v\Delta t + a_m\Delta t^2/2,\ (\sigma_m \Delta t^2/2)^2)` (the
+Gaussian execution noise of the base models, :mod:`bayesdrive.drivers.idm`). The probability
+integral transform (PIT) of the observed increment, averaged over draws, is uniform for a
+calibrated model; its normal quantile :math:`z_t = \Phi^{-1}(PIT_t)` (the *quantile residual*,
+Dunn & Smyth 1996) is then close to white Gaussian noise. A step that ends in an observed stop
+has a censored increment: its PIT is drawn uniformly below the predicted stop probability
+(randomised PIT), with a key of its own.
+
+The checks (``Check.name``):
+
+* ``calibration``: PIT histogram (chi-square against uniform) and coverage of the central 50% and
+  90% one-step predictive intervals.
+* ``autocorrelation``: autocorrelation of :math:`z` at lags 1..30 within vehicles. Positive lag-1
+  correlation points to autocorrelated noise, negative to measurement noise on positions (the
+  difference of two noisy readings is an MA(1) with correlation -1/2), a slowly decaying positive
+  tail (lags 10-30) to drifting parameters.
+* ``leader_cross_correlation``: correlation of :math:`z_t` with the leader's acceleration
+  :math:`k` steps earlier (k = 0..K, the history window): a response to the leader's past actions
+  points to a reaction delay.
+* ``variance_vs_*``: :math:`z_t^2 - 1` against speed, gap, relative speed and time in the window
+  (a calibrated model has mean 0 everywhere); a trend in speed points to speed-dependent noise.
+  ``mean_vs_*``: :math:`z_t` itself against the same covariates (a biased mean).
+* ``change_points``: per vehicle, the CUSUM of :math:`z` (sup of a Brownian bridge under the null,
+  Kolmogorov's distribution); many vehicles with a change point point to drifting parameters.
+* ``score_<cause>``: the score (Lagrange-multiplier) test of each extension against the base
+  model: the slope of the held-out log-likelihood in the extension's parameter at the value that
+  switches it off (the base model), at the base posterior draws. Its sum over vehicles divided by
+  the root sum of squares of the per-vehicle slopes is approximately N(0, 1) when the base model is
+  right (self-normalised across vehicles, so autocorrelation within a vehicle does no harm);
+  one-sided, since every extension's "off" value is its lower bound.
+
+Correlation p-values use the white-noise standard error :math:`1/\sqrt{n}` (Bartlett); with several
+lags the smallest p-value is Bonferroni-corrected over lags. p-values are for screening and
+description: the verdict rests on the held-out predictive gain (:mod:`bayesdrive.criticism.gain`).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from scipy import stats
+
+from bayesdrive.criticism.rollout import Rollouts
+from bayesdrive.criticism.tempering import FitResult, VehicleSteps, step_logpdfs
+from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.drivers.extensions import extend
+from bayesdrive.drivers.extensions.compose import ExtendedModel
+from bayesdrive.drivers.extensions.inputs import ExtendedSeries
+from bayesdrive.drivers.idm import STOP_SPEED
+
+__all__ = [
+    "ACF_LAGS",
+    "Check",
+    "Residuals",
+    "autocorrelation_check",
+    "calibration_check",
+    "change_point_check",
+    "covariate_checks",
+    "leader_cross_correlation_check",
+    "multistep_check",
+    "predictive_residuals",
+    "run_checks",
+    "score_check",
+]
+
+ACF_LAGS = 30
+DRIFT_LAGS = (10, 30)  # the lag band whose mean autocorrelation points to drifting parameters
+PIT_BINS = 10
+COVARIATE_BINS = 8
+
+
+class Check(NamedTuple):
+    """One check: a headline number, its p-value, the causes it points to, and plot data.
+
+    statistic: the headline number (its meaning is in ``summary["statistic"]``).
+    p_value: how surprising that number is if the base model is right (None: descriptive only).
+    points_to: causes a small p-value points to.
+    summary: JSON-ready numbers for the report.
+    figure: arrays for :mod:`bayesdrive.reports.criticism_plots`.
+    """
+
+    name: str
+    title: str
+    statistic: float
+    p_value: float | None
+    points_to: tuple[str, ...]
+    summary: dict[str, Any]
+    figure: dict[str, Any]
+
+
+class Residuals(NamedTuple):
+    """Posterior-predictive quantities of every step (vehicle, step); use where ``mask`` is 1."""
+
+    pit: np.ndarray
+    z: np.ndarray
+    mask: np.ndarray
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: VehicleSteps):
+    """Draw-averaged P(increment <= observed) and P(stop) of every step: (vehicle, step) each."""
+    model = extended.model
+
+    def per_step(params, inputs, v, dx):
+        state = extended.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
+        mean_acc = model.mean_acceleration(params, state, inputs)
+        dt = inputs.dt
+        predicted = v * dt + 0.5 * mean_acc * dt**2
+        below = jax.scipy.stats.norm.cdf(dx, predicted, 0.5 * params.sigma * dt**2)
+        stop = jax.scipy.stats.norm.cdf(-(v + mean_acc * dt) / (params.sigma * dt))
+        return below, stop
+
+    def per_vehicle(theta_v, steps_v):
+        def per_draw(th):
+            params = fill_params(model, names, th)
+            return jax.vmap(lambda i, v, dx: per_step(params, i, v, dx))(
+                steps_v.inputs, steps_v.v, steps_v.dx
+            )
+
+        below, stop = jax.vmap(per_draw)(theta_v)
+        return below.mean(axis=0), stop.mean(axis=0)
+
+    return jax.vmap(per_vehicle)(theta, steps)
+
+
+def predictive_residuals(
+    key: Array, fit: FitResult, steps: VehicleSteps, *, num_draws: int = 64
+) -> Residuals:
+    """PIT and quantile residuals of every held-out step under the fitted model (module docstring).
+
+    The fitted model must be a base model (mean acceleration plus N(0, sigma^2) execution noise).
+    """
+    extended = fit.model
+    if extended.new_params:
+        raise ValueError(f"checks describe a base model's misfit; got {extended.name}")
+    draws = np.linspace(0, fit.theta.shape[1] - 1, min(num_draws, fit.theta.shape[1])).astype(int)
+    theta = jnp.asarray(fit.theta[:, draws], dtype=steps.v.dtype)
+    below, stop = _pit_parts(extended, fit.names, theta, steps)
+    below, stop = np.asarray(below, np.float64), np.asarray(stop, np.float64)
+    stopped = np.asarray(steps.next_v) <= STOP_SPEED
+    uniform = np.asarray(jax.random.uniform(key, below.shape))
+    # A moving step's PIT is the continuous part above the stop mass; a stop's is randomised.
+    pit = np.where(stopped, uniform * stop, stop + (1.0 - stop) * below)
+    pit = np.clip(pit, 1e-9, 1.0 - 1e-9)
+    return Residuals(pit=pit, z=stats.norm.ppf(pit), mask=np.asarray(steps.heldout) > 0)
+
+
+def calibration_check(res: Residuals) -> Check:
+    """PIT histogram and central-interval coverage of the one-step predictive."""
+    pit = res.pit[res.mask]
+    counts, edges = np.histogram(pit, bins=PIT_BINS, range=(0.0, 1.0))
+    chi2 = stats.chisquare(counts)
+    coverage = {
+        f"coverage_{int(level * 100)}": float(np.mean(np.abs(pit - 0.5) <= level / 2))
+        for level in (0.5, 0.9)
+    }
+    return Check(
+        name="calibration",
+        title="One-step predictive calibration (PIT)",
+        statistic=float(chi2.statistic),
+        p_value=float(chi2.pvalue),
+        points_to=("speed_dependent_noise", "measurement_noise"),
+        summary={
+            "statistic": f"chi-square of the {PIT_BINS}-bin PIT histogram against uniform",
+            "steps": int(pit.size),
+            **coverage,
+        },
+        figure={"counts": counts, "edges": edges, **coverage},
+    )
+
+
+def _pooled_correlation(a: np.ndarray, b: np.ndarray, mask_a, mask_b, lag: int):
+    """Correlation of a[t] with b[t - lag] over pairs where both are used; returns (r, pairs)."""
+    if lag > 0:
+        a, mask_a = a[:, lag:], mask_a[:, lag:]
+        b, mask_b = b[:, :-lag], mask_b[:, :-lag]
+    both = mask_a & mask_b
+    x, y = a[both], b[both]
+    if x.size < 3 or x.std() == 0 or y.std() == 0:
+        return 0.0, int(x.size)
+    return float(np.corrcoef(x, y)[0, 1]), int(x.size)
+
+
+def autocorrelation_check(res: Residuals) -> Check:
+    """Autocorrelation of the quantile residuals within vehicles at lags 1..ACF_LAGS."""
+    acf, pairs = zip(
+        *(
+            _pooled_correlation(res.z, res.z, res.mask, res.mask, lag)
+            for lag in range(1, ACF_LAGS + 1)
+        ),
+        strict=True,
+    )
+    acf, pairs = np.asarray(acf), np.asarray(pairs)
+    z1 = acf[0] * np.sqrt(pairs[0])
+    band = slice(DRIFT_LAGS[0] - 1, DRIFT_LAGS[1])
+    # Under white noise the band's lags are nearly independent, each with sd 1/sqrt(pairs).
+    drift_z = float(acf[band].sum() / np.sqrt(np.sum(1.0 / pairs[band])))
+    p_two_sided = float(2 * stats.norm.sf(abs(z1)))
+    return Check(
+        name="autocorrelation",
+        title="Autocorrelation of quantile residuals",
+        statistic=float(acf[0]),
+        p_value=p_two_sided,
+        # Directional p-values in the summary say which: + lag 1, - lag 1, long-lag tail.
+        points_to=("autocorrelated_noise", "measurement_noise", "drifting_parameters"),
+        summary={
+            "statistic": "lag-1 autocorrelation of z",
+            "lag1": float(acf[0]),
+            "lag1_z": float(z1),
+            "p_positive": float(stats.norm.sf(z1)),
+            "p_negative": float(stats.norm.cdf(z1)),
+            "long_lag_mean": float(acf[band].mean()),
+            "long_lag_z": drift_z,
+            "p_long_lag": float(stats.norm.sf(drift_z)),
+        },
+        figure={"lags": np.arange(1, ACF_LAGS + 1), "acf": acf, "band": 1.96 / np.sqrt(pairs)},
+    )
+
+
+def leader_cross_correlation_check(res: Residuals, series: ExtendedSeries) -> Check:
+    """Correlation of z[t] with the leader's acceleration at t - k, k = 0..history."""
+    lead_acc = series.lead_acc
+    usable = series.usable > 0
+    lags = np.arange(series.history + 1)
+    ccf, pairs = zip(
+        *(_pooled_correlation(res.z, lead_acc, res.mask, usable, int(k)) for k in lags),
+        strict=True,
+    )
+    ccf, pairs = np.asarray(ccf), np.asarray(pairs)
+    zs = ccf * np.sqrt(pairs)
+    worst = int(np.argmax(np.abs(zs)))
+    p = float(min(1.0, len(lags) * 2 * stats.norm.sf(abs(zs[worst]))))
+    return Check(
+        name="leader_cross_correlation",
+        title="Residuals against the leader's past accelerations",
+        statistic=float(ccf[worst]),
+        p_value=p,
+        points_to=("reaction_delay",),
+        summary={
+            "statistic": "largest |correlation| of z[t] with the leader's acceleration at t-k",
+            "lag_steps": int(lags[worst]),
+            "lag_s": float(lags[worst] * series.dt),
+            "p_bonferroni_over_lags": p,
+        },
+        figure={"lags_s": lags * series.dt, "ccf": ccf, "band": 1.96 / np.sqrt(pairs)},
+    )
+
+
+def _time_in_window(t: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Each vehicle's time since its first scored step (vehicles have their own time axes)."""
+    first = np.where(mask.any(axis=1), np.argmax(mask, axis=1), 0)
+    return t - t[np.arange(t.shape[0]), first][:, None]
+
+
+def covariate_checks(res: Residuals, series: ExtendedSeries) -> list[Check]:
+    """z^2 - 1 (variance) and z (mean) against speed, gap, relative speed and time in window."""
+    covariates = {
+        "speed": ("speed (m/s)", series.v),
+        "gap": ("gap (m)", series.gap),
+        "relative_speed": ("leader speed - speed (m/s)", series.lead_v - series.v),
+        "time": ("time in the held-out window (s)", _time_in_window(series.t, res.mask)),
+    }
+    mask = res.mask
+    checks = []
+    for key, (label, values) in covariates.items():
+        x = values[mask]
+        for kind, y, causes in (
+            (
+                "variance",
+                res.z[mask] ** 2 - 1.0,
+                ("speed_dependent_noise",) if key == "speed" else (),
+            ),
+            ("mean", res.z[mask], ()),
+        ):
+            r = float(np.corrcoef(x, y)[0, 1]) if x.std() > 0 and y.std() > 0 else 0.0
+            z = r * np.sqrt(x.size)
+            edges = np.unique(np.quantile(x, np.linspace(0, 1, COVARIATE_BINS + 1)))
+            which = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+            centres = np.array([x[which == b].mean() for b in range(len(edges) - 1)])
+            means = np.array([y[which == b].mean() for b in range(len(edges) - 1)])
+            ses = np.array(
+                [
+                    y[which == b].std() / np.sqrt(max(1, (which == b).sum()))
+                    for b in range(len(edges) - 1)
+                ]
+            )
+            checks.append(
+                Check(
+                    name=f"{kind}_vs_{key}",
+                    title=f"Residual {kind} against {label}",
+                    statistic=r,
+                    p_value=float(2 * stats.norm.sf(abs(z))),
+                    points_to=causes,
+                    summary={
+                        "statistic": f"correlation of {'z^2 - 1' if kind == 'variance' else 'z'} "
+                        f"with {key}",
+                        "z": float(z),
+                        "p_positive": float(stats.norm.sf(z)),
+                    },
+                    figure={"label": label, "centres": centres, "means": means, "ses": ses},
+                )
+            )
+    return checks
+
+
+def change_point_check(res: Residuals) -> Check:
+    """Per-vehicle CUSUM of z: the share of vehicles whose mean shifts inside the window."""
+    p_values, paths = [], []
+    for z, used in zip(res.z, res.mask, strict=True):
+        values = z[used]
+        if values.size < 10:
+            continue
+        centred = values - values.mean()
+        path = np.cumsum(centred) / (values.std() * np.sqrt(values.size))
+        paths.append(path)
+        p_values.append(float(stats.kstwobign.sf(np.abs(path).max())))
+    p_values = np.asarray(p_values)
+    share = float(np.mean(p_values < 0.05)) if p_values.size else 0.0
+    # Under the null each vehicle flags with probability 0.05: a binomial tail for the share.
+    flagged = int(np.sum(p_values < 0.05))
+    p = float(stats.binom.sf(flagged - 1, p_values.size, 0.05)) if p_values.size else 1.0
+    return Check(
+        name="change_points",
+        title="Change points in the residual mean (CUSUM per vehicle)",
+        statistic=share,
+        p_value=p,
+        points_to=("drifting_parameters",),
+        summary={
+            "statistic": "share of vehicles with a CUSUM change point at the 5% level",
+            "vehicles": int(p_values.size),
+            "flagged": flagged,
+        },
+        figure={"paths": paths, "p_values": p_values},
+    )
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _vehicle_scores(extended: ExtendedModel, base_theta: Array, steps: VehicleSteps) -> Array:
+    """d/dpsi of each vehicle's held-out log-likelihood at psi = off, averaged over draws."""
+    model = extended.model
+    names = model.param_names
+    off = jnp.asarray([model.spec(n).default for n in extended.new_params], base_theta.dtype)
+
+    def held_loglik(psi, theta, steps_v):
+        params = fill_params(model, names, jnp.concatenate([theta, psi]))
+        logp = step_logpdfs(extended, params, steps_v)
+        return jnp.sum(jnp.where(steps_v.heldout > 0, logp, 0.0))
+
+    def per_vehicle(theta_v, steps_v):
+        grads = jax.vmap(lambda th: jax.grad(held_loglik)(off, th, steps_v))(theta_v)
+        return grads.mean(axis=0)
+
+    return jax.vmap(per_vehicle)(base_theta, steps)
+
+
+def score_check(cause: str, fit: FitResult, steps: VehicleSteps, *, num_draws: int = 16) -> Check:
+    """The score test of the ``cause`` extension against the fitted base model (module docstring)."""
+    extended = extend(cause, fit.model.base)
+    if extended.latent or len(extended.new_params) != 1:
+        raise ValueError(f"no score test for {extended.name}")
+    draws = np.linspace(0, fit.theta.shape[1] - 1, min(num_draws, fit.theta.shape[1])).astype(int)
+    theta = jnp.asarray(fit.theta[:, draws], dtype=steps.v.dtype)
+    scores = np.asarray(_vehicle_scores(extended, theta, steps)[:, 0], np.float64)
+    scores = np.nan_to_num(scores)
+    total = scores.sum()
+    norm = np.sqrt(np.sum(scores**2))
+    z = float(total / norm) if norm > 0 else 0.0
+    return Check(
+        name=f"score_{cause}",
+        title=f"Score test: {extended.new_params[0]} (does {cause} improve held-out fit?)",
+        statistic=z,
+        p_value=float(stats.norm.sf(z)),
+        points_to=(cause,),
+        summary={
+            "statistic": f"sum of per-vehicle held-out score in {extended.new_params[0]} at "
+            "its off value / root sum of squares",
+            "parameter": extended.new_params[0],
+            "vehicles_positive": int(np.sum(scores > 0)),
+            "vehicles": int(scores.size),
+        },
+        figure={"scores": scores},
+    )
+
+
+def multistep_check(rollouts: Rollouts, dt: float) -> Check:
+    """Closed-loop posterior predictive check: does the observed position stay inside the band?
+
+    For every held-out window the observed position (offset 0) is ranked among the rollouts'
+    simulated positions at each horizon step; a calibrated model covers it by its central 90%
+    band 90% of the time. The number is the coverage at the end of the horizon.
+    """
+    offsets = rollouts.offset
+    if offsets.shape[0] == 0:
+        return Check(
+            name="multistep",
+            title="Closed-loop position band over held-out windows",
+            statistic=float("nan"),
+            p_value=None,
+            points_to=(),
+            summary={"statistic": "no complete held-out window", "windows": 0},
+            figure={},
+        )
+    low, high = np.quantile(offsets, [0.05, 0.95], axis=1)
+    covered = (low <= 0.0) & (high >= 0.0)
+    coverage = covered.mean(axis=0)
+    horizon_pit = (offsets[:, :, -1] < 0.0).mean(axis=1)
+    rmse = np.sqrt((offsets**2).mean(axis=(0, 1)))
+    return Check(
+        name="multistep",
+        title="Closed-loop position band over held-out windows",
+        statistic=float(coverage[-1]),
+        p_value=None,
+        points_to=(),
+        summary={
+            "statistic": "share of windows whose observed end position lies in the central 90% "
+            "band of the rollouts",
+            "windows": int(offsets.shape[0]),
+            "rollouts_per_window": int(offsets.shape[1]),
+            "horizon_s": float(offsets.shape[2] * dt),
+            "rmse_at_horizon_m": float(rmse[-1]),
+            "rollout_collisions": int(rollouts.collisions.sum()),
+        },
+        figure={
+            "time_s": np.arange(1, offsets.shape[2] + 1) * dt,
+            "coverage": coverage,
+            "rmse": rmse,
+            "horizon_pit": horizon_pit,
+            "example": offsets[0],
+        },
+    )
+
+
+def run_checks(
+    key: Array,
+    fit: FitResult,
+    series: ExtendedSeries,
+    steps: VehicleSteps,
+    *,
+    causes: tuple[str, ...],
+) -> tuple[Residuals, list[Check]]:
+    """Every check of the base fit ``fit``, with a score test for each of ``causes``."""
+    res = predictive_residuals(key, fit, steps)
+    checks = [
+        calibration_check(res),
+        autocorrelation_check(res),
+        leader_cross_correlation_check(res, series),
+        *covariate_checks(res, series),
+        change_point_check(res),
+        *(score_check(cause, fit, steps) for cause in causes),
+    ]
+    return res, checks

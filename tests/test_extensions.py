@@ -1,0 +1,369 @@
+"""The model extensions: nesting, sampler/density agreement, and each effect's defining property."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from bayesdrive.data.trajectories import Trajectories, validate_tracks
+from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, extend
+from bayesdrive.drivers.extensions.autocorrelated_noise import implied_acceleration
+from bayesdrive.drivers.extensions.cut_in import cah_acceleration
+from bayesdrive.drivers.extensions.inputs import (
+    ExtendedInputs,
+    extended_series,
+    history_steps,
+    inputs_at,
+    vehicle_series,
+)
+from bayesdrive.drivers.idm import IDM, idm_acceleration
+
+DT = 0.1
+K = history_steps(DT)
+
+
+def make_inputs(**overrides) -> ExtendedInputs:
+    """A car-following situation with a varied history (values chosen by hand, physical)."""
+    lags = jnp.arange(K + 1, dtype=jnp.float32)
+    fields = {
+        "gap": jnp.float32(18.0),
+        "lead_v": jnp.float32(11.0),
+        "has_leader": jnp.float32(1.0),
+        "dt": jnp.float32(DT),
+        "lead_acc": jnp.float32(-1.5),
+        "gap2": jnp.float32(42.0),
+        "lead2_v": jnp.float32(8.0),
+        "has_leader2": jnp.float32(1.0),
+        "lag_v": 12.0 + 0.05 * lags,
+        "lag_gap": 18.0 + 0.3 * lags,
+        "lag_lead_v": 11.0 + 0.12 * lags,
+        "prev_dx": jnp.float32(1.215),
+    }
+    fields.update(overrides)
+    return ExtendedInputs(**fields)
+
+
+STATE = EgoState(jnp.float32(0.0), jnp.float32(12.0))
+# Values that switch each effect on strongly (inside the prior bounds).
+ON = {
+    "reaction_delay": 0.73,
+    "autocorrelated_noise": 0.8,
+    "speed_dependent_noise": 0.15,
+    "second_leader_anticipation": 0.6,
+    "cut_in_overreaction": 0.99,
+}
+
+
+def params_for(extended, effect=None):
+    base = extended.model.defaults()
+    if effect is None:
+        return base
+    return base._replace(**{extended.new_params[0]: jnp.float32(effect)})
+
+
+@pytest.mark.parametrize("cause", CAUSES)
+def test_extension_switched_off_is_the_base_model(cause):
+    """At its default ("off") value every extension scores any step exactly like the IDM."""
+    extended = extend(cause, IDM)
+    inputs = make_inputs()
+    params = params_for(extended)
+    state = extended.lift(params, STATE, inputs)
+    base_params = IDM.defaults()
+    for dx, next_v in ((1.18, 11.6), (1.25, 12.9), (1.10, 10.2)):
+        nxt = EgoState(jnp.float32(dx), jnp.float32(next_v))
+        ours = extended.model.transition_logpdf(params, state, nxt, inputs)
+        base = IDM.transition_logpdf(base_params, STATE, nxt, inputs.car_following)
+        np.testing.assert_allclose(ours, base, rtol=1e-6, atol=1e-5)
+
+
+def quadratic_moments(logpdf_of_dx, centre: float, spread: float) -> tuple[float, float]:
+    """Mean and sd of a Gaussian log-density in dx, read off its values at three points."""
+    points = np.array([centre - spread, centre, centre + spread])
+    values = np.array([float(logpdf_of_dx(p)) for p in points])
+    curvature = (values[0] - 2 * values[1] + values[2]) / spread**2
+    slope = (values[2] - values[0]) / (2 * spread)
+    sd = math.sqrt(-1.0 / curvature)
+    return centre + slope * sd**2, sd
+
+
+@pytest.mark.parametrize("cause", CAUSES)
+def test_sampler_agrees_with_density(cause):
+    """transition_sample's increments follow the Gaussian that transition_logpdf scores.
+
+    KS test of 4000 sampled increments (seed 0) against the mean and sd read off the log-density;
+    the same test must reject a sampler with twice the sd (the paper's factor-2 bug), so it has
+    power. Tolerance: KS p > 0.001 for the real sampler, p < 1e-6 for the wrong one.
+    """
+    extended = extend(cause, IDM)
+    params = params_for(extended, ON[cause])
+    inputs = make_inputs()
+    # A known previous residual, so the AR(1) conditional is exercised too.
+    state = extended.lift(params, STATE, inputs)
+    keys = jax.random.split(jax.random.key(0), 4000)
+    sampled = jax.vmap(lambda k: extended.model.transition_sample(k, params, state, inputs))(keys)
+    increments = np.asarray(sampled.x, np.float64)
+
+    def logpdf_of_dx(dx):
+        nxt = EgoState(jnp.float32(dx), jnp.float32(12.0))
+        return extended.model.transition_logpdf(params, state, nxt, inputs)
+
+    mean, sd = quadratic_moments(logpdf_of_dx, float(np.mean(increments)), 0.002)
+    assert stats.kstest(increments, stats.norm(mean, sd).cdf).pvalue > 1e-3
+    wrong = mean + 2.0 * (increments - mean)
+    assert stats.kstest(wrong, stats.norm(mean, sd).cdf).pvalue < 1e-6
+
+
+@pytest.mark.parametrize("steps_back", [0, 3, 7])
+def test_reaction_delay_at_whole_steps_reads_the_lagged_inputs(steps_back):
+    """A delay of exactly k steps evaluates the IDM on the inputs k steps ago."""
+    extended = extend("reaction_delay", IDM)
+    params = params_for(extended, steps_back * DT)
+    inputs = make_inputs()
+    got = extended.model.mean_acceleration(params, STATE, inputs)
+    expected = idm_acceleration(
+        IDM.defaults(),
+        inputs.lag_v[steps_back],
+        inputs.lag_gap[steps_back],
+        inputs.lag_lead_v[steps_back],
+        1.0,
+    )
+    np.testing.assert_allclose(got, expected, rtol=2e-5)
+
+
+def test_reaction_delay_interpolates_between_samples():
+    """0.25 s at 10 Hz is a quarter of the way from lag 2 to lag 3, for every delayed input."""
+    extended = extend("reaction_delay", IDM)
+    params = params_for(extended, 0.25)
+    inputs = make_inputs()
+    got = extended.model.mean_acceleration(params, STATE, inputs)
+
+    def between(lagged):
+        return 0.5 * lagged[2] + 0.5 * lagged[3]
+
+    # float32: 0.25 / 0.1 = 2.5 exactly enough; the interpolation weight is 0.5.
+    expected = idm_acceleration(
+        IDM.defaults(),
+        between(inputs.lag_v),
+        between(inputs.lag_gap),
+        between(inputs.lag_lead_v),
+        1.0,
+    )
+    np.testing.assert_allclose(got, expected, rtol=2e-5)
+
+
+def test_autocorrelated_noise_lift_recovers_the_drawn_residual():
+    """Simulate two steps; lifting the second from the observed first recovers its residual."""
+    extended = extend("autocorrelated_noise", IDM)
+    params = params_for(extended, 0.7)
+    model = extended.model
+    inputs0 = make_inputs()
+    state0 = model.initial_sample(jax.random.key(1), params, STATE)
+    first = model.transition_sample(jax.random.key(2), params, state0, inputs0)
+    # The observed second step: its history holds the first step's speed, gap and increment.
+    inputs1 = make_inputs(
+        lag_v=inputs0.lag_v.at[1].set(STATE.v),
+        lag_gap=inputs0.lag_gap.at[1].set(inputs0.gap),
+        lag_lead_v=inputs0.lag_lead_v.at[1].set(inputs0.lead_v),
+        prev_dx=first.x,
+    )
+    lifted = extended.lift(params, EgoState(jnp.float32(0.0), first.v), inputs1)
+    np.testing.assert_allclose(lifted.residual, first.residual, atol=2e-4)
+    assert float(lifted.known) == 1.0
+    applied = implied_acceleration(STATE.v, first.x, DT)
+    base = idm_acceleration(IDM.defaults(), STATE.v, inputs0.gap, inputs0.lead_v, 1.0)
+    np.testing.assert_allclose(first.residual, applied - base, atol=2e-4)
+
+
+def test_autocorrelated_noise_is_a_stationary_ar1():
+    """A long simulated residual chain has sd sigma and lag-1 correlation rho.
+
+    20000 steps (seed 3) at rho = 0.8, sigma = 0.3, constant inputs: the lag-1 sample correlation
+    has sd about sqrt((1 - rho^2)^2 / n)... we allow 0.03; the sd is allowed 5%.
+    """
+    extended = extend("autocorrelated_noise", IDM)
+    params = params_for(extended, 0.8)
+    inputs = make_inputs()
+    start = extended.model.initial_sample(jax.random.key(0), params, STATE)
+
+    def step(state, key):
+        moved = extended.model.transition_sample(
+            key, params, state._replace(x=0.0, v=STATE.v), inputs
+        )
+        return moved, moved.residual
+
+    _, residuals = jax.lax.scan(step, start, jax.random.split(jax.random.key(3), 20000))
+    residuals = np.asarray(residuals, np.float64)[100:]
+    assert abs(residuals.std() - 0.3) < 0.05 * 0.3
+    assert abs(np.corrcoef(residuals[1:], residuals[:-1])[0, 1] - 0.8) < 0.03
+
+
+def test_speed_dependent_noise_sd_grows_with_speed():
+    """The density's sd in acceleration units is sigma (1 + k v)."""
+    extended = extend("speed_dependent_noise", IDM)
+    params = params_for(extended, 0.15)
+    for v in (2.0, 12.0, 25.0):
+        state = EgoState(jnp.float32(0.0), jnp.float32(v))
+        inputs = make_inputs()
+
+        def logpdf_of_dx(dx, state=state, inputs=inputs):
+            nxt = EgoState(jnp.float32(dx), state.v)
+            return extended.model.transition_logpdf(params, state, nxt, inputs)
+
+        _, sd_dx = quadratic_moments(logpdf_of_dx, v * DT, 0.002)
+        np.testing.assert_allclose(sd_dx / (0.5 * DT**2), 0.3 * (1 + 0.15 * v), rtol=2e-3)
+
+
+def test_second_leader_keeps_the_homogeneous_steady_state():
+    """Equal gaps and speeds ahead: the anticipation weight changes nothing (module docstring)."""
+    extended = extend("second_leader_anticipation", IDM)
+    homogeneous = make_inputs(gap2=jnp.float32(2 * 18.0), lead2_v=jnp.float32(11.0))
+    base = IDM.mean_acceleration(IDM.defaults(), STATE, homogeneous.car_following)
+    for w in (0.0, 0.4, 1.0):
+        got = extended.model.mean_acceleration(params_for(extended, w), STATE, homogeneous)
+        np.testing.assert_allclose(got, base, rtol=1e-5)
+
+
+def test_second_leader_braking_makes_the_follower_brake_earlier():
+    """A slow second vehicle ahead lowers the acceleration in proportion to the weight."""
+    extended = extend("second_leader_anticipation", IDM)
+    slow_ahead = make_inputs(lead2_v=jnp.float32(5.0))
+    a0, a_half, a1 = (
+        float(extended.model.mean_acceleration(params_for(extended, w), STATE, slow_ahead))
+        for w in (0.0, 0.5, 1.0)
+    )
+    assert a1 < a_half < a0
+    np.testing.assert_allclose(a_half, 0.5 * (a0 + a1), rtol=1e-5)
+    toward_second = idm_acceleration(IDM.defaults(), 12.0, 0.5 * 42.0, 5.0, 1.0)
+    np.testing.assert_allclose(a1, toward_second, rtol=1e-5)
+
+
+def test_cah_branches_by_hand():
+    """The CAH of Kesting et al. (2010) in both branches, computed by hand.
+
+    Leader faster and not braking (v=10, v_l=12, s=8, a_l=0): v_l (v - v_l) = -24 < 0 = -2 s a_l,
+    first branch: a = v^2 a_l / (v_l^2 - 2 s a_l) = 0.
+    Stopped leader (v=12, v_l=0, s=6, a_l=0): 0 < 0 is false, second branch: -144/12 = -12.
+    Closing on a braking leader (v=15, v_l=10, s=20, a_l=-1): v_l (v - v_l) = 50 > 40, so the
+    second branch: a = a_l - (v - v_l)^2 / (2 s) = -1 - 25/40 = -1.625.
+    Leader braking to a stop first (v=10, v_l=5, s=30, a_l=-2): 5 * 5 = 25 <= 120: first branch,
+    a = 100 * (-2) / (25 + 120) = -1.3793.
+    """
+    a_max = jnp.float32(3.0)
+    np.testing.assert_allclose(cah_acceleration(10.0, 8.0, 12.0, 0.0, a_max), 0.0, atol=1e-6)
+    np.testing.assert_allclose(cah_acceleration(12.0, 6.0, 0.0, 0.0, a_max), -12.0, rtol=1e-6)
+    np.testing.assert_allclose(cah_acceleration(15.0, 20.0, 10.0, -1.0, a_max), -1.625, rtol=1e-6)
+    np.testing.assert_allclose(
+        cah_acceleration(10.0, 30.0, 5.0, -2.0, a_max), -200.0 / 145.0, rtol=1e-6
+    )
+
+
+def test_cah_relaxes_a_cut_in_but_not_an_emergency():
+    """A cut-in at 6 m by a slightly faster car: the IDM brakes hard, the enhanced IDM hardly.
+
+    A stopped obstacle at the same gap (a real emergency) still gets at least the braking the
+    CAH says is needed (12 m/s^2, see the hand values above): the heuristic does not make the
+    driver ignore danger.
+    """
+    extended = extend("cut_in_overreaction", IDM)
+    cool = params_for(extended, 0.99)
+    cut_in = make_inputs(gap=jnp.float32(6.0), lead_v=jnp.float32(12.5), lead_acc=jnp.float32(0.0))
+    idm = float(IDM.mean_acceleration(IDM.defaults(), STATE, cut_in.car_following))
+    enhanced = float(extended.model.mean_acceleration(cool, STATE, cut_in))
+    assert idm < -3.0
+    assert enhanced > 0.5 * idm
+    stopped = make_inputs(gap=jnp.float32(6.0), lead_v=jnp.float32(0.0), lead_acc=jnp.float32(0.0))
+    idm_stop = float(IDM.mean_acceleration(IDM.defaults(), STATE, stopped.car_following))
+    enhanced_stop = float(extended.model.mean_acceleration(cool, STATE, stopped))
+    assert enhanced_stop <= -12.0
+    assert enhanced_stop >= idm_stop
+
+
+def test_unknown_cause_is_refused_with_the_known_ones():
+    with pytest.raises(KeyError, match="reaction_delay"):
+        extend("bad_weather", IDM)
+    assert extend(NO_CAUSE, IDM).model is IDM
+
+
+def three_car_platoon() -> Trajectories:
+    """Leader A, B behind it, C behind B; 3 s at 10 Hz; A accelerates at 0.5 m/s^2."""
+    t = np.round(np.arange(30) * DT, 6)
+    v_a = 10.0 + 0.5 * t
+    x_a = 100.0 + 10.0 * t + 0.25 * t**2
+    v_b = np.full_like(t, 10.0)
+    x_b = 70.0 + 10.0 * t
+    v_c = np.full_like(t, 9.0)
+    x_c = 40.0 + 9.0 * t
+    rows = []
+    for vid, x, v, leader, lead_x in (
+        ("A", x_a, v_a, None, None),
+        ("B", x_b, v_b, "A", x_a),
+        ("C", x_c, v_c, "B", x_b),
+    ):
+        gap = (lead_x - 4.5 - x) if leader else np.full_like(t, np.nan)
+        rows.append(
+            pd.DataFrame(
+                {
+                    "vehicle_id": vid,
+                    "t": t,
+                    "x": x,
+                    "v": v,
+                    "a": np.nan,
+                    "lane_id": 1,
+                    "leader_id": leader,
+                    "gap": gap,
+                    "length": 4.5,
+                    "driver": "human",
+                }
+            )
+        )
+    tracks = validate_tracks(pd.concat(rows, ignore_index=True), source="platoon", dt=DT)
+    scenes = pd.DataFrame({"scene_id": "s", "vehicle_id": ["A", "B", "C"]})
+    return Trajectories(tracks=tracks, scenes=scenes, dt=DT, format="test", source="platoon")
+
+
+def test_extended_series_second_vehicle_leader_acceleration_and_history():
+    """gap2 = sum of the two bumper gaps; lead_acc = backward difference; K steps unscored."""
+    series = extended_series(three_car_platoon())
+    assert series.vehicle_ids == ("B", "C")
+    b, c = 0, 1
+    steps = 29
+    # C's second vehicle ahead is A: gap2 = (x_B - 4.5 - x_C) + (x_A - 4.5 - x_B).
+    t = np.arange(steps) * DT
+    expected_gap2 = (100.0 + 10 * t + 0.25 * t**2 - 4.5 - 4.5) - (40.0 + 9.0 * t)
+    np.testing.assert_allclose(series.gap2[c, :steps], expected_gap2, atol=1e-9)
+    np.testing.assert_allclose(series.lead2_v[c, :steps], 10.0 + 0.5 * t, atol=1e-9)
+    assert series.has_leader2[c, :steps].all() and not series.has_leader2[b, :steps].any()
+    # B's leader A accelerates at 0.5: backward differences from the second sample on.
+    np.testing.assert_allclose(series.lead_acc[b, 1:steps], 0.5, atol=1e-9)
+    np.testing.assert_allclose(series.lead_acc[c, 1:steps], 0.0, atol=1e-9)
+    scored = series.fit + series.heldout
+    assert not scored[:, :K].any()
+    # Every later step is scored except the one that straddles the split (in neither window).
+    assert (scored[:, K:steps] == 0).sum(axis=1).tolist() == [1, 1]
+
+
+def test_inputs_at_reads_the_history_window():
+    series = extended_series(three_car_platoon())
+    data = jax.tree.map(lambda a: a[1], vehicle_series(series))
+    j = K + 3
+    inputs = inputs_at(data, j, DT, K)
+    np.testing.assert_allclose(inputs.lag_gap, series.gap[1, j - np.arange(K + 1)], rtol=1e-6)
+    np.testing.assert_allclose(inputs.prev_dx, series.dx[1, j - 1], rtol=1e-6)
+    np.testing.assert_allclose(inputs.gap2, series.gap2[1, j], rtol=1e-6)
+
+
+def test_fill_params_round_trip_of_an_extension():
+    """Extension parameters sit after the base model's, in the documented order."""
+    extended = extend("reaction_delay", IDM)
+    names = extended.model.param_names
+    assert names[: len(IDM.param_names)] == IDM.param_names
+    theta = jnp.arange(len(names), dtype=jnp.float32)
+    params = fill_params(extended.model, names, theta)
+    assert float(params.reaction_time) == len(names) - 1
