@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bayesdrive.cli import diagnose_cmd
 from bayesdrive.cli.main import app
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.inference.agreement import (
@@ -20,7 +19,7 @@ from bayesdrive.inference.agreement import (
     convergence_table,
     same_data,
 )
-from bayesdrive.inference.output import build_tree
+from bayesdrive.inference.output import build_tree, save_result
 
 VEHICLES = ("shifted-a-little", "shifted-a-lot", "scaled")
 
@@ -136,13 +135,9 @@ def test_results_on_other_data_are_refused(pair):
         agreement_table({"nuts": a, "smc": disjoint})
 
 
-def test_diagnose_command_json_and_pictures(pair, tmp_path, monkeypatch):
+def test_diagnose_command_json_and_pictures(pair, tmp_path):
     a, b, base = pair
-    paths = {tmp_path / "nuts.nc": a, tmp_path / "smc.nc": b}
-    for path in paths:
-        path.write_bytes(b"")
-    # Reading netCDF is the output module's business (and tested there): hand the trees over.
-    monkeypatch.setattr(diagnose_cmd, "load_result", lambda path: paths[path])
+    paths = [save_result(a, tmp_path / "nuts.nc"), save_result(b, tmp_path / "smc.nc")]
     out = tmp_path / "diag"
     run = CliRunner().invoke(app, ["diagnose", *map(str, paths), "--json", "-", "--out", str(out)])
     assert run.exit_code == 0, run.output
