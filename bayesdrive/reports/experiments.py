@@ -62,6 +62,7 @@ SEEDS = {
     "scenes": 41,
     "holdout": 51,
     "prior_sensitivity": 61,
+    "criticism": 71,
 }
 PRESET_DIR = Path(__file__).resolve().parents[2] / "models" / "presets"
 HIGHWAY_SIZES = {"ngsim_i80_chains": 5, "openacc_vicolungo": 4}
@@ -84,10 +85,13 @@ class Settings:
     generated_scenes: int
     holdout_max_scenarios: int | None
     prior_sensitivity_vehicles: int
+    criticism_scenes: int | None
+    criticism_particles: int
+    criticism_rollouts: int
 
 
-FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10)
-QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2)
+FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 30, 256, 32)
+QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 2, 128, 8)
 
 
 def _save_json(path: Path, payload: Any) -> None:
@@ -452,6 +456,25 @@ def prior_sensitivity_step(traj: Trajectories, vehicle_ids: list[str], settings:
     }
 
 
+def criticism_step(out: Path, traj: Trajectories, settings: Settings) -> dict:
+    """What the stochastic IDM gets wrong on real data, the named cause and its gain.
+
+    Uses whole scenes (all vehicles of the first ``criticism_scenes`` scenes), so every follower's
+    leader is in the data.
+    """
+    from bayesdrive.criticism.criticize import CriticizeConfig, criticize
+    from bayesdrive.reports.criticism_plots import plot_criticism
+
+    scenes = list(pd.unique(traj.scenes["scene_id"]))[: settings.criticism_scenes]
+    chosen = traj.subset(traj.scenes.loc[traj.scenes["scene_id"].isin(scenes), "vehicle_id"])
+    config = CriticizeConfig(
+        num_particles=settings.criticism_particles, num_rollouts=settings.criticism_rollouts
+    )
+    result = criticize(chosen, seed=SEEDS["criticism"], config=config)
+    figures = [str(p) for p in plot_criticism(result, out)]
+    return {"scenes": len(scenes), **result.report, "figures": figures}
+
+
 def data_step() -> dict:
     """data info of every registered data set."""
     return {name: summary(registry.load(name)) for name in registry.DATASETS}
@@ -519,5 +542,13 @@ def run_all(
     results["prior_sensitivity"] = cached(
         out, "prior_sensitivity", lambda: prior_sensitivity_step(chains, chain_ids, settings), force
     )
+    criticism = {}
+    for label, traj in main_data.items():
+        progress(f"criticism: {label}")
+        folder = out / "criticism" / label.replace(":", "_")
+        criticism[label] = cached(
+            folder, "criticism", lambda t=traj, f=folder: criticism_step(f, t, settings), force
+        )
+    results["criticism"] = criticism
     results["trees"] = {"smc": smc_trees, "pf": pf_trees}
     return results

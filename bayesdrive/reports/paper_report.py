@@ -228,4 +228,51 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     by_param.columns = [f"{a} {b}" for a, b in by_param.columns]
     prior.table(by_param.reset_index(), caption="Posterior shift under a prior twice as wide")
 
+    criticism = report.section("Model criticism: what the stochastic IDM gets wrong on real data")
+    criticism.text(
+        "bayesdrive criticize fits the base IDM, checks its held-out residuals and predictions, "
+        "fits the extensions the checks point to, and names the cause whose extension gains most "
+        "held-out log predictive density (leave-future-out), when significant after Holm's "
+        "correction over every cause considered; standard errors are across vehicles."
+    )
+    for label, found in results.get("criticism", {}).items():
+        artefact = found.get("verdict_is_possible_processing_artefact")
+        criticism.text(
+            f"{label} ({found['data']['vehicles']} vehicles of {found['scenes']} scenes): "
+            f"verdict '{found['verdict']}'."
+        )
+        if artefact:
+            criticism.note(f"The verdict may be a processing artefact: {artefact}")
+        criticism.table(causes_table(found["causes"]), caption=f"{label}: causes by gain")
+        criticism.table(
+            pd.DataFrame(
+                [
+                    {"check": c["title"], "p": c["p_value"], "points to": ", ".join(c["points_to"])}
+                    for c in found["checks"]
+                ]
+            ),
+            caption=f"{label}: checks on the held-out windows",
+        )
+        for path in found.get("figures", []):
+            criticism.figure(Path(path), f"{label}: {Path(path).stem.replace('_', ' ')}")
+
     return report.write(out / "report.html", command=command)
+
+
+def causes_table(causes: list[dict[str, Any]]) -> pd.DataFrame:
+    rows = []
+    for cause in causes:
+        gain = cause.get("gain") or {}
+        rows.append(
+            {
+                "cause": cause["name"],
+                "fitted": "yes" if gain else "no (screened out)",
+                "elpd gain": gain.get("elpd"),
+                "se": gain.get("se"),
+                "p (one-sided)": gain.get("p_value"),
+                "significant (Holm)": gain.get("significant"),
+                "RMSE position change (m)": gain.get("rmse_position_change"),
+                "possible artefact": "yes" if cause.get("possible_processing_artefact") else "",
+            }
+        )
+    return pd.DataFrame(rows)

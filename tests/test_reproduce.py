@@ -1,0 +1,56 @@
+"""The main job at its quick size: every experiment runs on the real data into one HTML report,
+and a re-run reuses finished steps."""
+
+import html
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from bayesdrive.cli.main import app
+
+SECTIONS = (
+    "Highway experiment",
+    "Merging experiment",
+    "Per-vehicle parameters",
+    "The paper's filter against the exact posterior",
+    "Turing test",
+    "Scene generation",
+    "Generalisation to held-out data sets",
+    "Prior sensitivity",
+    "Model criticism",
+    "How this report was made",
+)
+
+
+@pytest.mark.realdata
+def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_path, monkeypatch):
+    monkeypatch.setenv("BAYESDRIVE_DATA_DIR", str(data_dir))
+    monkeypatch.setenv("BAYESDRIVE_HOLDOUT_DIR", str(holdout_dir))
+    out = tmp_path / "quick"
+    runner = CliRunner()
+    first = runner.invoke(app, ["reproduce", "--quick", "--out", str(out)])
+    assert first.exit_code == 0, first.output
+    page = (out / "report.html").read_text()
+    for section in SECTIONS:
+        assert html.escape(section) in page
+    assert page.count("data:image/png;base64,") >= 6
+
+    highway = json.loads((out / "highway" / "ngsim_i80_chains" / "evaluation.json").read_text())
+    models = highway["models"]
+    assert {"idm-smc", "idm-pf", "idm-default", "idm-nls", "idm-lm", "cv", "ca", "blackbox"} <= set(
+        models
+    )
+    for result in models.values():
+        assert result["rmse_position_m"]["mean"] >= 0
+        assert len(result["rmse_position_m"]["by_step"]["mean"]) == 51
+
+    # A re-run rebuilds the report from the saved steps without recomputing them.
+    stamp = (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns
+    again = runner.invoke(app, ["report", str(out)])
+    assert again.exit_code == 0, again.output
+    assert (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns == stamp
+
+    # Results of other settings in the same folder are refused rather than mixed.
+    mixed = runner.invoke(app, ["reproduce", "--out", str(out)])
+    assert mixed.exit_code == 2 and "other settings" in mixed.output
