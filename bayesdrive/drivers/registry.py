@@ -7,10 +7,12 @@ from types import MappingProxyType
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.drivers.measurement_noise import with_measurement_noise
 
 __all__ = ["MODELS", "get_model"]
 
-MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM)})
+# The measurement-noise variant is the latent-state engine's (pmmh) model of noisy positions.
+MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM, with_measurement_noise(IDM))})
 
 
 def get_model(name: str) -> DriverModel:
