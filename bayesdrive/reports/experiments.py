@@ -70,6 +70,7 @@ ACC_RECORDING = "JRC-VC_260219_part3"
 LEARNED = ("idm-smc", "idm-pf")
 BASELINE_MODELS = ("idm-default", "idm-nls", "idm-lm", "cv", "ca", "blackbox")
 MERGE_MODELS = ("cidm-c1", "idm-nomerge", "cv")
+CLIP_PAIRS = 3
 
 
 @dataclass(frozen=True)
@@ -258,10 +259,16 @@ def parameter_table(trees: dict[str, Any]) -> pd.DataFrame:
 
 
 def turing_step(
-    highway: dict[str, dict], trajs: dict[str, Trajectories], settings: Settings
+    out: Path, highway: dict[str, dict], trajs: dict[str, Trajectories], settings: Settings
 ) -> dict:
     """Classifier two-sample test: real held-out segments against one rollout of each model on
-    the same scenarios (features of :func:`segment_features`)."""
+    the same scenarios (features of :func:`segment_features`). Also writes the material for a
+    human test: paired clips (real and idm-smc, seeded order) and the answer sheet apart."""
+    from bayesdrive.reports.clips import write_answer_sheet, write_clip_pair
+
+    out.mkdir(parents=True, exist_ok=True)
+    order_rng = np.random.default_rng(SEEDS["turing"])
+    answers = []
     results = {}
     for label, experiment in highway.items():
         traj = trajs[label]
@@ -300,10 +307,25 @@ def turing_step(
                 )
                 sim_v.append(np.asarray(simulated.v[0]))
                 sim_g.append(np.asarray(simulated.gap[0]))
+                if name == "idm-smc" and index < CLIP_PAIRS and "contrast" not in label:
+                    real_x = scenario.x - scenario.origin
+                    sim_x = np.vstack([real_x[:1], np.asarray(simulated.x[0])])
+                    answers.append(
+                        write_clip_pair(
+                            real_x,
+                            sim_x,
+                            scenario.length,
+                            scenario.dt,
+                            out,
+                            f"{label.replace(':', '_')}_{index}",
+                            order_rng,
+                        )
+                    )
             generated = segment_features(np.concatenate(sim_v), np.concatenate(sim_g), scenarios.dt)
             rows[name] = classifier_two_sample_test(real, generated, seed=SEEDS["turing"])._asdict()
         results[label] = rows
-    return results
+    write_answer_sheet(answers, out / "answer_sheet.json")
+    return {"classifier": results, "clips": str(out), "pairs": len(answers)}
 
 
 def scenes_step(
@@ -522,7 +544,9 @@ def run_all(
     pf_trees = {label: load_result(h["fits"]["pf"]) for label, h in highway.items()}
     results["parameters"] = parameter_table(smc_trees).to_dict("records")
     progress("Turing test")
-    results["turing"] = cached(out, "turing", lambda: turing_step(highway, trajs, settings), force)
+    results["turing"] = cached(
+        out, "turing", lambda: turing_step(out / "turing", highway, trajs, settings), force
+    )
     progress("scene generation")
     main_trees = {k: v for k, v in smc_trees.items() if not k.endswith("acc-contrast")}
     main_data = {k: v for k, v in trajs.items() if not k.endswith("acc-contrast")}

@@ -180,7 +180,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "A logistic-regression classifier tries to tell real held-out vehicle segments from "
         "simulated ones; 50% accuracy means indistinguishable. p-values by label permutation."
     )
-    for label, rows in results["turing"].items():
+    turing.text(
+        f"For human judges: {results['turing']['pairs']} pairs of clips (real and idm-smc, order "
+        f"drawn from a seeded generator) in {results['turing']['clips']}; answer_sheet.json there "
+        "says which clip of each pair is real."
+    )
+    for label, rows in results["turing"]["classifier"].items():
         frame = pd.DataFrame(
             [
                 {
