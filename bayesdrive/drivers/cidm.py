@@ -66,15 +66,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.idm import (
-    IDM,
-    exact_initial_sample,
-    exact_observation_logpdf,
-    idm_acceleration,
-    noisy_step,
-    step_logpdf,
-)
+from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec
+from bayesdrive.drivers.idm import IDM, execution_noise_model, idm_acceleration
 
 __all__ = [
     "CIDM",
@@ -183,28 +176,4 @@ def _mean_acceleration(params: CIDMParams, state: EgoState, inputs: MergeInputs)
     return cidm_acceleration(params, state.v, inputs)
 
 
-def _transition_sample(
-    key: Array, params: CIDMParams, state: EgoState, inputs: MergeInputs
-) -> EgoState:
-    return noisy_step(
-        key, state, _mean_acceleration(params, state, inputs), params.sigma, inputs.dt
-    )
-
-
-def _transition_logpdf(
-    params: CIDMParams, state: EgoState, next_state: EgoState, inputs: MergeInputs
-) -> Array:
-    mean_acc = _mean_acceleration(params, state, inputs)
-    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt)
-
-
-CIDM = DriverModel(
-    name="cidm",
-    params_type=CIDMParams,
-    specs=CIDM_SPECS,
-    mean_acceleration=_mean_acceleration,
-    transition_sample=_transition_sample,
-    transition_logpdf=_transition_logpdf,
-    observation_logpdf=exact_observation_logpdf,
-    initial_sample=exact_initial_sample,
-)
+CIDM = execution_noise_model("cidm", CIDMParams, CIDM_SPECS, _mean_acceleration)

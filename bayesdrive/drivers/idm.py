@@ -70,6 +70,8 @@ __all__ = [
     "STOP_SPEED",
     "IDMParams",
     "equilibrium_gap",
+    "execution_noise_model",
+    "execution_noise_sd",
     "idm_acceleration",
     "noisy_step",
     "step_logpdf",
@@ -145,21 +147,6 @@ def _mean_acceleration(params: IDMParams, state: EgoState, inputs: CarFollowingI
     return idm_acceleration(params, state.v, inputs.gap, inputs.lead_v, inputs.has_leader)
 
 
-def _transition_sample(
-    key: Array, params: IDMParams, state: EgoState, inputs: CarFollowingInputs
-) -> EgoState:
-    return noisy_step(
-        key, state, _mean_acceleration(params, state, inputs), params.sigma, inputs.dt
-    )
-
-
-def _transition_logpdf(
-    params: IDMParams, state: EgoState, next_state: EgoState, inputs: CarFollowingInputs
-) -> Array:
-    mean_acc = _mean_acceleration(params, state, inputs)
-    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt)
-
-
 def exact_observation_logpdf(params, state: EgoState, obs: EgoState) -> Array:
     """The state is observed exactly: the observation carries no density of its own (log 1 = 0)."""
     del params, state, obs
@@ -172,13 +159,42 @@ def exact_initial_sample(key: Array, params, obs: EgoState) -> EgoState:
     return obs
 
 
-IDM = DriverModel(
-    name="idm",
-    params_type=IDMParams,
-    specs=IDM_SPECS,
-    mean_acceleration=_mean_acceleration,
-    transition_sample=_transition_sample,
-    transition_logpdf=_transition_logpdf,
-    observation_logpdf=exact_observation_logpdf,
-    initial_sample=exact_initial_sample,
-)
+def execution_noise_sd(params, state) -> Array:
+    """The execution-noise sd of the base models: the parameter ``sigma``, whatever the state."""
+    del state
+    return params.sigma
+
+
+def execution_noise_model(
+    name: str,
+    params_type: type,
+    specs: tuple[ParamSpec, ...],
+    mean_acceleration,
+    noise_sd=execution_noise_sd,
+) -> DriverModel:
+    """A driver model that applies ``mean_acceleration`` with Gaussian execution noise of sd
+    ``noise_sd(params, state)`` (:func:`noisy_step`, scored exactly by :func:`step_logpdf`), state
+    observed exactly. The IDM, the Cooperative IDM and the criticism's Gaussian extensions differ
+    only in their mean acceleration (and, for speed-dependent noise, the sd)."""
+
+    def transition_sample(key: Array, params, state: EgoState, inputs) -> EgoState:
+        mean_acc = mean_acceleration(params, state, inputs)
+        return noisy_step(key, state, mean_acc, noise_sd(params, state), inputs.dt)
+
+    def transition_logpdf(params, state: EgoState, next_state: EgoState, inputs) -> Array:
+        mean_acc = mean_acceleration(params, state, inputs)
+        return step_logpdf(state, next_state, mean_acc, noise_sd(params, state), inputs.dt)
+
+    return DriverModel(
+        name=name,
+        params_type=params_type,
+        specs=specs,
+        mean_acceleration=mean_acceleration,
+        transition_sample=transition_sample,
+        transition_logpdf=transition_logpdf,
+        observation_logpdf=exact_observation_logpdf,
+        initial_sample=exact_initial_sample,
+    )
+
+
+IDM = execution_noise_model("idm", IDMParams, IDM_SPECS, _mean_acceleration)

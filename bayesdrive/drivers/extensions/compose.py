@@ -22,12 +22,11 @@ from typing import Any, NamedTuple
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.idm import noisy_step, step_logpdf
+from bayesdrive.drivers.idm import execution_noise_model, execution_noise_sd
 
 __all__ = [
     "ExtendedModel",
     "base_params",
-    "execution_noise_sd",
     "extended_specs",
     "gaussian_extension",
     "observed_lift",
@@ -85,12 +84,6 @@ def base_params(base: DriverModel, params: Any) -> Any:
     return base.params_type(*params[: len(base.specs)])
 
 
-def execution_noise_sd(params: Any, state: Any) -> Array:
-    """The base models' execution-noise sd: the parameter ``sigma``, whatever the state."""
-    del state
-    return params.sigma
-
-
 def gaussian_extension(
     base: DriverModel,
     cause: str,
@@ -105,24 +98,12 @@ def gaussian_extension(
     :func:`~bayesdrive.drivers.idm.step_logpdf`, so the extension changes only the mean (or the sd).
     """
     specs = extended_specs(base, new_specs)
-
-    def transition_sample(key: Array, params: Any, state: EgoState, inputs: Any) -> EgoState:
-        mean_acc = mean_acceleration(params, state, inputs)
-        return noisy_step(key, state, mean_acc, noise_sd(params, state), inputs.dt)
-
-    def transition_logpdf(params: Any, state: EgoState, next_state: Any, inputs: Any) -> Array:
-        mean_acc = mean_acceleration(params, state, inputs)
-        return step_logpdf(state, next_state, mean_acc, noise_sd(params, state), inputs.dt)
-
     type_name = "".join(part.title() for part in cause.split("_")) + "Params"
-    model = DriverModel(
-        name=f"{base.name}+{cause}",
-        params_type=params_type(type_name, specs),
-        specs=specs,
-        mean_acceleration=mean_acceleration,
-        transition_sample=transition_sample,
-        transition_logpdf=transition_logpdf,
-        observation_logpdf=base.observation_logpdf,
-        initial_sample=base.initial_sample,
-    )
+    model = execution_noise_model(
+        f"{base.name}+{cause}",
+        params_type(type_name, specs),
+        specs,
+        mean_acceleration,
+        noise_sd,
+    )._replace(observation_logpdf=base.observation_logpdf, initial_sample=base.initial_sample)
     return ExtendedModel(cause, base, model, tuple(s.name for s in new_specs), observed_lift)
