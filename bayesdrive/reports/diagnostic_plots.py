@@ -118,11 +118,19 @@ def plot_agreement_heatmap(table: pd.DataFrame, path: Path) -> Path:
     # The last band is open-ended: anything above 1 sd takes its colour.
     cmap = ListedColormap(colours).with_extremes(over=colours[-1])
     norm = BoundaryNorm([0.0, MEAN_TOLERANCE_SD, 0.5, 1.0, 2.0], cmap.N)
+    columns = min(3, len(pairs))
+    rows_of_panels = math.ceil(len(pairs) / columns)
     figure = Figure(
-        figsize=(1.2 + 0.75 * len(params) * len(pairs), 1.6 + 0.28 * len(vehicles)),
+        figsize=(
+            1.5 + 0.55 * len(params) * columns + 1.0 * columns,
+            (1.2 + 0.26 * len(vehicles)) * rows_of_panels + 0.6,
+        ),
         layout="constrained",
     )
-    axes = figure.subplots(1, len(pairs), squeeze=False)[0]
+    grid_axes = figure.subplots(rows_of_panels, columns, squeeze=False)
+    for ax in list(grid_axes.flat)[len(pairs) :]:
+        ax.set_visible(False)
+    axes = list(grid_axes.flat)[: len(pairs)]
     image = None
     for ax, (a, b) in zip(axes, pairs, strict=True):
         rows = table[(table["a"] == a) & (table["b"] == b)]
@@ -136,7 +144,7 @@ def plot_agreement_heatmap(table: pd.DataFrame, path: Path) -> Path:
         ax.set_xticks(range(len(params)), params, rotation=45, ha="right", fontsize=8)
         ax.set_yticks(range(len(vehicles)), vehicles, fontsize=7)
         ax.set_title(f"{b} vs {a}", fontsize=9)
-    bar = figure.colorbar(image, ax=list(axes), ticks=[0.05, 0.3, 0.75, 1.5])
+    bar = figure.colorbar(image, ax=list(grid_axes.flat), ticks=[0.05, 0.3, 0.75, 1.5], shrink=0.5)
     bar.ax.set_yticklabels(["< 0.1", "0.1-0.5", "0.5-1", "> 1"], fontsize=8)
     bar.set_label("|difference of means| / posterior sd", fontsize=8)
     figure.suptitle("engine agreement (x: fails |Δmean| or sd-ratio criterion)", fontsize=10)
