@@ -52,6 +52,7 @@ from bayesdrive.drivers.extensions.inputs import ExtendedSeries, extended_series
 from bayesdrive.drivers.idm import IDM
 
 __all__ = [
+    "DETECTION_CONFIG",
     "PROCESSING_ARTEFACTS",
     "SCREEN_P",
     "CriticismResult",
@@ -90,9 +91,14 @@ class CriticizeConfig(NamedTuple):
     screen_p: float = SCREEN_P
     alpha: float = ALPHA
     horizon_s: float = 5.0
-    num_rollouts: int = 32
+    num_rollouts: int = 32  # per held-out window; 0 skips the rollouts (no RMSE, no multistep)
     causes: tuple[str, ...] = CAUSES
     vehicle_batch: int = 32
+
+
+# Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
+# bayesdrive.criticism.generator): fewer particles and no rollouts, to keep CI fast.
+DETECTION_CONFIG = CriticizeConfig(num_particles=128, num_moves=4, num_rollouts=0)
 
 
 class CriticismResult(NamedTuple):
@@ -147,6 +153,11 @@ def _posterior_summary(fit: FitResult, names: Sequence[str]) -> dict[str, dict[s
     return out
 
 
+def _finite_or_none(value: float) -> float | None:
+    """JSON has no NaN: a number that could not be computed is null."""
+    return float(value) if np.isfinite(value) else None
+
+
 def criticize(
     traj: Trajectories,
     *,
@@ -167,6 +178,8 @@ def criticize(
     series = extended_series(traj)
     steps = vehicle_steps(series)
     windows = heldout_windows(series, config.horizon_s)
+    if config.num_rollouts == 0:
+        windows = windows._replace(row=windows.row[:0], start=windows.start[:0])
     rollout_key = named_key(key, "rollouts")
 
     def fit_and_roll(extended, start: FitResult | None) -> tuple[FitResult, Rollouts]:
@@ -234,8 +247,8 @@ def criticize(
                 "p_value": gain.p_value,
                 "significant": cause in significant,
                 "vehicles_improved": int(np.sum(gain.per_vehicle > 0)),
-                "rmse_position_change": change,
-                "rmse_position_change_se": change_se,
+                "rmse_position_change": _finite_or_none(change),
+                "rmse_position_change_se": _finite_or_none(change_se),
             }
             entry["posterior"] = _posterior_summary(fits[cause], extended.new_params)
         else:
@@ -277,7 +290,7 @@ def criticize(
             {
                 "name": c.name,
                 "title": c.title,
-                "statistic": c.statistic,
+                "statistic": _finite_or_none(c.statistic),
                 "p_value": c.p_value,
                 "points_to": list(c.points_to),
                 "summary": c.summary,

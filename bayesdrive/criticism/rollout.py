@@ -60,8 +60,10 @@ class Rollouts(NamedTuple):
 
     def rmse_per_vehicle(self, num_vehicles: int) -> np.ndarray:
         """Root mean square position error over each vehicle's windows, rollouts and steps."""
-        squared = (self.offset**2).mean(axis=(1, 2))
         out = np.full(num_vehicles, np.nan)
+        if self.offset.size == 0:
+            return out
+        squared = (self.offset**2).mean(axis=(1, 2))
         for row in np.unique(self.windows.row):
             out[row] = np.sqrt(squared[self.windows.row == row].mean())
         return out

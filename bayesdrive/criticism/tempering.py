@@ -41,6 +41,7 @@ log-likelihood differences between particles, not their absolute values, in the 
 from __future__ import annotations
 
 import functools
+import math
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -88,12 +89,17 @@ DEFAULT_CONFIG = FitConfig()
 
 
 class VehicleSteps(NamedTuple):
-    """Everything one vehicle's likelihood reads, as JAX arrays with a leading step axis (T,)."""
+    """Everything one vehicle's likelihood reads, as JAX arrays with a leading step axis (T,).
+
+    ``usable`` marks real car-following steps (a state filter runs through them and restarts after
+    a gap); ``fit`` and ``heldout`` mark the scored ones.
+    """
 
     inputs: ExtendedInputs
     v: Array
     next_v: Array
     dx: Array
+    usable: Array
     fit: Array
     heldout: Array
 
@@ -135,13 +141,20 @@ def vehicle_steps(series: ExtendedSeries) -> VehicleSteps:
         v=data.v,
         next_v=data.next_v,
         dx=data.dx,
+        usable=jnp.asarray(series.usable, dtype=data.v.dtype),
         fit=jnp.asarray(series.fit, dtype=data.v.dtype),
         heldout=jnp.asarray(series.heldout, dtype=data.v.dtype),
     )
 
 
 def step_logpdfs(extended: ExtendedModel, params: Any, steps: VehicleSteps) -> Array:
-    """Log-density of every step of one vehicle under ``params`` -> (T,); scored or not."""
+    """One-step log predictive density of every step of one vehicle under ``params`` -> (T,).
+
+    Exactly observed models score each step on its own (from the lifted state); models with a
+    hidden state run their filter over the vehicle's steps in order.
+    """
+    if extended.filter is not None:
+        return extended.filter(params, steps)
     model = extended.model
 
     def one(inputs, v, next_v, dx):
@@ -327,48 +340,55 @@ def _fit_vehicle(
         fit, held = jax.vmap(lambda t: _window_logliks(extended, names, t, steps))(both)
         return fit[0], held[0], fit[1]
 
-    def fit_phase(th: Array) -> tuple[Array, Array]:
-        fit, _, fit_off = jax.vmap(windows)(th)
-        return bridging * fit_off, fit - bridging * fit_off
+    def split(phase: Array, th: Array) -> tuple[Array, Array]:
+        """(anchor, tempered) of every particle in phase 0 (fitting) or 1 (held-out)."""
+        fit, held, fit_off = jax.vmap(windows)(th)
+        anchor = jnp.where(phase > 0, fit, bridging * fit_off)
+        tempered = jnp.where(phase > 0, held, fit - bridging * fit_off)
+        return anchor, tempered
 
-    def held_phase(th: Array) -> tuple[Array, Array]:
-        fit, held, _ = jax.vmap(windows)(th)
-        return fit, held
+    zero = jnp.zeros((), theta.dtype)
+    cloud = _Cloud(
+        theta=theta,
+        log_prior=jax.vmap(prior.logpdf)(theta),
+        anchor=jnp.zeros(theta.shape[0], theta.dtype),
+        tempered=jnp.zeros(theta.shape[0], theta.dtype),
+        lam=zero,
+        log_z=zero,
+        log_scale=jnp.log(2.38 / jnp.sqrt(theta.shape[-1])).astype(theta.dtype),
+        stages=jnp.zeros((), jnp.int32),
+        max_stages=jnp.zeros((), jnp.int32),
+        accepted=zero,
+        moves=zero,
+    )
+    fit_limit = jnp.where(from_prior, config.max_stages, config.bridge_max_stages)
 
-    def start(theta: Array, split, max_stages) -> _Cloud:
-        anchor, tempered = split(theta)
-        zero = jnp.zeros((), theta.dtype)
-        return _Cloud(
-            theta=theta,
-            log_prior=jax.vmap(prior.logpdf)(theta),
+    def phase_step(cloud: _Cloud, xs):
+        # One traced body for both phases keeps the compiled program (and compile time) small.
+        phase, key = xs
+        anchor, tempered = split(phase, cloud.theta)
+        cloud = cloud._replace(
             anchor=anchor,
             tempered=tempered,
             lam=zero,
             log_z=zero,
-            log_scale=jnp.log(2.38 / jnp.sqrt(theta.shape[-1])).astype(theta.dtype),
-            stages=jnp.zeros((), jnp.int32),
-            max_stages=jnp.asarray(max_stages, jnp.int32),
-            accepted=zero,
-            moves=zero,
+            stages=jnp.zeros_like(cloud.stages),
+            max_stages=jnp.where(phase > 0, config.max_stages, fit_limit).astype(jnp.int32),
         )
+        cloud = _temper(key, cloud, lambda th: split(phase, th), prior, config)
+        return cloud, (cloud.theta, cloud.log_z, cloud.stages, cloud.lam)
 
-    limit = jnp.where(from_prior, config.max_stages, config.bridge_max_stages)
-    fitted = _temper(key_fit, start(theta, fit_phase, limit), fit_phase, prior, config)
-    held = _temper(
-        key_held,
-        start(fitted.theta, held_phase, config.max_stages)._replace(log_scale=fitted.log_scale),
-        held_phase,
-        prior,
-        config,
+    cloud, (thetas, log_z, stages, lam) = jax.lax.scan(
+        phase_step, cloud, (jnp.arange(2), jnp.stack([key_fit, key_held]))
     )
     return _VehicleFit(
-        theta=fitted.theta,
-        log_z_fit=fitted.log_z,
-        log_z_held=held.log_z,
-        stages_fit=fitted.stages,
-        stages_held=held.stages,
-        finished=(fitted.lam >= 1.0) & (held.lam >= 1.0),
-        acceptance=(fitted.accepted + held.accepted) / jnp.maximum(fitted.moves + held.moves, 1.0),
+        theta=thetas[0],
+        log_z_fit=log_z[0],
+        log_z_held=log_z[1],
+        stages_fit=stages[0],
+        stages_held=stages[1],
+        finished=jnp.all(lam >= 1.0),
+        acceptance=cloud.accepted / jnp.maximum(cloud.moves, 1.0),
     )
 
 
@@ -429,13 +449,10 @@ def fit_model(
     posteriors are far apart, which is exactly when the prior start works). The choice uses the
     fitting window only. ``from_prior`` records it per vehicle.
     """
-    if extended.latent:
-        raise NotImplementedError(
-            f"{extended.name}: a model with a hidden state needs a state filter, not this sampler"
-        )
     steps = vehicle_steps(series) if steps is None else steps
     num_vehicles = len(series.vehicle_ids)
-    batch = max(1, min(vehicle_batch, num_vehicles))
+    # Batches are multiples of 8 vehicles, so data sets of similar size share one compiled program.
+    batch = max(1, min(vehicle_batch, 8 * math.ceil(num_vehicles / 8)))
     keys = jax.random.split(key, num_vehicles)
     start_theta = None
     if start is not None:

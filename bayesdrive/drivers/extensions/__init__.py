@@ -15,6 +15,8 @@ from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.extensions import (
     autocorrelated_noise,
     cut_in,
+    drifting_parameters,
+    position_noise,
     reaction_delay,
     second_leader,
     speed_dependent_noise,
@@ -32,6 +34,8 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
         speed_dependent_noise.CAUSE: speed_dependent_noise.with_speed_dependent_noise,
         second_leader.CAUSE: second_leader.with_second_leader_anticipation,
         cut_in.CAUSE: cut_in.with_cut_in_heuristic,
+        drifting_parameters.CAUSE: drifting_parameters.with_drifting_time_gap,
+        position_noise.CAUSE: position_noise.with_position_noise,
     }
 )
 CAUSES = tuple(EXTENSIONS)

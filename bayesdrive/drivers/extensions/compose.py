@@ -11,7 +11,7 @@ Some extensions keep more in the state than the observed position and speed (the
 noise keeps the last acceleration residual). With exactly observed data that extra state is a
 function of the parameters and the observed past: :attr:`ExtendedModel.lift` computes it, so the
 likelihood stays exact and a step can be scored on its own. Extensions whose extra state is
-*hidden* (drifting parameters, measurement noise) set ``latent`` and need a state filter.
+*hidden* (drifting parameters, measurement noise) bring their own state ``filter``.
 """
 
 from __future__ import annotations
@@ -42,8 +42,12 @@ class ExtendedModel(NamedTuple):
     model: the wrapped :class:`~bayesdrive.drivers.base.DriverModel` (what engines fit).
     new_params: the parameters the extension adds.
     lift: ``(params, EgoState, ExtendedInputs) -> state``, the model's full state at an exactly
-        observed step (identity on the observed state for most extensions).
-    latent: True when part of the state is hidden, so the one-step density needs a state filter.
+        observed step (identity on the observed state for most extensions; for a model with a
+        hidden state, its value at the start of a simulation).
+    filter: for a model with a hidden state, ``(params, steps) -> (T,)`` the one-step predictive
+        log densities of one vehicle's steps from a state filter (``steps`` is a
+        :class:`~bayesdrive.criticism.tempering.VehicleSteps`); None when each step can be scored
+        on its own from the lifted state.
     """
 
     cause: str
@@ -51,7 +55,7 @@ class ExtendedModel(NamedTuple):
     model: DriverModel
     new_params: tuple[str, ...]
     lift: Callable[[Any, EgoState, Any], Any]
-    latent: bool = False
+    filter: Callable[[Any, Any], Array] | None = None
 
     @property
     def name(self) -> str:

@@ -1,0 +1,149 @@
+r"""Drifting parameters: the desired time gap wanders as a random walk during the drive.
+
+The time gap is :math:`\tau_t = \tau + u_t` with a hidden offset that starts at 0 and moves by
+
+.. math::
+
+    u_{t+1} = u_t + q\sqrt{\Delta t}\,\xi_t, \qquad \xi_t \sim N(0, 1),
+
+before each step's acceleration :math:`a_t \sim N(a_{base}(\tau + u_{t+1}), \sigma^2)` (the drifted
+time gap is kept inside the prior box of :math:`\tau`). A drifting parameter is a hidden state: the
+one-step predictive density of the observed step needs a state filter. Here it is an extended
+Kalman filter on the scalar offset (``filter``): the base rule is linearised in :math:`u` around the
+filtered mean (an exact derivative by ``jax.jvp``), the observed implied acceleration
+:math:`\hat a = 2(\Delta x - v\Delta t)/\Delta t^2` updates it, and the predictive density of the
+position increment has variance :math:`(\Delta t^2/2)^2 (J^2 P + \sigma^2)` around the rule at the
+filtered mean. With :math:`q = 0` it is the base model exactly; otherwise it is an approximation
+whose error is second order in the offset's uncertainty (small: the offset moves by
+:math:`q\sqrt{\Delta t}` per step). A step that ends in a stop censors its acceleration and does not
+update the filter. The filter restarts (offset 0, known) after a gap in the data; the latent-state
+particle filter of :mod:`bayesdrive.inference.latent` targets noisy positions, not exactly observed
+states with a hidden parameter, so it is not used here.
+
+=========  ======  =======  ============  ===========================================
+name       unit    default  prior bounds  meaning
+=========  ======  =======  ============  ===========================================
+tau_drift  s/s^.5  0.0      [0, 0.2]      random-walk sd of the time gap per sqrt(s)
+=========  ======  =======  ============  ===========================================
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.extensions.autocorrelated_noise import implied_acceleration
+from bayesdrive.drivers.extensions.compose import (
+    ExtendedModel,
+    base_params,
+    extended_specs,
+    params_type,
+)
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+from bayesdrive.drivers.idm import STOP_SPEED, noisy_step, step_logpdf
+
+__all__ = ["CAUSE", "DRIFT_SPECS", "DriftState", "with_drifting_time_gap"]
+
+CAUSE = "drifting_parameters"
+DRIFT_SPECS = (
+    ParamSpec("tau_drift", "s/s^0.5", 0.0, 0.0, 0.2, "random-walk sd of the time gap per sqrt(s)"),
+)
+
+
+class DriftState(NamedTuple):
+    """Position x (m, relative to the current step), speed v (m/s), time-gap offset (s)."""
+
+    x: Array
+    v: Array
+    tau_offset: Array
+
+
+@functools.cache
+def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
+    """``base`` whose time gap ``tau`` drifts as a random walk (module docstring)."""
+    specs = extended_specs(base, DRIFT_SPECS)
+    tau_spec = base.spec("tau")
+
+    def rule(params, offset: Array, v: Array, inputs: ExtendedInputs) -> Array:
+        own = base_params(base, params)
+        tau = jnp.clip(own.tau + offset, tau_spec.lower, tau_spec.upper)
+        ego = EgoState(jnp.zeros_like(v), v)
+        return base.mean_acceleration(own._replace(tau=tau), ego, inputs.car_following)
+
+    def mean_acceleration(params, state: DriftState, inputs: ExtendedInputs) -> Array:
+        return rule(params, state.tau_offset, state.v, inputs)
+
+    def transition_sample(key: Array, params, state: DriftState, inputs: ExtendedInputs):
+        key_drift, key_step = jax.random.split(key)
+        step = params.tau_drift * jnp.sqrt(inputs.dt)
+        offset = state.tau_offset + step * jax.random.normal(key_drift, jnp.shape(state.v))
+        mean_acc = rule(params, offset, state.v, inputs)
+        moved = noisy_step(key_step, EgoState(state.x, state.v), mean_acc, params.sigma, inputs.dt)
+        return DriftState(moved.x, moved.v, offset)
+
+    def transition_logpdf(params, state: DriftState, next_state: DriftState, inputs) -> Array:
+        sd = params.tau_drift * jnp.sqrt(inputs.dt)
+        drift = jax.scipy.stats.norm.logpdf(next_state.tau_offset, state.tau_offset, sd)
+        mean_acc = rule(params, next_state.tau_offset, state.v, inputs)
+        move = step_logpdf(
+            EgoState(state.x, state.v), next_state, mean_acc, params.sigma, inputs.dt
+        )
+        return drift + move
+
+    def lift(params, state: EgoState, inputs: ExtendedInputs) -> DriftState:
+        # A simulation starts from the fitted time gap: the offset is hidden, its prior mean is 0.
+        del params, inputs
+        return DriftState(state.x, state.v, jnp.zeros_like(state.v))
+
+    def initial_sample(key: Array, params, obs: EgoState) -> DriftState:
+        del key, params
+        return DriftState(obs.x, obs.v, jnp.zeros_like(obs.v))
+
+    def ekf(params, steps: Any) -> Array:
+        """One-step predictive log densities of one vehicle's steps (T,), by the EKF above."""
+        dt = steps.inputs.dt[0]
+        drift_var = params.tau_drift**2 * dt
+
+        def step(carry, xs):
+            mean, var = carry
+            inputs, v, next_v, dx, usable = xs
+            # After a gap in the data the filter restarts at the fitted time gap.
+            mean = jnp.where(usable > 0, mean, 0.0)
+            var = jnp.where(usable > 0, var + drift_var, 0.0)
+            rule_at, slope = jax.jvp(
+                lambda u: rule(params, u, v, inputs), (mean,), (jnp.ones_like(mean),)
+            )
+            innovation_var = slope**2 * var + params.sigma**2
+            state = EgoState(jnp.zeros_like(v), v)
+            logp = step_logpdf(state, EgoState(dx, next_v), rule_at, jnp.sqrt(innovation_var), dt)
+            gain = var * slope / innovation_var
+            moving = (usable > 0) & (next_v > STOP_SPEED)
+            surprise = implied_acceleration(v, dx, dt) - rule_at
+            mean = jnp.where(moving, mean + gain * surprise, mean)
+            var = jnp.where(moving, (1.0 - gain * slope) * var, var)
+            return (mean, var), logp
+
+        zero = jnp.zeros_like(steps.v[0])
+        _, logp = jax.lax.scan(
+            step,
+            (zero, zero),
+            (steps.inputs, steps.v, steps.next_v, steps.dx, steps.usable),
+        )
+        return logp
+
+    model = DriverModel(
+        name=f"{base.name}+{CAUSE}",
+        params_type=params_type("DriftingParametersParams", specs),
+        specs=specs,
+        mean_acceleration=mean_acceleration,
+        transition_sample=transition_sample,
+        transition_logpdf=transition_logpdf,
+        observation_logpdf=base.observation_logpdf,
+        initial_sample=initial_sample,
+    )
+    return ExtendedModel(CAUSE, base, model, ("tau_drift",), lift, filter=ekf)

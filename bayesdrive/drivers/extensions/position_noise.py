@@ -1,0 +1,129 @@
+r"""Measurement noise on recorded positions (speeds and gaps recorded exactly).
+
+The situation of GNSS positions beside Doppler speeds and radar gaps: the recorded position is
+:math:`y_t = x_t + \varepsilon_t` with white noise :math:`\varepsilon_t \sim N(0, s^2)`, while the
+speeds and bumper gaps are exact, and the dynamics are the base model's. Every model is scored on
+the same thing: the one-step predictive density of the next recorded position increment given
+everything recorded so far (positions and speeds up to now), so the gain against the base model is
+a fair comparison of forecasts.
+
+**Exact filter.** With exact speeds the true increment of a step is known once the next speed is
+recorded (:math:`\Delta x_t = (v_t + v_{t+1})\Delta t/2`, the base models' kinematics), so each
+step reveals the noise difference :math:`d_t = \varepsilon_{t+1} - \varepsilon_t`. The noise level
+itself is a hidden scalar with a Gaussian filter (``filter``): :math:`\varepsilon_t \mid
+\text{past} \sim N(m_t, P_t)`, starting from :math:`N(0, s^2)` at the first step of a stretch of
+data. The predictive density of the recorded increment is
+
+.. math::
+
+    y_{t+1} - y_t \sim N\big(v_t\Delta t + a_{base}\Delta t^2/2 - m_t,\ (\sigma\Delta t^2/2)^2 + s^2
+    + P_t\big),
+
+and afterwards :math:`\varepsilon_{t+1}` combines its prior :math:`N(0, s^2)` with
+:math:`\varepsilon_t + d_t`: :math:`m_{t+1} = (m_t + d_t) s^2/(s^2 + P_t)`,
+:math:`P_{t+1} = s^2 P_t/(s^2 + P_t)`. The base model is nested exactly at :math:`s = 0`. A step
+that ends in a stop is scored by the base model's stop probability (the position adds nothing to
+a stop, as for the base model). The noise-free dynamics are the base model's, so simulation and
+rollouts use them unchanged. (:mod:`bayesdrive.drivers.measurement_noise` with the latent-state
+particle filter covers noisy positions *without* exact speeds; with exact speeds this filter is
+exact and cheap.)
+
+==============  ====  =======  ============  ==============================================
+name            unit  default  prior bounds  meaning
+==============  ====  =======  ============  ==============================================
+position_noise  m     0.0      [0, 0.5]      sd of the white noise on recorded positions
+==============  ====  =======  ============  ==============================================
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.scipy.stats import norm
+
+from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.extensions.compose import (
+    ExtendedModel,
+    base_params,
+    extended_specs,
+    observed_lift,
+    params_type,
+)
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+from bayesdrive.drivers.idm import STOP_SPEED, step_logpdf
+
+__all__ = ["CAUSE", "POSITION_NOISE_SPECS", "with_position_noise"]
+
+CAUSE = "measurement_noise"
+POSITION_NOISE_SPECS = (
+    ParamSpec("position_noise", "m", 0.0, 0.0, 0.5, "sd of white noise on recorded positions"),
+)
+
+
+@functools.cache
+def with_position_noise(base: DriverModel) -> ExtendedModel:
+    """``base`` observed through white noise on positions (module docstring)."""
+    specs = extended_specs(base, POSITION_NOISE_SPECS)
+
+    def mean_acceleration(params, state: EgoState, inputs: ExtendedInputs) -> Array:
+        return base.mean_acceleration(base_params(base, params), state, inputs.car_following)
+
+    def transition_sample(key: Array, params, state: EgoState, inputs: ExtendedInputs):
+        return base.transition_sample(key, base_params(base, params), state, inputs.car_following)
+
+    def transition_logpdf(params, state: EgoState, next_state, inputs: ExtendedInputs) -> Array:
+        own = base_params(base, params)
+        return base.transition_logpdf(own, state, next_state, inputs.car_following)
+
+    def observation_logpdf(params, state: EgoState, obs: EgoState) -> Array:
+        return norm.logpdf(obs.x, state.x, params.position_noise)
+
+    def kalman(params, steps: Any) -> Array:
+        """One-step predictive log densities of one vehicle's steps (T,) (module docstring)."""
+        dt = steps.inputs.dt[0]
+        noise_var = params.position_noise**2
+        dynamics_sd = 0.5 * params.sigma * dt**2
+
+        def step(carry, xs):
+            mean, var = carry
+            inputs, v, next_v, dx, usable = xs
+            # A stretch of data starts with the noise at its prior N(0, s^2).
+            mean = jnp.where(usable > 0, mean, 0.0)
+            var = jnp.where(usable > 0, var, noise_var)
+            state = EgoState(jnp.zeros_like(v), v)
+            rule = mean_acceleration(params, state, inputs)
+            predicted = v * dt + 0.5 * rule * dt**2 - mean
+            spread = jnp.sqrt(dynamics_sd**2 + noise_var + var)
+            moving = norm.logpdf(dx, predicted, spread)
+            stopped = step_logpdf(state, EgoState(dx, next_v), rule, params.sigma, dt)
+            logp = jnp.where(next_v <= STOP_SPEED, stopped, moving)
+            difference = dx - 0.5 * (v + next_v) * dt
+            total = noise_var + var
+            safe = jnp.where(total > 0, total, 1.0)
+            mean = jnp.where(total > 0, (mean + difference) * noise_var / safe, 0.0)
+            var = jnp.where(total > 0, noise_var * var / safe, 0.0)
+            return (mean, var), logp
+
+        zero = jnp.zeros_like(steps.v[0])
+        _, logp = jax.lax.scan(
+            step,
+            (zero, zero + noise_var),
+            (steps.inputs, steps.v, steps.next_v, steps.dx, steps.usable),
+        )
+        return logp
+
+    model = DriverModel(
+        name=f"{base.name}+{CAUSE}",
+        params_type=params_type("MeasurementNoiseParams", specs),
+        specs=specs,
+        mean_acceleration=mean_acceleration,
+        transition_sample=transition_sample,
+        transition_logpdf=transition_logpdf,
+        observation_logpdf=observation_logpdf,
+        initial_sample=base.initial_sample,
+    )
+    return ExtendedModel(CAUSE, base, model, ("position_noise",), observed_lift, filter=kalman)

@@ -1,0 +1,180 @@
+"""The checks and the gain statistics on constructed inputs whose answers are known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from bayesdrive.criticism.checks import (
+    Residuals,
+    autocorrelation_check,
+    calibration_check,
+    change_point_check,
+    covariate_checks,
+    leader_cross_correlation_check,
+)
+from bayesdrive.criticism.gain import elpd_gain, holm, rmse_change
+from bayesdrive.criticism.tempering import FitResult
+from bayesdrive.drivers.extensions import as_extended
+from bayesdrive.drivers.extensions.inputs import ExtendedSeries
+from bayesdrive.drivers.idm import IDM
+
+VEHICLES, STEPS = 12, 300
+
+
+def residuals_from(z: np.ndarray) -> Residuals:
+    return Residuals(pit=stats.norm.cdf(z), z=z, mask=np.ones(z.shape, bool))
+
+
+def ar1(rng, rho: float) -> np.ndarray:
+    z = np.empty((VEHICLES, STEPS))
+    z[:, 0] = rng.normal(size=VEHICLES)
+    for t in range(1, STEPS):
+        z[:, t] = rho * z[:, t - 1] + np.sqrt(1 - rho**2) * rng.normal(size=VEHICLES)
+    return z
+
+
+def series_with(lead_acc: np.ndarray, v: np.ndarray | None = None) -> ExtendedSeries:
+    ones = np.ones((VEHICLES, STEPS))
+    return ExtendedSeries(
+        vehicle_ids=tuple(str(i) for i in range(VEHICLES)),
+        t=np.tile(np.arange(STEPS) * 0.1, (VEHICLES, 1)),
+        v=ones * 10 if v is None else v,
+        next_v=ones * 10,
+        dx=ones,
+        gap=ones * 20,
+        lead_v=ones * 10,
+        has_leader=ones,
+        lead_acc=lead_acc,
+        gap2=ones * 40,
+        lead2_v=ones * 10,
+        has_leader2=ones,
+        usable=ones,
+        fit=0 * ones,
+        heldout=ones,
+        dt=0.1,
+    )
+
+
+def test_autocorrelation_check_finds_ar1_and_passes_white_noise():
+    """AR(1) rho = 0.5 residuals (seed 1, 3600 pairs): lag-1 estimate within 0.05 of 0.5, p tiny;
+    white noise (seed 2): |lag 1| < 4 / sqrt(pairs) and p > 1e-3."""
+    rng = np.random.default_rng(1)
+    check = autocorrelation_check(residuals_from(ar1(rng, 0.5)))
+    assert abs(check.statistic - 0.5) < 0.05
+    assert check.summary["p_positive"] < 1e-12
+    white = autocorrelation_check(
+        residuals_from(np.random.default_rng(2).normal(size=(VEHICLES, STEPS)))
+    )
+    pairs = VEHICLES * (STEPS - 1)
+    assert abs(white.statistic) < 4 / np.sqrt(pairs)
+    assert white.p_value > 1e-3
+
+
+def test_measurement_noise_signature_is_negative_lag_one():
+    """Differences of white noise (an MA(1) with correlation -1/2) point to measurement noise."""
+    noise = np.random.default_rng(3).normal(size=(VEHICLES, STEPS + 1))
+    check = autocorrelation_check(residuals_from(np.diff(noise, axis=1) / np.sqrt(2)))
+    assert abs(check.statistic + 0.5) < 0.05
+    assert check.summary["p_negative"] < 1e-12
+
+
+def test_calibration_check_uniform_versus_overdispersed():
+    """PIT of N(0, 1) data under N(0, 1) is uniform; under N(0, 1.5^2) data it is U-shaped:
+    chi-square p < 1e-12 and the 90% interval covers < 0.85 (expected 0.73). Seeds 4, 5."""
+    good = calibration_check(
+        residuals_from(np.random.default_rng(4).normal(size=(VEHICLES, STEPS)))
+    )
+    assert good.p_value > 1e-3
+    assert abs(good.summary["coverage_90"] - 0.9) < 0.02
+    wide = 1.5 * np.random.default_rng(5).normal(size=(VEHICLES, STEPS))
+    bad = calibration_check(residuals_from(wide))
+    assert bad.p_value < 1e-12
+    assert bad.summary["coverage_90"] < 0.85
+
+
+def test_leader_cross_correlation_finds_the_lag():
+    """Residuals that respond to the leader's acceleration 0.7 s (7 steps) earlier."""
+    rng = np.random.default_rng(6)
+    lead_acc = rng.normal(size=(VEHICLES, STEPS))
+    z = rng.normal(size=(VEHICLES, STEPS))
+    z[:, 7:] += 0.5 * lead_acc[:, :-7]
+    check = leader_cross_correlation_check(residuals_from(z / np.sqrt(1.25)), series_with(lead_acc))
+    assert check.summary["lag_steps"] == 7
+    assert check.p_value < 1e-12
+    unrelated = leader_cross_correlation_check(
+        residuals_from(rng.normal(size=(VEHICLES, STEPS))), series_with(lead_acc)
+    )
+    assert unrelated.p_value > 1e-3
+
+
+def test_variance_against_speed():
+    """Residual sd growing with speed (sd 1 + 0.1 (v - 10), speeds 2-18 m/s) shows in the
+    variance-vs-speed check (one-sided p < 1e-12) but not in the mean-vs-speed check."""
+    rng = np.random.default_rng(7)
+    speed = rng.uniform(2, 18, size=(VEHICLES, STEPS))
+    z = rng.normal(size=(VEHICLES, STEPS)) * (1 + 0.1 * (speed - 10))
+    checks = {c.name: c for c in covariate_checks(residuals_from(z), series_with(0 * z, v=speed))}
+    assert checks["variance_vs_speed"].summary["p_positive"] < 1e-12
+    assert checks["mean_vs_speed"].p_value > 1e-3
+
+
+def test_change_points():
+    """A mean shift of 1 sd halfway through every vehicle's window flags nearly all vehicles;
+    white noise flags about 5% (binomial tail p > 1e-3). Seeds 8, 9."""
+    shifted = np.random.default_rng(8).normal(size=(VEHICLES, STEPS))
+    shifted[:, STEPS // 2 :] += 1.0
+    assert change_point_check(residuals_from(shifted)).p_value < 1e-12
+    white = change_point_check(
+        residuals_from(np.random.default_rng(9).normal(size=(VEHICLES, STEPS)))
+    )
+    assert white.p_value > 1e-3
+
+
+def fit_with(log_z_held) -> FitResult:
+    n = len(log_z_held)
+    zeros = np.zeros(n)
+    return FitResult(
+        model=as_extended(IDM),
+        names=IDM.param_names,
+        theta=np.zeros((n, 2, 6)),
+        log_z_fit=zeros,
+        log_z_held=np.asarray(log_z_held, float),
+        stages_fit=zeros,
+        stages_held=zeros,
+        from_prior=np.ones(n, bool),
+        acceptance=zeros,
+        compile_time_s=0.0,
+        run_time_s=0.0,
+    )
+
+
+def test_gain_standard_error_is_across_vehicles():
+    """Per-vehicle gains 1, 2, 3, 4: total 10, se = sqrt(4) * sd = 2 * 1.2910 = 2.582, t = 3.873,
+    one-sided p from Student t with 3 df."""
+    gain = elpd_gain(fit_with([10.0, 20.0, 30.0, 40.0]), fit_with([11.0, 22.0, 33.0, 44.0]))
+    assert gain.elpd == pytest.approx(10.0)
+    assert gain.se == pytest.approx(2 * np.std([1, 2, 3, 4], ddof=1))
+    assert gain.t == pytest.approx(10.0 / gain.se)
+    assert gain.p_value == pytest.approx(stats.t.sf(gain.t, df=3))
+
+
+def test_gain_refuses_a_non_finite_vehicle():
+    with pytest.raises(FloatingPointError, match="vehicle rows \\[1\\]"):
+        elpd_gain(fit_with([1.0, 2.0]), fit_with([1.0, np.nan]))
+
+
+def test_holm_by_hand():
+    """Family of 4, alpha 0.05: 0.01 <= 0.0125 rejected; 0.02 > 0.05/3 stops the procedure.
+    A member without a p-value counts as 1, so screening never adds rejections."""
+    p = {"a": 0.01, "b": 0.02, "c": 0.04}
+    assert holm(p, ["a", "b", "c", "d"]) == {"a"}
+    assert holm(p, ["a", "b", "c"]) == {"a", "b", "c"}  # 0.01<=0.0167, 0.02<=0.025, 0.04<=0.05
+    assert holm({}, ["a", "b"]) == set()
+
+
+def test_rmse_change_mean_and_se():
+    change, se = rmse_change(np.array([1.0, 2.0, np.nan]), np.array([0.5, 1.0, 3.0]))
+    assert change == pytest.approx(-0.75)
+    assert se == pytest.approx(np.std([-0.5, -1.0], ddof=1) / np.sqrt(2))
