@@ -91,7 +91,7 @@ class Settings:
     criticism_rollouts: int
 
 
-FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 30, 256, 32)
+FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 256, 32)
 QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 2, 128, 8)
 
 
