@@ -528,6 +528,9 @@ def export_models(out: Path, highway: dict[str, dict], settings: Settings) -> li
                 f"- diagnostics: median log-evidence per vehicle {np.nanmedian(evidence):.1f} nats; "
                 f"wall time {meta.get('wall_time_s', float('nan')):.0f} s",
                 f"- settings: bayesdrive reproduce, '{settings.name}' run",
+                "- caveat: on 15 NGSIM vehicles smc fell short of the agreement criterion against "
+                "nuts and emcee and missed one vehicle's main mode (reports/agreement/); "
+                "congested data leaves v_des, d_min and b_pref weakly identified",
                 "- regenerate: `bayesdrive reproduce --out results` (the file is "
                 f"results/models/{stem}.nc)",
                 "- open with: `xarray.open_datatree(path, engine='h5netcdf')` or arviz; draws "
