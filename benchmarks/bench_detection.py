@@ -28,30 +28,11 @@ import numpy as np
 import pandas as pd
 
 from bayesdrive.criticism.criticize import DETECTION_CONFIG, criticize
-from bayesdrive.criticism.generator import DETECTION_SCENARIO, generate
+from bayesdrive.criticism.generator import DETECTION_SCENARIO, DETECTION_SIZES, generate
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.readers import read
 from bayesdrive.drivers.extensions import NO_CAUSE
 
-# Effect-parameter ranges per size; "large" are the generator's default realistic ranges' upper
-# parts, "small" the lower end of what drivers show.
-SIZES: dict[str, dict[str, tuple[float, float]]] = {
-    "reaction_delay": {"small": (0.1, 0.2), "medium": (0.2, 0.4), "large": (0.4, 0.7)},
-    "autocorrelated_noise": {"small": (0.2, 0.4), "medium": (0.4, 0.6), "large": (0.6, 0.9)},
-    "speed_dependent_noise": {"small": (0.02, 0.05), "medium": (0.05, 0.1), "large": (0.1, 0.2)},
-    "second_leader_anticipation": {
-        "small": (0.1, 0.3),
-        "medium": (0.3, 0.5),
-        "large": (0.5, 0.8),
-    },
-    "cut_in_overreaction": {"small": (0.3, 0.6), "medium": (0.6, 0.9), "large": (0.9, 1.0)},
-    "drifting_parameters": {"small": (0.01, 0.03), "medium": (0.03, 0.06), "large": (0.06, 0.12)},
-    "measurement_noise": {
-        "small": (0.0005, 0.001),
-        "medium": (0.001, 0.003),
-        "large": (0.003, 0.01),
-    },
-}
 FIELDS = [
     "cause",
     "size",
@@ -157,7 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=20, help="replications per effect and size")
     parser.add_argument("--null-seeds", type=int, default=40, help="replications without effect")
-    parser.add_argument("--causes", default=",".join(SIZES), help="comma-separated causes")
+    parser.add_argument(
+        "--causes", default=",".join(DETECTION_SIZES), help="comma-separated causes"
+    )
     parser.add_argument("--sizes", default="small,medium,large")
     parser.add_argument("--out", type=Path, default=Path("reports/criticism"))
     args = parser.parse_args(argv)
@@ -171,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in range(1, args.seeds + 1):
         for cause in args.causes.split(","):
             for size in args.sizes.split(","):
-                cells.append((cause, size, SIZES[cause][size], seed))
+                cells.append((cause, size, DETECTION_SIZES[cause][size], seed))
     todo = [c for c in cells if (c[0], c[1], c[3]) not in done]
     todo.sort(key=lambda c: c[3])  # seed by seed, so a stopped study has every cell covered
     print(f"{len(cells) - len(todo)} replications done, {len(todo)} to go", flush=True)

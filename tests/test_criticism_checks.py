@@ -13,6 +13,7 @@ from bayesdrive.criticism.checks import (
     change_point_check,
     covariate_checks,
     leader_cross_correlation_check,
+    vehicle_autocorrelation_checks,
 )
 from bayesdrive.criticism.gain import elpd_gain, holm, rmse_change
 from bayesdrive.criticism.tempering import FitResult
@@ -73,11 +74,30 @@ def test_autocorrelation_check_finds_ar1_and_passes_white_noise():
 
 
 def test_measurement_noise_signature_is_negative_lag_one():
-    """Differences of white noise (an MA(1) with correlation -1/2) point to measurement noise."""
+    """Differences of white noise (an MA(1) with correlation -1/2) point to measurement noise,
+    pooled and across vehicles; white noise does not (seeds 3, 10)."""
     noise = np.random.default_rng(3).normal(size=(VEHICLES, STEPS + 1))
-    check = autocorrelation_check(residuals_from(np.diff(noise, axis=1) / np.sqrt(2)))
+    differenced = residuals_from(np.diff(noise, axis=1) / np.sqrt(2))
+    check = autocorrelation_check(differenced)
     assert abs(check.statistic + 0.5) < 0.05
     assert check.summary["p_negative"] < 1e-12
+    lag1, _ = vehicle_autocorrelation_checks(differenced)
+    assert lag1.points_to == ("measurement_noise",) and lag1.p_value < 1e-6
+    white = vehicle_autocorrelation_checks(
+        residuals_from(np.random.default_rng(10).normal(size=(VEHICLES, STEPS)))
+    )
+    assert all(c.p_value > 1e-3 for c in white)
+
+
+def test_drift_signature_is_a_long_lag_tail():
+    """A slow random walk added to white residuals (seed 11) raises the lags 10-30 autocorrelation
+    in every vehicle: the across-vehicle t-test (11 df) points to drifting parameters."""
+    rng = np.random.default_rng(11)
+    walk = np.cumsum(0.15 * rng.normal(size=(VEHICLES, STEPS)), axis=1)
+    _, long_lag = vehicle_autocorrelation_checks(
+        residuals_from(rng.normal(size=(VEHICLES, STEPS)) + walk)
+    )
+    assert long_lag.points_to == ("drifting_parameters",) and long_lag.p_value < 1e-3
 
 
 def test_calibration_check_uniform_versus_overdispersed():
@@ -100,13 +120,17 @@ def test_leader_cross_correlation_finds_the_lag():
     lead_acc = rng.normal(size=(VEHICLES, STEPS))
     z = rng.normal(size=(VEHICLES, STEPS))
     z[:, 7:] += 0.5 * lead_acc[:, :-7]
-    check = leader_cross_correlation_check(residuals_from(z / np.sqrt(1.25)), series_with(lead_acc))
+    by_vehicle, check = leader_cross_correlation_check(
+        residuals_from(z / np.sqrt(1.25)), series_with(lead_acc)
+    )
     assert check.summary["lag_steps"] == 7
     assert check.p_value < 1e-12
-    unrelated = leader_cross_correlation_check(
+    assert by_vehicle.p_value < 1e-6
+    unrelated_by_vehicle, unrelated = leader_cross_correlation_check(
         residuals_from(rng.normal(size=(VEHICLES, STEPS))), series_with(lead_acc)
     )
     assert unrelated.p_value > 1e-3
+    assert unrelated_by_vehicle.p_value > 1e-3
 
 
 def test_variance_against_speed():

@@ -26,6 +26,9 @@ def criticize_command(
     vehicles: Annotated[
         int | None, typer.Option("--vehicles", help="Use only the first N vehicles.")
     ] = None,
+    rollouts: Annotated[
+        int, typer.Option("--rollouts", help="Rollouts per held-out window (0: skip them).")
+    ] = 32,
     causes: Annotated[
         str | None, typer.Option("--causes", help="Comma-separated causes (default: all).")
     ] = None,
@@ -61,7 +64,9 @@ def criticize_command(
         raise fail(f"unknown cause(s) {unknown}; known: {', '.join(CAUSES)}")
     if vehicles is not None:
         traj = traj.subset(traj.vehicle_ids[:vehicles])
-    config = CriticizeConfig(num_particles=particles, causes=chosen)
+    if particles < 2 or rollouts < 0:
+        raise fail(f"need --particles >= 2 and --rollouts >= 0, got {particles}, {rollouts}")
+    config = CriticizeConfig(num_particles=particles, num_rollouts=rollouts, causes=chosen)
 
     quiet = json_out == "-"
     with Progress(

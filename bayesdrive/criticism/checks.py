@@ -33,9 +33,15 @@ The checks (``Check.name``):
   right (self-normalised across vehicles, so autocorrelation within a vehicle does no harm);
   one-sided, since every extension's "off" value is its lower bound.
 
-Correlation p-values use the white-noise standard error :math:`1/\sqrt{n}` (Bartlett); with several
-lags the smallest p-value is Bonferroni-corrected over lags. p-values are for screening and
-description: the verdict rests on the held-out predictive gain (:mod:`bayesdrive.criticism.gain`).
+* ``lag1_by_vehicle``, ``long_lag_by_vehicle``: the autocorrelations above per vehicle, tested
+  across vehicles (negative lag 1: measurement noise; positive long lags: drifting parameters).
+
+Pooled correlation p-values use the white-noise standard error :math:`1/\sqrt{n}` (Bartlett); with
+several lags the smallest is Bonferroni-corrected over lags. Pooled over thousands of
+autocorrelated steps they flag the smallest misfit, so they describe; only the checks whose
+p-value is calibrated across vehicles (score tests, per-vehicle autocorrelations; ``screening``)
+decide which extensions are fitted. The verdict rests on the held-out predictive gain
+(:mod:`bayesdrive.criticism.gain`).
 """
 
 from __future__ import annotations
@@ -70,6 +76,7 @@ __all__ = [
     "predictive_residuals",
     "run_checks",
     "score_check",
+    "vehicle_autocorrelation_checks",
 ]
 
 ACF_LAGS = 30
@@ -86,6 +93,10 @@ class Check(NamedTuple):
     points_to: causes a small p-value points to.
     summary: JSON-ready numbers for the report.
     figure: arrays for :mod:`bayesdrive.reports.criticism_plots`.
+    screening: the p-value is calibrated across vehicles (vehicles independent, steps within one
+        vehicle not), so it can decide which extensions to fit. Pooled step-level checks are
+        descriptive: with thousands of autocorrelated steps their p-values are tiny for the
+        smallest misfit (posterior uncertainty alone), so they never screen.
     """
 
     name: str
@@ -95,6 +106,7 @@ class Check(NamedTuple):
     points_to: tuple[str, ...]
     summary: dict[str, Any]
     figure: dict[str, Any]
+    screening: bool = False
 
 
 class Residuals(NamedTuple):
@@ -226,8 +238,55 @@ def autocorrelation_check(res: Residuals) -> Check:
     )
 
 
-def leader_cross_correlation_check(res: Residuals, series: ExtendedSeries) -> Check:
-    """Correlation of z[t] with the leader's acceleration at t - k, k = 0..history."""
+def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
+    """Per-vehicle autocorrelation of z, tested across vehicles (screening checks).
+
+    For each vehicle: the lag-1 autocorrelation and the mean autocorrelation over lags 10-30.
+    One-sample t-tests across vehicles (N - 1 df): a negative mean lag-1 correlation points to
+    measurement noise on positions, a positive long-lag mean to drifting parameters.
+    """
+    lag1, long_lag = [], []
+    for z, used in zip(res.z, res.mask, strict=True):
+        if used.sum() <= DRIFT_LAGS[1] + 10:
+            continue
+        row, ok = z[None, :], used[None, :]
+        lag1.append(_pooled_correlation(row, row, ok, ok, 1)[0])
+        band = range(DRIFT_LAGS[0], DRIFT_LAGS[1] + 1)
+        long_lag.append(np.mean([_pooled_correlation(row, row, ok, ok, k)[0] for k in band]))
+    checks = []
+    for name, values, cause, sign, title in (
+        ("lag1_by_vehicle", lag1, "measurement_noise", -1.0, "lag-1 autocorrelation"),
+        ("long_lag_by_vehicle", long_lag, "drifting_parameters", 1.0, "lags 10-30 autocorrelation"),
+    ):
+        values = np.asarray(values)
+        if values.size < 2 or values.std(ddof=1) == 0:
+            t, p = 0.0, 1.0
+        else:
+            t = float(values.mean() / (values.std(ddof=1) / np.sqrt(values.size)))
+            p = float(stats.t.sf(sign * t, df=values.size - 1))
+        checks.append(
+            Check(
+                name=name,
+                title=f"Per-vehicle {title} of z, across vehicles",
+                statistic=float(values.mean()) if values.size else 0.0,
+                p_value=p,
+                points_to=(cause,),
+                summary={
+                    "statistic": f"mean over vehicles of the per-vehicle {title}",
+                    "t": t,
+                    "vehicles": int(values.size),
+                    "direction": "negative" if sign < 0 else "positive",
+                },
+                figure={"values": values},
+                screening=True,
+            )
+        )
+    return checks
+
+
+def leader_cross_correlation_check(res: Residuals, series: ExtendedSeries) -> tuple[Check, Check]:
+    """Correlation of z[t] with the leader's acceleration at t - k, k = 0..history: per vehicle
+    (a portmanteau tested across vehicles, for screening) and pooled (the picture)."""
     lead_acc = series.lead_acc
     usable = series.usable > 0
     lags = np.arange(series.history + 1)
@@ -239,7 +298,44 @@ def leader_cross_correlation_check(res: Residuals, series: ExtendedSeries) -> Ch
     zs = ccf * np.sqrt(pairs)
     worst = int(np.argmax(np.abs(zs)))
     p = float(min(1.0, len(lags) * 2 * stats.norm.sf(abs(zs[worst]))))
-    return Check(
+    # Per vehicle, a portmanteau of the same cross-correlations: Q = n * sum_k r_k^2 is about
+    # chi-square with K + 1 df for white residuals; its excess is tested across vehicles.
+    excess = []
+    for row in range(res.z.shape[0]):
+        per_lag = [
+            _pooled_correlation(
+                res.z[row : row + 1],
+                lead_acc[row : row + 1],
+                res.mask[row : row + 1],
+                usable[row : row + 1],
+                int(k),
+            )
+            for k in lags
+        ]
+        if per_lag[0][1] > 3 * len(lags):
+            excess.append(sum(n * r**2 for r, n in per_lag) - len(lags))
+    excess = np.asarray(excess)
+    if excess.size > 1 and excess.std(ddof=1) > 0:
+        t_excess = float(excess.mean() / (excess.std(ddof=1) / np.sqrt(excess.size)))
+        p_excess = float(stats.t.sf(t_excess, df=excess.size - 1))
+    else:
+        t_excess, p_excess = 0.0, 1.0
+    by_vehicle = Check(
+        name="leader_response_by_vehicle",
+        title="Per-vehicle response to the leader's past accelerations, across vehicles",
+        statistic=float(excess.mean()) if excess.size else 0.0,
+        p_value=p_excess,
+        points_to=("reaction_delay",),
+        summary={
+            "statistic": "mean over vehicles of n * sum over lags of squared cross-correlations, "
+            "minus its white-noise expectation (the number of lags)",
+            "t": t_excess,
+            "vehicles": int(excess.size),
+        },
+        figure={"values": excess},
+        screening=True,
+    )
+    return by_vehicle, Check(
         name="leader_cross_correlation",
         title="Residuals against the leader's past accelerations",
         statistic=float(ccf[worst]),
@@ -388,6 +484,7 @@ def score_check(cause: str, fit: FitResult, steps: VehicleSteps, *, num_draws: i
             "vehicles": int(scores.size),
         },
         figure={"scores": scores},
+        screening=True,
     )
 
 
@@ -453,7 +550,8 @@ def run_checks(
     checks = [
         calibration_check(res),
         autocorrelation_check(res),
-        leader_cross_correlation_check(res, series),
+        *vehicle_autocorrelation_checks(res),
+        *leader_cross_correlation_check(res, series),
         *covariate_checks(res, series),
         change_point_check(res),
         *(

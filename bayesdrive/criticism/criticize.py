@@ -9,7 +9,9 @@ Steps (``criticize``):
    (:mod:`bayesdrive.criticism.tempering`).
 3. Run the checks on the held-out windows (:mod:`bayesdrive.criticism.checks`), including
    closed-loop rollouts of the base model.
-4. **Screening**: a cause is a candidate when one of the checks that point to it has p < 0.2
+4. **Screening**: a cause is a candidate when one of the screening checks that point to it (score
+   tests, per-vehicle autocorrelations and responses: p-values calibrated across vehicles) has
+   p < 0.2
    (Bonferroni within the cause's checks); lenient on purpose, since the verdict is decided by the
    gain, whose multiplicity correction covers every cause whether screened in or not.
 5. Fit each candidate extension, starting from the base posterior (the extension nests the base
@@ -119,13 +121,20 @@ def named_key(key: jax.Array, name: str) -> jax.Array:
 
 
 def _screen(checks: Sequence[Check], cause: str, screen_p: float) -> tuple[bool, dict[str, Any]]:
-    """Whether the checks point to ``cause`` (Bonferroni within its checks), and the evidence."""
+    """Whether the screening checks point to ``cause`` (Bonferroni within them), and the evidence
+    (every check that points to it, screening or descriptive)."""
     pointing = [c for c in checks if cause in c.points_to and c.p_value is not None]
     evidence = {
-        c.name: {"statistic": c.statistic, "p_value": _directional_p(c, cause)} for c in pointing
+        c.name: {
+            "statistic": c.statistic,
+            "p_value": _directional_p(c, cause),
+            "screening": c.screening,
+        }
+        for c in pointing
     }
-    smallest = min((e["p_value"] for e in evidence.values()), default=1.0)
-    return bool(pointing) and smallest * len(pointing) < screen_p, evidence
+    screening = [e["p_value"] for e in evidence.values() if e["screening"]]
+    smallest = min(screening, default=1.0)
+    return bool(screening) and smallest * len(screening) < screen_p, evidence
 
 
 def _directional_p(check: Check, cause: str) -> float:
@@ -277,8 +286,8 @@ def criticize(
             "se": "across vehicles: sqrt(N) * sd of the per-vehicle gains",
             "significance": f"one-sided t (N-1 df) on gain/se; Holm-Bonferroni at {config.alpha} "
             f"over all {len(config.causes)} causes considered (unfitted causes count as p = 1)",
-            "screening": f"a cause is fitted when a check pointing to it has p < "
-            f"{config.screen_p} (Bonferroni within the cause)",
+            "screening": f"a cause is fitted when a screening check (calibrated across "
+            f"vehicles) pointing to it has p < {config.screen_p} (Bonferroni within the cause)",
         },
         "base": {
             "elpd": float(base.log_z_held.sum()),

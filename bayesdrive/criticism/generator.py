@@ -49,6 +49,7 @@ from bayesdrive.drivers.idm import IDM
 
 __all__ = [
     "DETECTION_SCENARIO",
+    "DETECTION_SIZES",
     "DRIVER_RANGES",
     "EFFECTS",
     "GroundTruth",
@@ -94,7 +95,25 @@ MIN_CUT_GAP = 8.0  # m: a cut-in waits for at least this bumper gap
 CUT_WINDOW = (0.74, 0.92)
 # The scenario of the detection study (benchmarks/bench_detection.py) and of the CI tests that run
 # the effect sizes it detects: small enough for CI, the same in both so the table applies.
-DETECTION_SCENARIO = {"num_platoons": 3, "followers": 6, "duration_s": 45.0, "cut_ins": 6}
+DETECTION_SCENARIO = {"num_platoons": 2, "followers": 4, "duration_s": 40.0, "cut_ins": 4}
+# Effect sizes of the detection study: ranges of each effect's parameter, drawn per driver.
+DETECTION_SIZES: dict[str, dict[str, tuple[float, float]]] = {
+    "reaction_delay": {"small": (0.1, 0.2), "medium": (0.2, 0.4), "large": (0.4, 0.7)},
+    "autocorrelated_noise": {"small": (0.2, 0.4), "medium": (0.4, 0.6), "large": (0.6, 0.9)},
+    "speed_dependent_noise": {"small": (0.02, 0.05), "medium": (0.05, 0.1), "large": (0.1, 0.2)},
+    "second_leader_anticipation": {
+        "small": (0.1, 0.3),
+        "medium": (0.3, 0.5),
+        "large": (0.5, 0.8),
+    },
+    "cut_in_overreaction": {"small": (0.3, 0.6), "medium": (0.6, 0.9), "large": (0.9, 1.0)},
+    "drifting_parameters": {"small": (0.01, 0.03), "medium": (0.03, 0.06), "large": (0.06, 0.12)},
+    "measurement_noise": {
+        "small": (0.0005, 0.001),
+        "medium": (0.001, 0.003),
+        "large": (0.003, 0.01),
+    },
+}
 
 
 class SimulatedTraffic(NamedTuple):

@@ -12,7 +12,7 @@ recorded (:math:`\Delta x_t = (v_t + v_{t+1})\Delta t/2`, the base models' kinem
 step reveals the noise difference :math:`d_t = \varepsilon_{t+1} - \varepsilon_t`. The noise level
 itself is a hidden scalar with a Gaussian filter (``filter``): :math:`\varepsilon_t \mid
 \text{past} \sim N(m_t, P_t)`, starting from :math:`N(0, s^2)` at the first step of a stretch of
-data. The predictive density of the recorded increment is
+data (a gap in the data restarts it). The predictive density of the recorded increment is
 
 .. math::
 
@@ -83,38 +83,36 @@ def with_position_noise(base: DriverModel) -> ExtendedModel:
         return norm.logpdf(obs.x, state.x, params.position_noise)
 
     def kalman(params, steps: Any) -> Array:
-        """One-step predictive log densities of one vehicle's steps (T,) (module docstring)."""
+        """One-step predictive log densities of one vehicle's steps (T,) (module docstring).
+
+        The filter's recursion has a closed form, so it is vectorised over steps instead of
+        scanned: in a stretch of data, at its k-th step (k = 0 first), P = s^2/(k + 1) and
+        (k + 1) m = sum over the stretch's earlier steps i of (k_i + 1) d_i.
+        """
         dt = steps.inputs.dt[0]
         noise_var = params.position_noise**2
         dynamics_sd = 0.5 * params.sigma * dt**2
+        index = jnp.arange(steps.v.shape[0])
+        usable = steps.usable > 0
+        starts = usable & ~jnp.concatenate([jnp.zeros(1, bool), usable[:-1]])
+        first = jax.lax.cummax(jnp.where(starts, index, 0))
+        rank = (index - first).astype(steps.v.dtype)  # k: steps since the stretch began
+        difference = steps.dx - 0.5 * (steps.v + steps.next_v) * dt  # d = e[t+1] - e[t]
+        weighted = jnp.where(usable, (rank + 1.0) * difference, 0.0)
+        before = jnp.cumsum(weighted) - weighted  # sum over earlier steps, exclusive
+        # With s = 0 the noise is identically 0: the base model exactly.
+        mean = jnp.where(noise_var > 0, (before - before[first]) / (rank + 1.0), 0.0)
+        var = noise_var / (rank + 1.0)
 
-        def step(carry, xs):
-            mean, var = carry
-            inputs, v, next_v, dx, usable = xs
-            # A stretch of data starts with the noise at its prior N(0, s^2).
-            mean = jnp.where(usable > 0, mean, 0.0)
-            var = jnp.where(usable > 0, var, noise_var)
+        def one(inputs, v, next_v, dx, mean, var):
             state = EgoState(jnp.zeros_like(v), v)
             rule = mean_acceleration(params, state, inputs)
             predicted = v * dt + 0.5 * rule * dt**2 - mean
-            spread = jnp.sqrt(dynamics_sd**2 + noise_var + var)
-            moving = norm.logpdf(dx, predicted, spread)
+            moving = norm.logpdf(dx, predicted, jnp.sqrt(dynamics_sd**2 + noise_var + var))
             stopped = step_logpdf(state, EgoState(dx, next_v), rule, params.sigma, dt)
-            logp = jnp.where(next_v <= STOP_SPEED, stopped, moving)
-            difference = dx - 0.5 * (v + next_v) * dt
-            total = noise_var + var
-            safe = jnp.where(total > 0, total, 1.0)
-            mean = jnp.where(total > 0, (mean + difference) * noise_var / safe, 0.0)
-            var = jnp.where(total > 0, noise_var * var / safe, 0.0)
-            return (mean, var), logp
+            return jnp.where(next_v <= STOP_SPEED, stopped, moving)
 
-        zero = jnp.zeros_like(steps.v[0])
-        _, logp = jax.lax.scan(
-            step,
-            (zero, zero + noise_var),
-            (steps.inputs, steps.v, steps.next_v, steps.dx, steps.usable),
-        )
-        return logp
+        return jax.vmap(one)(steps.inputs, steps.v, steps.next_v, steps.dx, mean, var)
 
     model = DriverModel(
         name=f"{base.name}+{CAUSE}",
