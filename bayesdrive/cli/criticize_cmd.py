@@ -23,6 +23,10 @@ def criticize_command(
     particles: Annotated[
         int, typer.Option("--particles", help="Particles per vehicle and model.")
     ] = 256,
+    driver: Annotated[
+        str | None,
+        typer.Option("--driver", help="Only vehicles with this driver (human, acc, unknown)."),
+    ] = None,
     vehicles: Annotated[
         int | None, typer.Option("--vehicles", help="Use only the first N vehicles.")
     ] = None,
@@ -62,6 +66,15 @@ def criticize_command(
     unknown = [c for c in chosen if c not in CAUSES]
     if unknown:
         raise fail(f"unknown cause(s) {unknown}; known: {', '.join(CAUSES)}")
+    if driver is not None:
+        # Followers of that driver type, and every vehicle ahead of them (their inputs).
+        tracks = traj.tracks
+        chosen_ids = set(tracks.loc[tracks["driver"] == driver, "vehicle_id"])
+        if not chosen_ids:
+            raise fail(f"no vehicle with driver {driver!r} in {data}")
+        leaders = set(tracks.loc[tracks["vehicle_id"].isin(chosen_ids), "leader_id"].dropna())
+        second = set(tracks.loc[tracks["vehicle_id"].isin(leaders), "leader_id"].dropna())
+        traj = traj.subset(chosen_ids | leaders | second)
     if vehicles is not None:
         traj = traj.subset(traj.vehicle_ids[:vehicles])
     if particles < 2 or rollouts < 0:
