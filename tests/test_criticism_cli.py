@@ -61,7 +61,13 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
     assert report["verdict"] in ("reaction_delay", "none")
     assert [c["name"] for c in report["causes"]] == ["reaction_delay"]
     names = {p.name for p in out.iterdir()}
-    assert {"calibration.png", "correlations.png", "causes.png", "multistep.png"} <= names
+    assert {
+        "calibration.png",
+        "correlations.png",
+        "causes.png",
+        "multistep.png",
+        "screening.png",
+    } <= names
     assert all(p.stat().st_size > 10_000 for p in out.iterdir())
 
 

@@ -138,6 +138,31 @@ def _multistep(check: Check, path: Path) -> Path:
     return _save(fig, path)
 
 
+def _by_vehicle(checks: list[Check], path: Path) -> Path:
+    """The screening checks: each vehicle's value, their mean +-2 se, and the zero line."""
+    screening = [c for c in checks if c.screening]
+    cols = min(4, len(screening))
+    rows = int(np.ceil(len(screening) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.9 * rows), squeeze=False)
+    for ax in axes.flat[len(screening) :]:
+        ax.set_visible(False)
+    rng = np.random.default_rng(0)  # horizontal jitter of the dots only
+    for ax, check in zip(axes.flat, screening, strict=False):
+        values = np.asarray(check.figure.get("scores", check.figure.get("values", [])), float)
+        if values.size:
+            ax.plot(rng.uniform(-0.2, 0.2, values.size), values, "o", ms=3, alpha=0.7)
+            se = values.std(ddof=1) / np.sqrt(values.size) if values.size > 1 else 0.0
+            ax.errorbar([0.5], [values.mean()], yerr=[2 * se], fmt="s", color="k", ms=4)
+        ax.axhline(0, color="k", ls="--", lw=0.8)
+        ax.set_xticks([])
+        ax.set_xlim(-0.5, 1.0)
+        title = check.name.removeprefix("score_")
+        ax.set_title(f"{title}\np = {check.p_value:.2g}", fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.suptitle("Screening checks: one value per vehicle (dots), mean +-2 se (square)", fontsize=9)
+    return _save(fig, path)
+
+
 def _causes(result: CriticismResult, path: Path) -> Path:
     report = result.report
     scores = {
@@ -181,6 +206,7 @@ def plot_criticism(result: CriticismResult, out_dir: str | Path) -> list[Path]:
             out / "covariates.png",
         ),
         _change_points(checks["change_points"], out / "change_points.png"),
+        _by_vehicle(result.checks, out / "screening.png"),
         _causes(result, out / "causes.png"),
     ]
     if checks["multistep"].figure:
