@@ -131,9 +131,19 @@ def _limit(scenarios: ScenarioSet, count: int | None) -> ScenarioSet:
     return scenarios if count is None else scenarios._replace(scenarios=scenarios.scenarios[:count])
 
 
-def _covered(scenarios: ScenarioSet, fitted: set[str]) -> ScenarioSet:
-    """Scenarios whose simulated vehicles all have a posterior (a vehicle whose fitting window
-    has no usable step has none); every model is scored on this same set."""
+def _highway_scenarios(label: str, traj: Trajectories, settings: Settings) -> ScenarioSet:
+    """The platoon scenarios of a highway data set at its fixed size (module docstring)."""
+    size = HIGHWAY_SIZES[label.split(":")[0]]
+    found = platoon_scenarios(traj, vehicles_per_scenario=size, horizon_s=5.0)
+    return _limit(found, settings.max_scenarios)
+
+
+def _covered(scenarios: ScenarioSet, trees: dict[str, Any]) -> ScenarioSet:
+    """Scenarios whose simulated vehicles all have a posterior in every tree (a vehicle whose
+    fitting window has no usable step has none); every model is scored on this same set."""
+    fitted = set.intersection(
+        *({str(v) for v in t["posterior"]["vehicle"].values} for t in trees.values())
+    )
     kept = [s for s in scenarios.scenarios if set(s.simulated_ids) <= fitted]
     return scenarios._replace(scenarios=kept)
 
@@ -173,18 +183,11 @@ def highway_step(
 ) -> dict:
     """Fit, then score learned models and baselines on the held-out platoon scenarios."""
     out.mkdir(parents=True, exist_ok=True)
-    dataset = label.split(":")[0]
-    scenarios = _limit(
-        platoon_scenarios(traj, vehicles_per_scenario=HIGHWAY_SIZES[dataset], horizon_s=5.0),
-        settings.max_scenarios,
-    )
+    scenarios = _highway_scenarios(label, traj, settings)
     vehicle_ids = scenarios.simulated_ids
     results_nc = {e: fit_step(out, traj, vehicle_ids, e, settings, force) for e in ("smc", "pf")}
     trees = {e: load_result(p) for e, p in results_nc.items()}
-    fitted = set.intersection(
-        *({str(v) for v in t["posterior"]["vehicle"].values} for t in trees.values())
-    )
-    scored = _covered(scenarios, fitted)
+    scored = _covered(scenarios, trees)
 
     def evaluate(name: str, policy) -> dict:
         started = time.perf_counter()
@@ -272,16 +275,8 @@ def turing_step(
     results = {}
     for label, experiment in highway.items():
         traj = trajs[label]
-        dataset = label.split(":")[0]
-        scenarios = _limit(
-            platoon_scenarios(traj, vehicles_per_scenario=HIGHWAY_SIZES[dataset], horizon_s=5.0),
-            settings.max_scenarios,
-        )
         trees = {e: load_result(p) for e, p in experiment["fits"].items()}
-        fitted = set.intersection(
-            *({str(v) for v in t["posterior"]["vehicle"].values} for t in trees.values())
-        )
-        scenarios = _covered(scenarios, fitted)
+        scenarios = _covered(_highway_scenarios(label, traj, settings), trees)
         real_v, real_g = [], []
         for scenario in scenarios.scenarios:
             data = observed_data(scenario)
