@@ -12,7 +12,7 @@ read by :func:`~bayesdrive.drivers.extensions.inputs.inputs_at` from the simulat
 the same function that reads data.
 
 **Cut-ins.** In every platoon ``cut_ins`` vehicles change into the lane: each appears in front of a
-follower (evenly spread, at most one per follower) at a random fraction of its gap, slightly faster
+follower (the followers in turn, up to two each) at a random fraction of its gap, slightly faster
 than the vehicle ahead, and is simulated from then on like any follower (before that it drives at
 constant speed in lane 2). Cut-ins happen in the held-out window (:data:`CUT_WINDOW`), where the
 over-reaction to them (the cause ``cut_in_overreaction``) is scored; a vehicle that cuts in there
@@ -95,7 +95,7 @@ MIN_CUT_GAP = 8.0  # m: a cut-in waits for at least this bumper gap
 CUT_WINDOW = (0.74, 0.92)
 # The scenario of the detection study (benchmarks/bench_detection.py) and of the CI tests that run
 # the effect sizes it detects: small enough for CI, the same in both so the table applies.
-DETECTION_SCENARIO = {"num_platoons": 2, "followers": 4, "duration_s": 40.0, "cut_ins": 4}
+DETECTION_SCENARIO = {"num_platoons": 2, "followers": 4, "duration_s": 40.0, "cut_ins": 8}
 # Effect sizes of the detection study: ranges of each effect's parameter, drawn per driver.
 DETECTION_SIZES: dict[str, dict[str, tuple[float, float]]] = {
     "reaction_delay": {"small": (0.1, 0.2), "medium": (0.2, 0.4), "large": (0.4, 0.7)},
@@ -154,40 +154,37 @@ class GroundTruth(NamedTuple):
 class _Layout(NamedTuple):
     is_head: np.ndarray
     is_cutter: np.ndarray
-    nominal_leader: np.ndarray
-    cutter_of: np.ndarray
-    cut_target: np.ndarray
+    cut_target: np.ndarray  # the follower a cut-in vehicle enters in front of, else -1
     platoon: np.ndarray
+    rank: np.ndarray  # position in the platoon at the start (head 0); cut-in vehicles -1
 
 
 def _layout(num_platoons: int, followers: int, cut_ins: int) -> _Layout:
-    """Vehicle order: per platoon the head then its followers, then all cut-in vehicles."""
+    """Vehicle order: per platoon the head then its followers, then all cut-in vehicles.
+
+    Cut-ins go in front of the followers in turn (follower 1, 2, ..., then around again), so a
+    platoon can have up to two per follower.
+    """
+    if cut_ins > 2 * followers:
+        raise ValueError(f"at most two cut-ins per follower: {cut_ins} > 2 x {followers}")
     lane_vehicles = num_platoons * (1 + followers)
     n = lane_vehicles + num_platoons * cut_ins
     is_head = np.zeros(n, bool)
     is_cutter = np.zeros(n, bool)
-    nominal = np.full(n, -1)
-    cutter_of = np.full(n, -1)
     cut_target = np.full(n, -1)
     platoon = np.zeros(n, int)
-    # Cut-ins go in front of evenly spread followers, at most one each.
-    if cut_ins > followers:
-        raise ValueError(f"at most one cut-in per follower: {cut_ins} > {followers}")
-    targets = np.linspace(1, followers, cut_ins).round().astype(int) if cut_ins else []
+    rank = np.full(n, -1)
     for p in range(num_platoons):
         head = p * (1 + followers)
         is_head[head] = True
         platoon[head : head + followers + 1] = p
-        for k in range(1, followers + 1):
-            nominal[head + k] = head + k - 1
-        for c, k in enumerate(targets):
+        rank[head : head + followers + 1] = np.arange(followers + 1)
+        for c in range(cut_ins):
             cutter = lane_vehicles + p * cut_ins + c
             is_cutter[cutter] = True
             platoon[cutter] = p
-            nominal[cutter] = head + k - 1
-            cutter_of[head + k] = cutter
-            cut_target[cutter] = head + k
-    return _Layout(is_head, is_cutter, nominal, cutter_of, cut_target, platoon)
+            cut_target[cutter] = head + 1 + c % followers
+    return _Layout(is_head, is_cutter, cut_target, platoon, rank)
 
 
 def _head_profile(key: Array, num_heads: int, num_steps: int, dt: float) -> Array:
@@ -246,9 +243,8 @@ class _Scene(NamedTuple):
     cut_gain: Array
     is_head: Array
     is_cutter: Array
-    nominal: Array
-    cutter_of: Array
     cut_target: Array
+    platoon: Array
     head_rows: Array
     head_v: Array
     x0: Array
@@ -267,16 +263,22 @@ def _closed_loop(
         scene.params, scene.x0, scene.v0
     )
 
-    def leaders(active):
-        cut = (scene.cutter_of >= 0) & active[jnp.maximum(scene.cutter_of, 0)]
-        lead = jnp.where(cut, scene.cutter_of, scene.nominal)
-        return jnp.where(active & ~scene.is_head & (lead >= 0), lead, -1)
+    def leaders(x, active):
+        """The nearest vehicle ahead in the lane (same platoon, on the road), else -1."""
+        ahead = (
+            (scene.platoon[None, :] == scene.platoon[:, None])
+            & active[None, :]
+            & (x[None, :] > x[:, None])
+        )
+        distance = jnp.where(ahead, x[None, :] - x[:, None], jnp.inf)
+        has = jnp.isfinite(distance.min(axis=1)) & active & ~scene.is_head
+        return jnp.where(has, jnp.argmin(distance, axis=1), -1)
 
     def step(carry, s):
         x, v, active, states, buf = carry
         time = s * dt
         # Cut-ins: a waiting vehicle enters in front of its target once the gap allows it.
-        lead_now = leaders(active)
+        lead_now = leaders(x, active)
         target = jnp.maximum(scene.cut_target, 0)
         target_lead = jnp.maximum(lead_now[target], 0)
         target_gap = x[target_lead] - scene.length[target_lead] - x[target]
@@ -294,7 +296,7 @@ def _closed_loop(
         states = jax.tree.map(lambda new, old: jnp.where(activating, new, old), fresh, states)
         buf = buf._replace(v=buf.v.at[:, s].set(v))
 
-        lead = leaders(active)
+        lead = leaders(x, active)
         has = lead >= 0
         safe = jnp.maximum(lead, 0)
         gap = jnp.where(has, x[safe] - scene.length[safe] - x, 100.0)
@@ -386,10 +388,8 @@ def simulate_traffic(
     v0 = head_v[np.searchsorted(heads, head_of), 0]
     x0 = np.zeros(n, np.float32)
     gaps0 = np.asarray(_equilibrium_gap(params, v0))
-    for i in range(n):
-        if not layout.is_head[i] and not layout.is_cutter[i]:
-            lead = layout.nominal_leader[i]
-            x0[i] = x0[lead] - float(length[lead]) - gaps0[i]
+    for i in np.flatnonzero(layout.rank >= 1):  # in platoon order, so the one ahead is placed
+        x0[i] = x0[i - 1] - float(length[i - 1]) - gaps0[i]
     x0 = jnp.asarray(x0)
     v0 = jnp.asarray(v0)
 
@@ -401,9 +401,8 @@ def simulate_traffic(
         cut_gain=cut_gain,
         is_head=jnp.asarray(layout.is_head),
         is_cutter=jnp.asarray(layout.is_cutter),
-        nominal=jnp.asarray(layout.nominal_leader),
-        cutter_of=jnp.asarray(layout.cutter_of),
         cut_target=jnp.asarray(layout.cut_target),
+        platoon=jnp.asarray(layout.platoon),
         head_rows=jnp.asarray(
             np.searchsorted(heads, np.where(layout.is_head, np.arange(n), heads[0]))
         ),
