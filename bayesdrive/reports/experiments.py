@@ -92,7 +92,7 @@ class Settings:
 
 
 FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 256, 32)
-QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 2, 128, 8)
+QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 1, 128, 8)
 
 
 def _save_json(path: Path, payload: Any) -> None:
