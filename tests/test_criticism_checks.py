@@ -175,13 +175,32 @@ def fit_with(log_z_held) -> FitResult:
 
 
 def test_gain_standard_error_is_across_vehicles():
-    """Per-vehicle gains 1, 2, 3, 4: total 10, se = sqrt(4) * sd = 2 * 1.2910 = 2.582, t = 3.873,
-    one-sided p from Student t with 3 df."""
+    """Per-vehicle gains 1, 2, 3, 4: total 10, se = sqrt(4) * sd = 2 * 1.2910 = 2.582, t = 3.873;
+    the decision uses log(1 + g) = log 2, log 3, log 4, log 5 against Student t with 3 df."""
     gain = elpd_gain(fit_with([10.0, 20.0, 30.0, 40.0]), fit_with([11.0, 22.0, 33.0, 44.0]))
     assert gain.elpd == pytest.approx(10.0)
     assert gain.se == pytest.approx(2 * np.std([1, 2, 3, 4], ddof=1))
     assert gain.t == pytest.approx(10.0 / gain.se)
-    assert gain.p_value == pytest.approx(stats.t.sf(gain.t, df=3))
+    h = np.log([2.0, 3.0, 4.0, 5.0])
+    assert gain.t_transformed == pytest.approx(h.mean() / (h.std(ddof=1) / 2))
+    assert gain.p_value == pytest.approx(stats.t.sf(gain.t_transformed, df=3))
+
+
+def test_one_huge_vehicle_does_not_hide_an_effect_every_vehicle_shows():
+    """Gains 200..270 in seven vehicles and 20 000 in one: G/se is about 1 (the outlier sets mean
+    and sd alike), while the transformed test rejects at the Holm level for 7 causes."""
+    gains = np.array([200.0, 210, 220, 230, 240, 250, 270, 20_000])
+    gain = elpd_gain(fit_with(np.zeros(8)), fit_with(gains))
+    assert gain.t < 1.5
+    assert gain.p_value < 0.05 / 7
+
+
+def test_null_like_gains_are_not_significant():
+    """Small losses in most vehicles and small gains in a few: p > 0.5."""
+    gain = elpd_gain(
+        fit_with(np.zeros(8)), fit_with([-1.2, -0.4, -2.0, 0.6, -0.8, 0.3, -1.5, -0.1])
+    )
+    assert gain.p_value > 0.5
 
 
 def test_gain_refuses_a_non_finite_vehicle():

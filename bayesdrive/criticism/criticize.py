@@ -253,6 +253,7 @@ def criticize(
                 "elpd": gain.elpd,
                 "se": gain.se,
                 "t": gain.t,
+                "t_log_transformed": gain.t_transformed,
                 "p_value": gain.p_value,
                 "significant": cause in significant,
                 "vehicles_improved": int(np.sum(gain.per_vehicle > 0)),
@@ -284,8 +285,9 @@ def criticize(
             "causes": list(config.causes),
             "gain": "held-out log predictive density (leave-future-out), summed over vehicles",
             "se": "across vehicles: sqrt(N) * sd of the per-vehicle gains",
-            "significance": f"one-sided t (N-1 df) on gain/se; Holm-Bonferroni at {config.alpha} "
-            f"over all {len(config.causes)} causes considered (unfitted causes count as p = 1)",
+            "significance": "one-sided t-test (N-1 df) across vehicles of sign(g) log(1 + |g|) "
+            f"of the per-vehicle gains g; Holm-Bonferroni at {config.alpha} over all "
+            f"{len(config.causes)} causes considered (unfitted causes count as p = 1)",
             "screening": f"a cause is fitted when a screening check (calibrated across "
             f"vehicles) pointing to it has p < {config.screen_p} (Bonferroni within the cause)",
         },
