@@ -254,28 +254,32 @@ def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
         band = range(DRIFT_LAGS[0], DRIFT_LAGS[1] + 1)
         long_lag.append(np.mean([_pooled_correlation(row, row, ok, ok, k)[0] for k in band]))
     checks = []
-    for name, values, cause, sign, title in (
-        ("lag1_by_vehicle", lag1, "measurement_noise", -1.0, "lag-1 autocorrelation"),
-        ("long_lag_by_vehicle", long_lag, "drifting_parameters", 1.0, "lags 10-30 autocorrelation"),
+    for name, values, causes, title in (
+        ("lag1_by_vehicle", lag1, ("measurement_noise", "drifting_parameters"), "lag-1"),
+        ("long_lag_by_vehicle", long_lag, ("drifting_parameters",), "lags 10-30"),
     ):
         values = np.asarray(values)
         if values.size < 2 or values.std(ddof=1) == 0:
-            t, p = 0.0, 1.0
+            t = 0.0
         else:
             t = float(values.mean() / (values.std(ddof=1) / np.sqrt(values.size)))
-            p = float(stats.t.sf(sign * t, df=values.size - 1))
+        p_positive = float(stats.t.sf(t, df=max(values.size - 1, 1)))
+        p_negative = float(stats.t.cdf(t, df=max(values.size - 1, 1)))
         checks.append(
             Check(
                 name=name,
-                title=f"Per-vehicle {title} of z, across vehicles",
+                title=f"Per-vehicle {title} autocorrelation of z, across vehicles",
                 statistic=float(values.mean()) if values.size else 0.0,
-                p_value=p,
-                points_to=(cause,),
+                p_value=min(p_positive, p_negative) if name == "lag1_by_vehicle" else p_positive,
+                points_to=causes,
                 summary={
-                    "statistic": f"mean over vehicles of the per-vehicle {title}",
+                    "statistic": f"mean over vehicles of the per-vehicle {title} autocorrelation",
                     "t": t,
                     "vehicles": int(values.size),
-                    "direction": "negative" if sign < 0 else "positive",
+                    # Negative lag 1: measurement noise; positive: drift (or AR noise, which has
+                    # its own score test); positive long lags: drift.
+                    "p_positive": p_positive,
+                    "p_negative": p_negative,
                 },
                 figure={"values": values},
                 screening=True,
@@ -436,6 +440,8 @@ def change_point_check(res: Residuals) -> Check:
             "flagged": flagged,
         },
         figure={"paths": paths, "p_values": p_values},
+        # A binomial tail over independent vehicles: calibrated across vehicles.
+        screening=True,
     )
 
 

@@ -144,6 +144,8 @@ def _directional_p(check: Check, cause: str) -> float:
         ("autocorrelation", "measurement_noise"): "p_negative",
         ("autocorrelation", "drifting_parameters"): "p_long_lag",
         ("variance_vs_speed", "speed_dependent_noise"): "p_positive",
+        ("lag1_by_vehicle", "measurement_noise"): "p_negative",
+        ("lag1_by_vehicle", "drifting_parameters"): "p_positive",
     }
     field = directional.get((check.name, cause))
     return float(check.summary[field]) if field else float(check.p_value)
@@ -227,7 +229,9 @@ def criticize(
         gains[cause] = elpd_gain(base, fits[cause])
 
     significant = holm({c: g.p_value for c, g in gains.items()}, config.causes, config.alpha)
-    ranked = sorted(gains, key=lambda c: gains[c].elpd, reverse=True)
+    ranked = sorted(
+        gains, key=lambda c: gains[c].elpd if np.isfinite(gains[c].elpd) else -np.inf, reverse=True
+    )
     verdict = next((c for c in ranked if c in significant), NO_CAUSE)
     base_rmse = base_rollouts.rmse_per_vehicle(len(series.vehicle_ids))
     artefacts = PROCESSING_ARTEFACTS.get(traj.format, {})
@@ -250,10 +254,13 @@ def criticize(
                 base_rmse, rollouts[cause].rmse_per_vehicle(len(series.vehicle_ids))
             )
             entry["gain"] = {
-                "elpd": gain.elpd,
-                "se": gain.se,
-                "t": gain.t,
-                "t_log_transformed": gain.t_transformed,
+                "elpd": _finite_or_none(gain.elpd),
+                "se": _finite_or_none(gain.se),
+                "t": _finite_or_none(gain.t),
+                "t_log_transformed": _finite_or_none(gain.t_transformed),
+                "non_finite_vehicles": [
+                    series.vehicle_ids[i] for i in np.flatnonzero(~np.isfinite(gain.per_vehicle))
+                ],
                 "p_value": gain.p_value,
                 "significant": cause in significant,
                 "vehicles_improved": int(np.sum(gain.per_vehicle > 0)),

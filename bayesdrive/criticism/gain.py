@@ -38,6 +38,7 @@ with its standard error across vehicles (negative: the extension simulates close
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
@@ -47,6 +48,8 @@ from scipy import stats
 from bayesdrive.criticism.tempering import FitResult
 
 __all__ = ["ALPHA", "Gain", "elpd_gain", "holm", "rmse_change", "transformed_t_test"]
+
+log = logging.getLogger(__name__)
 
 ALPHA = 0.05
 
@@ -68,15 +71,25 @@ class Gain(NamedTuple):
 
 def elpd_gain(base: FitResult, extension: FitResult) -> Gain:
     """Sum over vehicles of the held-out log predictive density gain, its se across vehicles."""
-    per_vehicle = np.asarray(extension.log_z_held, np.float64) - np.asarray(
-        base.log_z_held, np.float64
-    )
-    if not np.all(np.isfinite(per_vehicle)):
-        bad = np.flatnonzero(~np.isfinite(per_vehicle)).tolist()
+    base_held = np.asarray(base.log_z_held, np.float64)
+    if not np.all(np.isfinite(base_held)):
+        bad = np.flatnonzero(~np.isfinite(base_held)).tolist()
         raise FloatingPointError(
-            f"{extension.model.name}: held-out log predictive density not finite for vehicle "
-            f"rows {bad}"
+            f"{base.model.name}: held-out log predictive density not finite for vehicle rows {bad}"
         )
+    per_vehicle = np.asarray(extension.log_z_held, np.float64) - base_held
+    if not np.all(np.isfinite(per_vehicle)):
+        # The extension calls some held-out data impossible (or its sampler broke down there):
+        # it cannot be the cause. Reported, never significant.
+        bad = np.flatnonzero(~np.isfinite(per_vehicle)).tolist()
+        log.warning(
+            "%s: held-out log predictive density not finite for vehicle rows %s; the extension "
+            "is not significant",
+            extension.model.name,
+            bad,
+        )
+        nan = float("nan")
+        return Gain(per_vehicle, nan, nan, nan, nan, 1.0)
     n = per_vehicle.size
     total = float(per_vehicle.sum())
     if n < 2:

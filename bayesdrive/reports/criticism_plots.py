@@ -181,8 +181,9 @@ def _causes(result: CriticismResult, path: Path) -> Path:
         (axes[1], "elpd", "se", "held-out elpd gain (nats)"),
         (axes[2], "rmse_position_change", "rmse_position_change_se", "rollout RMSE change (m)"),
     ):
-        values = [g[field] if g else np.nan for g in gains]
-        errors = [2 * g[se_field] if g and np.isfinite(g[se_field]) else 0.0 for g in gains]
+        # None: not fitted, or not computable (e.g. no rollouts, a non-finite density).
+        values = [g[field] if g and g[field] is not None else np.nan for g in gains]
+        errors = [2 * g[se_field] if g and g[se_field] is not None else 0.0 for g in gains]
         colours = ["#4a9a4a" if g and g["significant"] else "#999999" for g in gains]
         ax.barh(y, values, xerr=errors, color=colours)
         ax.axvline(0, color="k", lw=0.8)
