@@ -79,6 +79,8 @@ def test_scenario_metrics_by_hand():
     assert m.hard_braking == 3
     assert m.data_hard_braking == 2
     assert m.off_road == 0
+    # Vehicle-rollouts with a first event at steps 1 (two of them) and 3; one never has any.
+    np.testing.assert_allclose(m.undesirable_by_step, [0.0, 0.5, 0.5, 0.75])
 
 
 def test_steps_past_the_end_of_a_scene_are_not_scored():
@@ -88,6 +90,7 @@ def test_steps_past_the_end_of_a_scene_are_not_scored():
     assert np.isnan(m.rmse_position_by_step[3])
     assert m.last_step == 2
     assert m.mae_position_last == 0.0
+    assert np.isnan(m.undesirable_by_step[3])
     # The data's third step (-2 m/s^2) would not count anyway; its second (-6) still does.
     assert m.data_hard_braking == 2
     samples = distribution_samples(rollout, short)

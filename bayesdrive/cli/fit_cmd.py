@@ -1,7 +1,8 @@
 """``bayesdrive fit``: per-vehicle parameter distributions from trajectories, saved to a folder.
 
 DATA is a file, a folder or a data set name (held-out names are refused: nothing is fitted on
-them). OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
+them). Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
+merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
 (:func:`bayesdrive.inference.fit.summary`) and the filter diagnostics ess.png,
 unique_particles.png and convergence.png. Bad input ends with a one-line ``error: ...`` on
 standard error and exit code 2.
@@ -21,12 +22,19 @@ from rich.table import Table
 from bayesdrive.cli.common import console, emit_json, err_console, fail
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
+from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.registry import MODELS, get_model
 from bayesdrive.inference.fit import ENGINES, get_engine, summary
 from bayesdrive.inference.fit import fit as fit_model
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import save_result
 from bayesdrive.reports.filter_plots import write_filter_plots
+from bayesdrive.simulation.scenarios import (
+    MERGE_FIT_STAY_S,
+    merge_follower_arrays,
+    merge_scenarios,
+)
 
 __all__ = ["fit"]
 
@@ -45,6 +53,15 @@ def _progress() -> Progress:
         console=err_console,
         transient=True,
     )
+
+
+def merge_arrays(traj: Trajectories, window: str) -> FollowerArrays:
+    """Merge episodes are fitted per stay of a cooperating car behind the merging car, with the
+    merge scene beside each step; ``fit`` uses the fitting episodes only (split by episode)."""
+    scenarios = merge_scenarios(
+        traj, horizon_s=MERGE_FIT_STAY_S, episodes="fit" if window == "fit" else "all"
+    )
+    return merge_follower_arrays(scenarios)
 
 
 def _print(result: dict[str, Any], out: Path) -> None:
@@ -120,11 +137,13 @@ def fit(
             None if params is None else param_names(driver, [p.strip() for p in params.split(",")])
         )
         traj = registry.load(data, format=format, data_dir=data_dir)
+        fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
         with _progress() as bar:
             task = bar.add_task(f"{engine}: compiling, then fitting vehicles", total=None)
             tree = fit_model(
                 jax.random.key(seed),
-                traj,
+                fitted,
+                source=traj.source,
                 model=driver,
                 engine=engine,
                 params=names,

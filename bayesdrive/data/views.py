@@ -22,8 +22,10 @@ __all__ = [
     "FIT_FRACTION",
     "SPLIT_RULE",
     "FollowerArrays",
+    "MergeArrays",
     "follower_arrays",
     "leader_follower_pairs",
+    "pooled_series",
     "split_time",
 ]
 
@@ -40,6 +42,22 @@ LENGTH_BUCKET = 64
 Window = Literal["fit", "heldout", "all"]
 
 
+class MergeArrays(NamedTuple):
+    """The merge scene beside each step of :class:`FollowerArrays`, for merging models (C-IDM).
+
+    Distances are front-bumper distances to the merge point along each car's own lane (m,
+    negative once past it); K merge-lane slots per step, padded slots with ``merge_present`` 0.
+    ego_to_merge: (N, T). merge_to_merge, merge_v, merge_length, merge_present: (N, T, K).
+    The field order is that of the trailing fields of ``bayesdrive.drivers.cidm.MergeInputs``.
+    """
+
+    ego_to_merge: np.ndarray
+    merge_to_merge: np.ndarray
+    merge_v: np.ndarray
+    merge_length: np.ndarray
+    merge_present: np.ndarray
+
+
 class FollowerArrays(NamedTuple):
     """Per-step arrays of N vehicles, padded to T steps (numpy, float64; engines cast).
 
@@ -47,6 +65,7 @@ class FollowerArrays(NamedTuple):
     where that transition is real and usable (both samples present, one dt apart, no flagged
     sample, inside the chosen window), else 0; padded entries hold harmless finite values.
     ``dx`` is the position increment x[t+1] - x[t], computed in float64 before any cast.
+    ``merge`` holds the merge scene for merging models (None for plain car following).
     """
 
     vehicle_ids: tuple[str, ...]
@@ -59,6 +78,7 @@ class FollowerArrays(NamedTuple):
     mask: np.ndarray
     t: np.ndarray
     dt: float
+    merge: MergeArrays | None = None
 
     @property
     def num_steps(self) -> np.ndarray:
@@ -165,4 +185,35 @@ def follower_arrays(
         has_leader=stack(7, 0.0),
         mask=stack(8, 0.0),
         dt=float(traj.dt),
+    )
+
+
+def pooled_series(
+    arrays: FollowerArrays, name: str, *, bucket: int = LENGTH_BUCKET
+) -> FollowerArrays:
+    """All usable steps of every row as one row named ``name`` (complete pooling: one parameter
+    set for all of them). Exact for models whose one-step density depends on the current step
+    only, as every base model's does; steps keep their order, row after row."""
+    usable = arrays.mask > 0
+    count = int(usable.sum())
+    if count == 0:
+        raise DataError("no usable step to pool")
+    width = int(np.ceil(count / bucket) * bucket)
+
+    def pool(values: np.ndarray) -> np.ndarray:
+        picked = values[usable]
+        pad = np.repeat(picked[-1:], width - count, axis=0)
+        return np.concatenate([picked, pad])[None]
+
+    merge = None if arrays.merge is None else MergeArrays(*map(pool, arrays.merge))
+    mask = np.zeros((1, width))
+    mask[0, :count] = 1.0
+    return arrays._replace(
+        vehicle_ids=(name,),
+        **{
+            f: pool(getattr(arrays, f))
+            for f in ("v", "next_v", "dx", "gap", "lead_v", "has_leader", "t")
+        },
+        mask=mask,
+        merge=merge,
     )

@@ -17,7 +17,7 @@ import xarray as xr
 from jax import Array
 
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
+from bayesdrive.data.views import FollowerArrays, MergeArrays, Window, follower_arrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import ensemble, latent, lm, nuts, pf, population, smc
@@ -78,13 +78,15 @@ def fit(
     max_vehicles: int | None = None,
     vehicle_ids: Sequence[str] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    source: str = "FollowerArrays",
     **engine_options: Any,
 ) -> xr.DataTree:
     """Infer per-vehicle distributions over ``params`` of ``model`` from ``data``.
 
     ``data`` is a :class:`Trajectories` (its ``window`` is cut with
     :func:`~bayesdrive.data.views.follower_arrays`) or ready :class:`FollowerArrays` (then
-    ``window`` should name the window they were built for; it is only recorded). Parameters not
+    ``window`` should name the window they were built for and ``source`` the data they came
+    from; both are only recorded). Parameters not
     inferred take ``fixed`` values, else the model's defaults. ``seed`` is recorded in the metadata
     beside the key's own data. ``prior`` (default: the model's uniform box) needs
     ``logpdf(theta)`` and ``sample(key, shape)``. ``max_vehicles`` keeps only the first vehicles
@@ -106,7 +108,7 @@ def fit(
         )
         source, data_format, flagged = data.source, data.format, len(data.flags)
     else:
-        arrays, source, data_format, flagged = data, "FollowerArrays", "arrays", None
+        arrays, data_format, flagged = data, "arrays", None
     if max_vehicles is not None:
         arrays = first_vehicles(arrays, max_vehicles)
     result = run_engine(
@@ -159,7 +161,8 @@ def first_vehicles(arrays: FollowerArrays, count: int) -> FollowerArrays:
         for name, value in arrays._asdict().items()
         if isinstance(value, np.ndarray)
     }
-    return arrays._replace(vehicle_ids=arrays.vehicle_ids[:count], **per_vehicle)
+    merge = None if arrays.merge is None else MergeArrays(*(a[:count] for a in arrays.merge))
+    return arrays._replace(vehicle_ids=arrays.vehicle_ids[:count], merge=merge, **per_vehicle)
 
 
 def _describe(values: np.ndarray) -> dict[str, float]:

@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.data.views import FollowerArrays
+from bayesdrive.data.views import FollowerArrays, MergeArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.drivers.cidm import MergeInputs
 from bayesdrive.drivers.idm import exact_observation_logpdf
 
 __all__ = [
@@ -44,7 +45,8 @@ class StepInputs(NamedTuple):
     """What one step's likelihood needs, as JAX arrays of any common leading shape.
 
     (vehicle, step) for a data set, (step,) for one vehicle's series, () for one step. ``dt`` is
-    broadcast to the same shape so every field can be scanned over steps alike.
+    broadcast to the same shape so every field can be scanned over steps alike. ``merge`` (the
+    merge scene, for merging models; None otherwise) has one trailing merge-slot axis more.
     """
 
     v: Array
@@ -55,6 +57,7 @@ class StepInputs(NamedTuple):
     has_leader: Array
     mask: Array
     dt: Array
+    merge: MergeArrays | None = None
 
 
 def step_inputs(arrays: FollowerArrays) -> StepInputs:
@@ -72,6 +75,7 @@ def step_inputs(arrays: FollowerArrays) -> StepInputs:
         has_leader=cast(arrays.has_leader),
         mask=cast(arrays.mask),
         dt=jnp.full(arrays.mask.shape, arrays.dt, dtype=float),
+        merge=None if arrays.merge is None else MergeArrays(*map(cast, arrays.merge)),
     )
 
 
@@ -120,8 +124,11 @@ def step_loglik(
     params = fill_params(model, names, theta, fixed)
     state = EgoState(x=jnp.zeros_like(step.v), v=step.v)
     next_state = EgoState(x=step.dx, v=step.next_v)
-    inputs = CarFollowingInputs(
-        gap=step.gap, lead_v=step.lead_v, has_leader=step.has_leader, dt=step.dt
+    following = (step.gap, step.lead_v, step.has_leader, step.dt)
+    inputs = (
+        CarFollowingInputs(*following)
+        if step.merge is None
+        else MergeInputs(*following, *step.merge)
     )
     logp = model.transition_logpdf(params, state, next_state, inputs)
     return jnp.where(step.mask > 0, logp, 0.0)

@@ -118,7 +118,10 @@ def _smc_vehicle(
 
     # Moves score steps 0..t in blocks, so their cost grows with t instead of the padded length.
     extra = -num_steps % SCORE_BLOCK
-    padded = jax.tree.map(lambda a: jnp.pad(a, (0, extra), mode="edge"), series)
+    # Only the step axis is padded (merge scenes carry a trailing merge-slot axis).
+    padded = jax.tree.map(
+        lambda a: jnp.pad(a, [(0, extra)] + [(0, 0)] * (a.ndim - 1), mode="edge"), series
+    )
     padded = padded._replace(mask=jnp.pad(series.mask, (0, extra)))  # the extra steps are unused
 
     def log_lik_up_to(particles: Array, last_step: Array) -> Array:

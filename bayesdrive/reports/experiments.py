@@ -31,9 +31,11 @@ import pandas as pd
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.trajectories import Trajectories, summary
+from bayesdrive.data.views import FollowerArrays, pooled_series
 from bayesdrive.drivers.base import PriorBox
+from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference.fit import fit
+from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.fit import summary as fit_summary
 from bayesdrive.inference.output import load_result, metadata, save_result
 from bayesdrive.simulation.baselines import baseline_policy
@@ -46,7 +48,13 @@ from bayesdrive.simulation.posterior import (
     posterior_policy,
 )
 from bayesdrive.simulation.rollout import rollout, scene_arrays
-from bayesdrive.simulation.scenarios import ScenarioSet, merge_scenarios, platoon_scenarios
+from bayesdrive.simulation.scenarios import (
+    MERGE_FIT_STAY_S,
+    ScenarioSet,
+    merge_follower_arrays,
+    merge_scenarios,
+    platoon_scenarios,
+)
 from bayesdrive.simulation.two_sample import classifier_two_sample_test, segment_features
 
 __all__ = ["FULL", "QUICK", "SEEDS", "Settings", "recorded_settings", "run_all"]
@@ -56,6 +64,7 @@ log = logging.getLogger(__name__)
 SEEDS = {
     "fit_smc": 11,
     "fit_pf": 12,
+    "fit_merge": 13,
     "evaluate": 21,
     "baselines": 22,
     "turing": 31,
@@ -223,25 +232,82 @@ def highway_step(
     }
 
 
-def merge_step(out: Path, settings: Settings) -> dict:
-    """The merging experiment on the held-out merge episodes (baselines that need no fit)."""
+def _merge_fit(
+    out: Path, arrays: FollowerArrays, model, engine: str, settings: Settings, force: bool
+) -> Any:
+    """Fit ``model`` per V2 stay of the fitting episodes; cached as ``<model>_<engine>.nc``."""
+    path = out / f"{model.name}_{engine}.nc"
+    if force or not path.exists():
+        seed = SEEDS["fit_merge"]
+        tree = fit(
+            jax.random.key(seed),
+            arrays,
+            model=model,
+            engine=engine,
+            num_particles=settings.smc_particles,
+            seed=seed,
+        )
+        save_result(tree, path)
+    return load_result(path)
+
+
+def merge_step(out: Path, settings: Settings, force: bool) -> dict:
+    """The merging experiment: C-IDM (c included) and LM-fitted IDM learned per cooperating-car
+    stay on the fitting episodes and pooled (held-out episodes hold other drivers), against
+    baselines that need no fit, on the held-out merge episodes."""
+    out.mkdir(parents=True, exist_ok=True)
     traj = registry.load("ngsim_merge_episodes")
     scenarios = _limit(
         merge_scenarios(traj, horizon_s=5.0), settings.max_scenarios and 4 * settings.max_scenarios
     )
-    rows = {}
+    # The stays are short (median 3 s): each alone leaves the parameters near their prior, so
+    # all of them share one parameter set (complete pooling).
+    stays = merge_follower_arrays(merge_scenarios(traj, horizon_s=MERGE_FIT_STAY_S, episodes="fit"))
+    if settings.max_scenarios is not None:
+        stays = first_vehicles(stays, 4 * settings.max_scenarios)
+    fitting = pooled_series(stays, "fitting-episode cooperating cars")
+    learned = {
+        "cidm-smc": (CIDM, _merge_fit(out, fitting, CIDM, "smc", settings, force)),
+        "idm-lm": (IDM, _merge_fit(out, fitting, IDM, "lm", settings, force)),
+    }
+    policies = {
+        name: pooled_policy(name, model, tree, metadata(tree), list(scenarios.simulated_ids))
+        for name, (model, tree) in learned.items()
+    }
     for name in MERGE_MODELS:
-        policy = baseline_policy(
+        policies[name] = baseline_policy(
             name, jax.random.key(SEEDS["baselines"]), traj, scenarios.simulated_ids
         )
-        rows[name] = {
+    rows = {
+        name: {
             "model": name,
             "policy": policy.description,
             **evaluate_policy(
                 jax.random.key(SEEDS["evaluate"]), policy, scenarios, num_rollouts=settings.rollouts
             ),
         }
-    return {"scenario_set": scenarios.summary(), "models": rows, "seed": SEEDS["evaluate"]}
+        for name, policy in policies.items()
+    }
+    posterior = learned["cidm-smc"][1]["posterior"]
+    return {
+        "scenario_set": scenarios.summary(),
+        "fitting_stays": len(stays.vehicle_ids),
+        "fitting_steps": int(fitting.mask.sum()),
+        "fitting_stay_horizon_s": MERGE_FIT_STAY_S,
+        "cidm_posterior": {
+            name: {
+                "mean": float(posterior[name].mean()),
+                "sd": float(posterior[name].std()),
+                "q05": float(posterior[name].quantile(0.05)),
+                "q95": float(posterior[name].quantile(0.95)),
+            }
+            for name in CIDM.param_names
+        },
+        "cooperation_draws": posterior["c"].values.ravel().tolist(),
+        "models": rows,
+        "seed": SEEDS["evaluate"],
+        "fit_seed": SEEDS["fit_merge"],
+    }
 
 
 def parameter_table(trees: dict[str, Any]) -> pd.DataFrame:
@@ -588,7 +654,9 @@ def run_all(
         )
     results["highway"] = highway
     progress("merging experiment")
-    results["merge"] = cached(out, "merge", lambda: merge_step(out, settings), force)
+    results["merge"] = cached(
+        out, "merge", lambda: merge_step(out / "merge", settings, force), force
+    )
     smc_trees = {label: load_result(h["fits"]["smc"]) for label, h in highway.items()}
     pf_trees = {label: load_result(h["fits"]["pf"]) for label, h in highway.items()}
     results["parameters"] = parameter_table(smc_trees).to_dict("records")

@@ -11,6 +11,9 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   least once.
 * **Hard braking**: vehicle-steps with realised acceleration <= -3 m/s^2, beside the same count
   in the data (observed speeds of the same vehicles and steps).
+* **Undesirable events over time**: the share of simulated vehicle-rollouts that have collided,
+  braked hard or left the road at least once by horizon step t (the paper's undesirable-event
+  curve; cumulative, so it never decreases).
 * **Off road**: vehicle-steps past the end of the vehicle's lane. No simulated vehicle of the
   current scene types drives on a lane that ends (in merge scenes the merging car replays), so
   this is 0 by construction there; it counts for scenes that simulate merging cars.
@@ -70,6 +73,7 @@ class ScenarioMetrics(NamedTuple):
     """One scenario's metrics (module docstring); by-step arrays are NaN past the scene's end.
 
     collided: vehicle-rollouts that collide at least once, out of ``vehicles * rollouts``.
+    undesirable_by_step: (T + 1,) share of vehicle-rollouts with an undesirable event by step t.
     """
 
     scenario_id: str
@@ -84,6 +88,7 @@ class ScenarioMetrics(NamedTuple):
     hard_braking: int
     data_hard_braking: int
     off_road: int
+    undesirable_by_step: np.ndarray
 
     @property
     def last_step(self) -> int:
@@ -134,6 +139,11 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
     past_end = np.concatenate([[False], ~real])
     last = int(np.flatnonzero(~past_end)[-1])
     collision = np.asarray(rollout.collision, bool)
+    event = collision | np.asarray(rollout.hard_braking, bool) | np.asarray(rollout.off_road, bool)
+    had_event = np.concatenate(
+        [np.zeros((num_rollouts, num_vehicles, 1), bool), np.logical_or.accumulate(event, axis=-1)],
+        axis=-1,
+    )
     # The simulator's realised-acceleration rule, applied to the observed speeds.
     observed_acceleration = np.diff(observed.v, axis=1) / observed.dt
     return ScenarioMetrics(
@@ -149,6 +159,7 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
         hard_braking=int(np.sum(rollout.hard_braking)),
         data_hard_braking=int(np.sum((observed_acceleration <= HARD_BRAKING_MPS2) & real)),
         off_road=int(np.sum(rollout.off_road)),
+        undesirable_by_step=np.where(past_end, np.nan, had_event.mean(axis=(0, 1))),
     )
 
 
@@ -242,6 +253,7 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
             "data_total": sum(m.data_hard_braking for m in metrics),
         },
         "off_road": {"total": sum(m.off_road for m in metrics)},
+        "undesirable_events": final("undesirable_by_step"),
         "speed_distribution_mps": distribution_distance(
             pooled("simulated_speed"), pooled("observed_speed")
         ),

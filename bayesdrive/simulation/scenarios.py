@@ -37,28 +37,39 @@ the acceleration lane) at x = 0. Episodes are split, not vehicles (:data:`MERGE_
 from __future__ import annotations
 
 import re
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.views import FIT_FRACTION, SPLIT_RULE, split_time
+from bayesdrive.data.views import (
+    FIT_FRACTION,
+    SPLIT_RULE,
+    FollowerArrays,
+    MergeArrays,
+    split_time,
+)
 
 __all__ = [
+    "MERGE_FIT_STAY_S",
     "MERGE_SELECTION_RULE",
     "MERGE_SPLIT_RULE",
     "MIN_MERGE_WINDOW_S",
     "SELECTION_RULE",
     "Scenario",
     "ScenarioSet",
+    "fitting_episodes",
     "heldout_episodes",
+    "merge_follower_arrays",
     "merge_scenarios",
     "platoon_scenarios",
     "scenario_capacity",
 ]
 
 MIN_MERGE_WINDOW_S = 1.0
+# A cooperating car's stay behind the merging car is fitted up to this long (longer ones are cut).
+MERGE_FIT_STAY_S = 20.0
 MERGE_SPLIT_RULE = (
     f"merge episodes in episode-number order: the first {FIT_FRACTION:.0%} (rounded down) are for "
     "fitting, the rest held out"
@@ -400,6 +411,12 @@ def heldout_episodes(traj: Trajectories) -> list[str]:
     return ordered[int(np.floor(FIT_FRACTION * len(ordered))) :]
 
 
+def fitting_episodes(traj: Trajectories) -> list[str]:
+    """Scene ids of the merge episodes for fitting, the complement of :func:`heldout_episodes`."""
+    held_out = set(heldout_episodes(traj))
+    return [e for e in sorted(traj.scene_ids, key=_natural_key) if e not in held_out]
+
+
 def _on_steps(track: _Track, values: np.ndarray, steps: np.ndarray, fill) -> np.ndarray:
     """``values`` of a track at absolute grid steps, ``fill`` outside its span."""
     at = steps - track.first
@@ -447,15 +464,26 @@ def _runs(labels: np.ndarray) -> list[tuple[int, int, str]]:
     return runs
 
 
-def merge_scenarios(traj: Trajectories, *, horizon_s: float) -> ScenarioSet:
-    """Merge scenarios of the held-out episodes (module docstring), each at most ``horizon_s``
-    long; steps past an earlier end are padded (``step_mask`` = 0)."""
+def merge_scenarios(
+    traj: Trajectories,
+    *,
+    horizon_s: float,
+    episodes: Literal["heldout", "fit", "all"] = "heldout",
+) -> ScenarioSet:
+    """Merge scenarios of the held-out episodes (module docstring), or of the fitting (or all)
+    episodes for fitting a merging model, each at most ``horizon_s`` long; steps past an earlier
+    end are padded (``step_mask`` = 0)."""
     steps = _horizon_steps(traj, horizon_s)
     min_steps = round(MIN_MERGE_WINDOW_S / traj.dt)
     tracks = _tracks_on_grid(traj)
     lane_of = traj.tracks.groupby("vehicle_id", sort=False)["lane_id"].first()
     scenarios, candidates, flagged_skipped = [], 0, 0
-    for episode in heldout_episodes(traj):
+    chosen = {
+        "heldout": heldout_episodes,
+        "fit": fitting_episodes,
+        "all": lambda t: sorted(t.scene_ids, key=_natural_key),
+    }[episodes](traj)
+    for episode in chosen:
         members = traj.scene_vehicles(episode)
         egos = [v for v in members if v.endswith("_ego")]
         if len(egos) != 1:
@@ -547,4 +575,48 @@ def _merge_scenario(
         merge_v=np.stack([ego_v, lead_v]),
         merge_present=np.stack([in_scene, lead_present]).astype(np.float64),
         merge_length=np.array([length([ego_id]), length(ego_lead_ids)]),
+    )
+
+
+def merge_follower_arrays(scenarios: ScenarioSet) -> FollowerArrays:
+    """The cooperating (V2) car's observed steps of merge scenarios as fitting arrays, with the
+    merge scene beside each step; one row per scenario (a V2 stay), named by its scenario id.
+
+    A step is usable where the scene is real and the car has a leader with a measured gap (as in
+    :func:`~bayesdrive.data.views.follower_arrays`, the free-road term alone leaves d_min, tau and
+    b_pref unidentified); stays without any usable step are left out. Positions are on the merge-point axis, so distances to the merge point
+    are minus the positions; increments are differenced in float64.
+    """
+    if scenarios.kind != "merge":
+        raise ValueError(f"merge_follower_arrays needs merge scenarios, got {scenarios.kind!r}")
+    if not scenarios.scenarios:
+        raise DataError(f"{scenarios.source}: no merge scenario to fit")
+
+    # A stay without one usable step (no measured leader) would only add prior draws to a pool.
+    fitted = [s for s in scenarios.scenarios if (s.step_mask * s.head_present[:-1]).any()]
+
+    def rows(field) -> np.ndarray:
+        return np.stack([field(s) for s in fitted])
+
+    gap = rows(lambda s: s.gap[0, :-1])
+    has_leader = rows(lambda s: s.head_present[:-1]) * np.isfinite(gap)
+    lengths = rows(lambda s: s.merge_length)[:, None, :]
+    return FollowerArrays(
+        vehicle_ids=tuple(s.scenario_id for s in fitted),
+        v=rows(lambda s: s.v[1, :-1]),
+        next_v=rows(lambda s: s.v[1, 1:]),
+        dx=rows(lambda s: np.diff(s.x[1])),
+        gap=np.where(has_leader > 0, gap, 10.0),
+        lead_v=rows(lambda s: s.v[0, :-1]),
+        has_leader=has_leader,
+        mask=rows(lambda s: s.step_mask) * has_leader,
+        t=rows(lambda s: s.t0 + s.dt * np.arange(s.steps)),
+        dt=scenarios.dt,
+        merge=MergeArrays(
+            ego_to_merge=rows(lambda s: -s.x[1, :-1]),
+            merge_to_merge=rows(lambda s: -s.merge_x[:, :-1].T),
+            merge_v=rows(lambda s: s.merge_v[:, :-1].T),
+            merge_length=np.repeat(lengths, scenarios.steps, axis=1),
+            merge_present=rows(lambda s: s.merge_present[:, :-1].T),
+        ),
     )
