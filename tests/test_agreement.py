@@ -17,9 +17,10 @@ from bayesdrive.inference.agreement import (
     agreement_summary,
     agreement_table,
     convergence_table,
+    mcse_mean,
     same_data,
 )
-from bayesdrive.inference.output import build_tree, save_result
+from bayesdrive.inference.output import build_tree, metadata, save_result
 
 VEHICLES = ("shifted-a-little", "shifted-a-lot", "scaled")
 
@@ -161,3 +162,25 @@ def test_diagnose_refuses_missing_files(tmp_path):
     run = CliRunner().invoke(app, ["diagnose", str(tmp_path / "absent.nc")])
     assert run.exit_code == 2
     assert "no such result file" in run.output
+
+
+def test_replicate_runs_take_their_standard_error_from_the_replicate_means():
+    # Four replicates: the same iid draws shifted by an offset per replicate. Their MCSE is the
+    # offsets' sd / 2 exactly; the autocorrelation estimate sees four nearly iid chains and would
+    # report about sd / sqrt(4000), far smaller.
+    draws = np.random.default_rng(3).normal(size=1000)
+    offsets = np.array([0.0, 0.1, -0.1, 0.3])
+    tau = np.stack([np.stack([draws + c] * 3, axis=-1) for c in offsets])
+    plain = result({"tau": tau}, "smc")
+    replicated = build_tree(
+        posterior={"tau": tau},
+        sample_stats={},
+        log_likelihood=np.zeros((4, 1000, 3, 2)),
+        arrays=arrays(),
+        metadata={**metadata(plain), "engine_options": {"replicates": 4}},
+    )
+    expected = offsets.std(ddof=1) / 2.0
+    assert np.allclose(mcse_mean(replicated)["tau"].values, expected)
+    assert np.all(mcse_mean(plain)["tau"].values < 0.5 * expected)
+    table = convergence_table(replicated)
+    assert np.allclose(table["ess_mean"], (table["sd"] / expected) ** 2)

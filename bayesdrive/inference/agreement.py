@@ -53,6 +53,7 @@ __all__ = [
     "agreement_table",
     "convergence_table",
     "grid_posterior",
+    "mcse_mean",
     "same_data",
 ]
 
@@ -74,6 +75,21 @@ def _per_vehicle(values: xr.DataTree | xr.Dataset, name: str) -> np.ndarray:
     return np.asarray(dataset[name].values, dtype=np.float64)
 
 
+def mcse_mean(tree: xr.DataTree) -> xr.Dataset:
+    """Monte Carlo standard error of each posterior mean [vehicle].
+
+    For a result whose chains are independent replicate runs (``engine_options.replicates`` > 1,
+    smc) it is the spread of the replicate means, sd / sqrt(R): draws within one SMC run are
+    correlated through resampling in a way no autocorrelation along the draw order captures.
+    Otherwise ArviZ's estimate from the chains' autocorrelation.
+    """
+    replicates = metadata(tree).get("engine_options", {}).get("replicates", 1)
+    if replicates > 1:
+        means = _posterior(tree).mean("draw")
+        return means.std("chain", ddof=1) / np.sqrt(replicates)
+    return arviz.mcse(tree, method="mean").to_dataset()
+
+
 def convergence_table(tree: xr.DataTree) -> pd.DataFrame:
     """One row per vehicle and parameter: R-hat (NaN with one chain), ESS, MCSE, engine extras."""
     posterior = _posterior(tree)
@@ -82,7 +98,7 @@ def convergence_table(tree: xr.DataTree) -> pd.DataFrame:
     stats = {
         "ess_bulk": arviz.ess(tree, method="bulk"),
         "ess_tail": arviz.ess(tree, method="tail"),
-        "mcse_mean": arviz.mcse(tree, method="mean"),
+        "mcse_mean": mcse_mean(tree),
         "mcse_sd": arviz.mcse(tree, method="sd"),
     }
     if multi_chain:
@@ -97,6 +113,8 @@ def convergence_table(tree: xr.DataTree) -> pd.DataFrame:
             row["rhat"] = float(values["rhat"][i]) if multi_chain else float("nan")
             row |= {key: float(values[key][i]) for key in stats if key != "rhat"}
             row["sd"] = float(posterior[name].values[:, :, i].std())
+            # The ESS the mean's standard error implies (the replicate one for smc).
+            row["ess_mean"] = (row["sd"] / row["mcse_mean"]) ** 2
             if sample_stats is not None:
                 row |= _engine_extras(sample_stats, i, k)
             rows.append(row)
@@ -137,7 +155,7 @@ def agreement_table(trees: Mapping[str, xr.DataTree]) -> pd.DataFrame:
     if len(trees) < 2:
         raise ValueError("agreement needs at least two results")
     posteriors = {label: _posterior(tree) for label, tree in trees.items()}
-    mcse = {label: arviz.mcse(tree, method="mean") for label, tree in trees.items()}
+    mcse = {label: mcse_mean(tree) for label, tree in trees.items()}
     vehicle_sets = [set(map(str, p["vehicle"].values)) for p in posteriors.values()]
     param_sets = [set(p.data_vars) for p in posteriors.values()]
     first = next(iter(posteriors.values()))
@@ -154,7 +172,7 @@ def agreement_table(trees: Mapping[str, xr.DataTree]) -> pd.DataFrame:
         return np.asarray(values, dtype=np.float64).ravel()
 
     def standard_error(label: str, name: str, vehicle: str) -> float:
-        return float(mcse[label].to_dataset()[name].sel(vehicle=vehicle))
+        return float(mcse[label][name].sel(vehicle=vehicle))
 
     rows = []
     for a, b in itertools.combinations(trees, 2):
