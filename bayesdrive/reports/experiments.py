@@ -55,7 +55,11 @@ from bayesdrive.simulation.scenarios import (
     merge_scenarios,
     platoon_scenarios,
 )
-from bayesdrive.simulation.two_sample import classifier_two_sample_test, segment_features
+from bayesdrive.simulation.two_sample import (
+    LEVEL_FEATURES,
+    classifier_two_sample_test,
+    segment_features,
+)
 
 __all__ = ["FULL", "QUICK", "SEEDS", "Settings", "recorded_settings", "run_all"]
 
@@ -331,7 +335,8 @@ def turing_step(
     out: Path, highway: dict[str, dict], trajs: dict[str, Trajectories], settings: Settings
 ) -> dict:
     """Classifier two-sample test: real held-out segments against one rollout of each model on
-    the same scenarios (features of :func:`segment_features`). Also writes the material for a
+    the same scenarios (features of :func:`segment_features`), once on all features and once on
+    the speed and gap levels only (``levels_only``: no acceleration or jerk). Also writes the material for a
     human test: paired clips (real and idm-smc, seeded order) and the answer sheet apart."""
     from bayesdrive.reports.clips import write_answer_sheet, write_clip_pair
 
@@ -383,7 +388,12 @@ def turing_step(
                         )
                     )
             generated = segment_features(np.concatenate(sim_v), np.concatenate(sim_g), scenarios.dt)
-            rows[name] = classifier_two_sample_test(real, generated, seed=SEEDS["turing"])._asdict()
+            rows[name] = {
+                **classifier_two_sample_test(real, generated, seed=SEEDS["turing"])._asdict(),
+                "levels_only": classifier_two_sample_test(
+                    real[:, LEVEL_FEATURES], generated[:, LEVEL_FEATURES], seed=SEEDS["turing"]
+                )._asdict(),
+            }
         results[label] = rows
     write_answer_sheet(answers, out / "answer_sheet.json")
     return {"classifier": results, "clips": str(out), "pairs": len(answers)}

@@ -219,7 +219,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     turing = report.section("Turing test (automated: classifier two-sample test)")
     turing.text(
         "A logistic-regression classifier tries to tell real held-out vehicle segments from "
-        "simulated ones; 50% accuracy means indistinguishable. p-values by label permutation."
+        "simulated ones; 50% accuracy means indistinguishable. p-values by label permutation. "
+        "Features: speed mean and sd, gap mean and minimum (the levels), acceleration sd and "
+        "jerk sd. The second accuracy uses the levels only: where it is much lower, the "
+        "classifier tells real from simulated by smoothness, i.e. by the execution noise, which "
+        "the model draws independently at every step while the processed data are smooth "
+        "(compare the criticism section's verdicts)."
     )
     turing.text(
         f"For human judges: {results['turing']['pairs']} pairs of clips (real and idm-smc, order "
@@ -234,6 +239,10 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
                     "accuracy": r["accuracy"],
                     "95% CI (approx.)": f"{r['ci_low']:.2f}-{r['ci_high']:.2f}",
                     "p (better than chance)": r["p_value"],
+                    "accuracy, levels only": r["levels_only"]["accuracy"],
+                    "95% CI, levels only": (
+                        f"{r['levels_only']['ci_low']:.2f}-{r['levels_only']['ci_high']:.2f}"
+                    ),
                 }
                 for m, r in rows.items()
             ]

@@ -17,11 +17,20 @@ from typing import NamedTuple
 import numpy as np
 from scipy import special
 
-__all__ = ["FEATURE_NAMES", "TwoSampleResult", "classifier_two_sample_test", "segment_features"]
+__all__ = [
+    "FEATURE_NAMES",
+    "LEVEL_FEATURES",
+    "TwoSampleResult",
+    "classifier_two_sample_test",
+    "segment_features",
+]
 
 # The log-likelihood is concave; a dozen Newton steps converge to machine precision here.
 NEWTON_STEPS = 12
 FEATURE_NAMES = ("speed_mean", "speed_sd", "gap_mean", "gap_min", "accel_sd", "jerk_sd")
+# The features that describe where a vehicle drives, not how smoothly: a test on these alone
+# separates a wrong speed or gap level from noise that is white where the data are smoothed.
+LEVEL_FEATURES = slice(0, 4)
 
 
 class TwoSampleResult(NamedTuple):
