@@ -13,6 +13,7 @@ from bayesdrive.simulation.metrics import (
     kde,
     rmse_by_step,
     scenario_metrics,
+    speed_density,
     summarize,
 )
 from bayesdrive.simulation.rollout import Rollout
@@ -153,3 +154,21 @@ def test_kde_is_a_density_centred_on_the_samples():
     density = kde(samples, grid)
     assert np.trapezoid(density, grid) == pytest.approx(1.0, abs=1e-3)
     assert abs(grid[np.argmax(density)] - 3.0) < 0.3  # mode of N(3, 1) from 500 draws, seed 0
+
+
+def test_speed_density_is_a_density_on_a_shared_grid():
+    rng = np.random.default_rng(3)
+    simulated, observed = rng.normal(20.0, 2.0, 200_000), rng.normal(15.0, 1.0, 500)
+    density = speed_density(simulated, observed)
+    grid = np.array(density["grid_mps"])
+    for name, centre in (("simulated", 20.0), ("observed", 15.0)):
+        values = np.array(density[name])
+        assert np.trapezoid(values, grid) == pytest.approx(1.0, abs=0.02)
+        assert grid[np.argmax(values)] == pytest.approx(centre, abs=0.5)
+
+
+def test_speed_density_of_one_repeated_speed_is_a_narrow_peak():
+    density = speed_density(np.full(100, 10.0), np.array([9.0, 10.0, 11.0]))
+    grid, values = np.array(density["grid_mps"]), np.array(density["simulated"])
+    assert np.trapezoid(values, grid) == pytest.approx(1.0, abs=0.01)
+    assert grid[np.argmax(values)] == pytest.approx(10.0, abs=grid[1] - grid[0])

@@ -81,6 +81,20 @@ def plot_rmse_curves(models: dict[str, Any], path: Path, title: str, dt: float) 
     return _save(fig, path)
 
 
+def plot_speed_densities(models: dict[str, Any], path: Path, title: str) -> Path:
+    """Speed densities of every model's rollouts against the data's on the same steps."""
+    fig = Figure(figsize=(6.5, 3.8), layout="tight")
+    ax = fig.subplots()
+    first = next(iter(models.values()))["speed_density"]
+    ax.plot(first["grid_mps"], first["observed"], color="k", lw=2.5, label="data")
+    for name, result in models.items():
+        density = result["speed_density"]
+        ax.plot(density["grid_mps"], density["simulated"], lw=1.2, label=name)
+    ax.set(xlabel="speed (m/s)", ylabel="density", title=title)
+    ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
 def plot_cooperation(draws: list[float], path: Path) -> Path:
     """The learned cooperation c of the C-IDM against its uniform prior."""
     fig = Figure(figsize=(5, 3.2), layout="tight")
@@ -186,6 +200,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         experiment["models"], figures / "rmse_merge.png", "Merging: over the horizon", 0.1
     )
     merge.figure(path, "RMSE and undesirable events over the horizon, held-out merge episodes")
+    merge.figure(
+        plot_speed_densities(
+            experiment["models"], figures / "merge_speeds.png", "Merging: speed distribution"
+        ),
+        "Speeds of the cooperating car in rollouts against the data, held-out merge episodes",
+    )
     posterior = pd.DataFrame(experiment["cidm_posterior"]).T.round(3)
     merge.table(
         posterior.reset_index(names="parameter"),
