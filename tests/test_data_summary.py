@@ -42,3 +42,25 @@ def test_merge_episode_duration_matches_provenance(data_dir):
     # PROVENANCE.txt: 4877 rows at 10 Hz in 98 episodes; each episode spans (rows - 1) * 0.1 s.
     assert info["scenes"] == 98
     assert info["duration_s"] == pytest.approx((4877 - 98) * 0.1)
+
+
+def test_first_seconds_counts_from_each_scenes_earliest_sample():
+    dt = 0.1
+    rows = [("a", k * dt) for k in range(31)]  # scene 1 starts at 0 s
+    rows += [("b", 1.0 + k * dt) for k in range(31)]  # joins scene 1 at 1 s
+    rows += [("c", 50.0 + k * dt) for k in range(31)]  # scene 2 starts at 50 s
+    rows += [("d", 10.0 + k * dt) for k in range(5)]  # scene 1 again, only after the span
+    scenes = pd.DataFrame(
+        {"scene_id": ["s1", "s1", "s2", "s1"], "vehicle_id": ["a", "b", "c", "d"]}
+    )
+    traj = Trajectories(_tracks(rows), scenes, dt=dt, format="test", source="memory")
+    cropped = traj.first_seconds(1.5)
+    ends = cropped.tracks.groupby("vehicle_id")["t"].agg(["min", "max"])
+    assert ends.loc["a", "max"] == pytest.approx(1.4)
+    assert ends.loc["b", "min"] == pytest.approx(1.0) and ends.loc["b", "max"] == pytest.approx(1.4)
+    assert ends.loc["c", "min"] == pytest.approx(50.0) and ends.loc["c", "max"] == pytest.approx(
+        51.4
+    )
+    assert "d" not in ends.index and "d" not in set(cropped.scenes["vehicle_id"])
+    with pytest.raises(ValueError, match="positive"):
+        traj.first_seconds(0.0)

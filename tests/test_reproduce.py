@@ -44,6 +44,14 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
     for result in models.values():
         assert result["rmse_position_m"]["mean"] >= 0
         assert len(result["rmse_position_m"]["by_step"]["mean"]) == 51
+        events = result["undesirable_events"]["by_step"]["mean"]
+        assert len(events) == 51 and events == sorted(events)  # a share so far never falls
+
+    merge = json.loads((out / "merge.json").read_text())
+    assert {"cidm-smc", "idm-lm", "cidm-c1", "idm-nomerge", "cv"} <= set(merge["models"])
+    cooperation = merge["cidm_posterior"]["c"]
+    assert 0 <= cooperation["q05"] <= cooperation["mean"] <= cooperation["q95"] <= 1
+    assert (out / "models" / "ngsim_merge_episodes_cidm_smc.md").exists()
 
     # A re-run rebuilds the report from the saved steps without recomputing them.
     stamp = (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns

@@ -127,6 +127,36 @@ class Trajectories:
             flags=self.flags[self.flags["vehicle_id"].isin(keep)].reset_index(drop=True),
         )
 
+    def first_seconds(self, seconds: float) -> Trajectories:
+        """The first ``seconds`` of every scene, counted from the scene's earliest sample (a
+        vehicle in several scenes keeps the span of the earliest); vehicles left without a
+        sample leave the scenes, flags follow."""
+        if seconds <= 0:
+            raise ValueError(f"the kept span must be positive, got {seconds} s")
+        start_of_vehicle = self.tracks.groupby("vehicle_id")["t"].min()
+        scene_start = (
+            self.scenes.assign(t=self.scenes["vehicle_id"].map(start_of_vehicle))
+            .groupby("scene_id")["t"]
+            .min()
+        )
+        start = (
+            self.scenes.assign(t=self.scenes["scene_id"].map(scene_start))
+            .groupby("vehicle_id")["t"]
+            .min()
+        )
+        # Vehicles outside every scene keep their own start.
+        start = start.reindex(start_of_vehicle.index).fillna(start_of_vehicle)
+
+        def kept(frame: pd.DataFrame) -> pd.Series:
+            return frame["t"] < frame["vehicle_id"].map(start) + seconds
+
+        cropped = dataclasses.replace(
+            self,
+            tracks=self.tracks[kept(self.tracks)].reset_index(drop=True),
+            flags=self.flags[kept(self.flags)].reset_index(drop=True),
+        )
+        return cropped.subset(pd.unique(cropped.tracks["vehicle_id"]))
+
 
 def _where(source: str, frame: pd.DataFrame, index, column: str) -> str:
     """'file, row R, column C' for an error message; rows carry their source row when known.

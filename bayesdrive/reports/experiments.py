@@ -82,6 +82,7 @@ HIGHWAY_SIZES = {"ngsim_i80_chains": 5, "openacc_vicolungo": 4}
 ACC_RECORDING = "JRC-VC_260219_part3"
 LEARNED = ("idm-smc", "idm-pf")
 BASELINE_MODELS = ("idm-default", "idm-nls", "idm-lm", "cv", "ca", "blackbox")
+MERGE_DATA = "ngsim_merge_episodes"
 MERGE_MODELS = ("cidm-c1", "idm-nomerge", "cv")
 CLIP_PAIRS = 3
 
@@ -102,10 +103,11 @@ class Settings:
     criticism_scenes: int | None
     criticism_particles: int
     criticism_rollouts: int
+    criticism_seconds: float
 
 
-FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 256, 32)
-QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 1, 128, 8)
+FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 256, 32, 120.0)
+QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 1, 128, 8, 45.0)
 
 
 def _save_json(path: Path, payload: Any) -> None:
@@ -238,8 +240,9 @@ def highway_step(
 
 def _merge_fit(
     out: Path, arrays: FollowerArrays, model, engine: str, settings: Settings, force: bool
-) -> Any:
-    """Fit ``model`` per V2 stay of the fitting episodes; cached as ``<model>_<engine>.nc``."""
+) -> Path:
+    """Fit ``model`` to the pooled V2 stays of the fitting episodes; saved (and reused) as
+    ``<model>_<engine>.nc``."""
     path = out / f"{model.name}_{engine}.nc"
     if force or not path.exists():
         seed = SEEDS["fit_merge"]
@@ -250,9 +253,10 @@ def _merge_fit(
             engine=engine,
             num_particles=settings.smc_particles,
             seed=seed,
+            source=MERGE_DATA,
         )
         save_result(tree, path)
-    return load_result(path)
+    return path
 
 
 def merge_step(out: Path, settings: Settings, force: bool) -> dict:
@@ -260,7 +264,7 @@ def merge_step(out: Path, settings: Settings, force: bool) -> dict:
     stay on the fitting episodes and pooled (held-out episodes hold other drivers), against
     baselines that need no fit, on the held-out merge episodes."""
     out.mkdir(parents=True, exist_ok=True)
-    traj = registry.load("ngsim_merge_episodes")
+    traj = registry.load(MERGE_DATA)
     scenarios = _limit(
         merge_scenarios(traj, horizon_s=5.0), settings.max_scenarios and 4 * settings.max_scenarios
     )
@@ -270,13 +274,16 @@ def merge_step(out: Path, settings: Settings, force: bool) -> dict:
     if settings.max_scenarios is not None:
         stays = first_vehicles(stays, 4 * settings.max_scenarios)
     fitting = pooled_series(stays, "fitting-episode cooperating cars")
-    learned = {
+    fits = {
         "cidm-smc": (CIDM, _merge_fit(out, fitting, CIDM, "smc", settings, force)),
         "idm-lm": (IDM, _merge_fit(out, fitting, IDM, "lm", settings, force)),
     }
+    trees = {name: load_result(path) for name, (_, path) in fits.items()}
     policies = {
-        name: pooled_policy(name, model, tree, metadata(tree), list(scenarios.simulated_ids))
-        for name, (model, tree) in learned.items()
+        name: pooled_policy(
+            name, model, trees[name], metadata(trees[name]), list(scenarios.simulated_ids)
+        )
+        for name, (model, _) in fits.items()
     }
     for name in MERGE_MODELS:
         policies[name] = baseline_policy(
@@ -292,8 +299,9 @@ def merge_step(out: Path, settings: Settings, force: bool) -> dict:
         }
         for name, policy in policies.items()
     }
-    posterior = learned["cidm-smc"][1]["posterior"]
+    posterior = trees["cidm-smc"]["posterior"]
     return {
+        "fits": {name: str(path) for name, (_, path) in fits.items()},
         "scenario_set": scenarios.summary(),
         "fitting_stays": len(stays.vehicle_ids),
         "fitting_steps": int(fitting.mask.sum()),
@@ -553,65 +561,81 @@ def criticism_step(out: Path, traj: Trajectories, settings: Settings) -> dict:
     """What the stochastic IDM gets wrong on real data, the named cause and its gain.
 
     Uses whole scenes (all vehicles of the first ``criticism_scenes`` scenes), so every follower's
-    leader is in the data.
+    leader is in the data, cut to their first ``criticism_seconds`` (an OpenACC recording lasts
+    374 s; the fits' cost grows faster than the series length).
     """
     from bayesdrive.criticism.criticize import CriticizeConfig, criticize
     from bayesdrive.reports.criticism_plots import plot_criticism
 
     scenes = list(pd.unique(traj.scenes["scene_id"]))[: settings.criticism_scenes]
-    chosen = traj.subset(traj.scenes.loc[traj.scenes["scene_id"].isin(scenes), "vehicle_id"])
+    chosen = traj.subset(
+        traj.scenes.loc[traj.scenes["scene_id"].isin(scenes), "vehicle_id"]
+    ).first_seconds(settings.criticism_seconds)
     config = CriticizeConfig(
         num_particles=settings.criticism_particles, num_rollouts=settings.criticism_rollouts
     )
     result = criticize(chosen, seed=SEEDS["criticism"], config=config)
     figures = [str(p) for p in plot_criticism(result, out)]
-    return {"scenes": len(scenes), **result.report, "figures": figures}
+    return {
+        "scenes": len(scenes),
+        "seconds_per_scene": settings.criticism_seconds,
+        **result.report,
+        "figures": figures,
+    }
 
 
-def export_models(out: Path, highway: dict[str, dict], settings: Settings) -> list[str]:
+MODEL_DESCRIPTIONS = {
+    "idm": "stochastic IDM",
+    "cidm": "stochastic Cooperative IDM; one parameter set pooled over the cooperating cars' "
+    "stays behind merging cars in the fitting episodes",
+}
+
+
+def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Settings) -> list[str]:
     """Fitted driver models as artefacts: each smc posterior (posterior group and metadata only,
-    float32) as ``<data>_idm_smc.nc`` beside a short model card ``<data>_idm_smc.md``."""
+    float32) as ``<stem>.nc`` beside a short model card ``<stem>.md``; ``fitted`` maps a stem to
+    the data label and the saved result."""
     import xarray as xr
 
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for label, experiment in highway.items():
-        tree = load_result(experiment["fits"]["smc"])
+    for stem, (label, path) in fitted.items():
+        tree = load_result(path)
         meta = metadata(tree)
         posterior = tree["posterior"].to_dataset().astype("float32")
         slim = xr.DataTree.from_dict({"posterior": posterior})
         slim.attrs = dict(tree.attrs)
-        stem = f"{label.replace(':', '_')}_idm_smc"
         save_result(slim, out / f"{stem}.nc")
-        fitted = fit_summary(tree)
+        summary_by_vehicle = fit_summary(tree)["vehicles"].values()
         ess = tree["sample_stats"].to_dataset()
         evidence = ess["log_evidence"].values if "log_evidence" in ess else np.array([np.nan])
         card = "\n".join(
             [
                 f"# {stem}",
                 "",
-                f"- model: {meta['model']} (stochastic IDM, parameters {', '.join(meta['params'])})",
+                f"- model: {meta['model']} ({MODEL_DESCRIPTIONS[meta['model']]}; parameters "
+                f"{', '.join(meta['params'])})",
                 f"- data: {meta['data_source']} ({label}), window '{meta['window']}' of the split: "
                 f"{meta.get('split_rule', '')}",
-                f"- vehicles: {len(fitted['vehicles'])}; engine: smc, "
+                f"- fitted units: {len(summary_by_vehicle)}; engine: {meta['engine']}, "
                 f"{meta['num_particles']} particles, seed {meta['seed']}",
-                "- prior: independent uniform on the documented bounds (bayesdrive.drivers.idm)",
-                f"- diagnostics: median log-evidence per vehicle {np.nanmedian(evidence):.1f} nats; "
+                "- prior: independent uniform on the documented bounds (bayesdrive.drivers)",
+                f"- diagnostics: median log-evidence per unit {np.nanmedian(evidence):.1f} nats; "
                 f"wall time {meta.get('wall_time_s', float('nan')):.0f} s",
                 f"- settings: bayesdrive reproduce, '{settings.name}' run",
-                "- caveat: on 15 NGSIM vehicles smc fell short of the agreement criterion against "
-                "nuts and emcee and missed one vehicle's main mode (reports/agreement/); "
-                "congested data leaves v_des, d_min and b_pref weakly identified",
+                "- cross-engine agreement of smc with nuts and emcee on real NGSIM vehicles: "
+                "reports/agreement/agreement.md; congested data leaves v_des, d_min and b_pref "
+                "weakly identified",
                 "- regenerate: `bayesdrive reproduce --out results` (the file is "
                 f"results/models/{stem}.nc)",
                 "- open with: `xarray.open_datatree(path, engine='h5netcdf')` or arviz; draws "
                 "are (chain, draw, vehicle) per parameter",
                 "",
-                "Posterior means across vehicles (mean / sd of the per-vehicle means):",
+                "Posterior means (mean / sd across fitted units):",
                 "",
                 *(
-                    f"- {name}: {np.mean([v[name]['mean'] for v in fitted['vehicles'].values()]):.2f}"
-                    f" / {np.std([v[name]['mean'] for v in fitted['vehicles'].values()]):.2f}"
+                    f"- {name}: {np.mean([v[name]['mean'] for v in summary_by_vehicle]):.2f}"
+                    f" / {np.std([v[name]['mean'] for v in summary_by_vehicle]):.2f}"
                     for name in meta["params"]
                 ),
                 "",
@@ -701,6 +725,14 @@ def run_all(
             folder, "criticism", lambda t=traj, f=folder: criticism_step(f, t, settings), force
         )
     results["criticism"] = criticism
-    results["models"] = export_models(out / "models", highway, settings)
+    fitted = {
+        f"{label.replace(':', '_')}_idm_smc": (label, Path(h["fits"]["smc"]))
+        for label, h in highway.items()
+    }
+    fitted[f"{MERGE_DATA}_cidm_smc"] = (
+        MERGE_DATA,
+        Path(results["merge"]["fits"]["cidm-smc"]),
+    )
+    results["models"] = export_models(out / "models", fitted, settings)
     results["trees"] = {"smc": smc_trees, "pf": pf_trees}
     return results

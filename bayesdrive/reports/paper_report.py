@@ -313,8 +313,8 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     for label, found in results.get("criticism", {}).items():
         artefact = found.get("verdict_is_possible_processing_artefact")
         criticism.text(
-            f"{label} ({found['data']['vehicles']} vehicles of {found['scenes']} scenes): "
-            f"verdict '{found['verdict']}'."
+            f"{label} ({found['data']['vehicles']} vehicles of {found['scenes']} scenes, the "
+            f"first {found['seconds_per_scene']:.0f} s of each): verdict '{found['verdict']}'."
         )
         if artefact:
             criticism.note(f"The verdict may be a processing artefact: {artefact}")
