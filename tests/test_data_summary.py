@@ -3,7 +3,7 @@
 import pandas as pd
 import pytest
 
-from bayesdrive.data.trajectories import Trajectories, recorded_duration, summary
+from bayesdrive.data.trajectories import FLAG_COLUMNS, Trajectories, recorded_duration, summary
 
 
 def _tracks(rows):
@@ -53,7 +53,10 @@ def test_first_seconds_counts_from_each_scenes_earliest_sample():
     scenes = pd.DataFrame(
         {"scene_id": ["s1", "s1", "s2", "s1"], "vehicle_id": ["a", "b", "c", "d"]}
     )
-    traj = Trajectories(_tracks(rows), scenes, dt=dt, format="test", source="memory")
+    no_flags = pd.DataFrame({c: pd.Series(dtype="str") for c in FLAG_COLUMNS}).astype({"t": float})
+    traj = Trajectories(
+        _tracks(rows), scenes, dt=dt, format="test", source="memory", flags=no_flags
+    )
     cropped = traj.first_seconds(1.5)
     ends = cropped.tracks.groupby("vehicle_id")["t"].agg(["min", "max"])
     assert ends.loc["a", "max"] == pytest.approx(1.4)

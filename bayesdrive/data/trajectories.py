@@ -148,7 +148,8 @@ class Trajectories:
         start = start.reindex(start_of_vehicle.index).fillna(start_of_vehicle)
 
         def kept(frame: pd.DataFrame) -> pd.Series:
-            return frame["t"] < frame["vehicle_id"].map(start) + seconds
+            # astype: mapping an empty string column keeps its string dtype.
+            return frame["t"] < frame["vehicle_id"].map(start).astype(float) + seconds
 
         cropped = dataclasses.replace(
             self,
