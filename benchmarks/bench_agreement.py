@@ -47,7 +47,7 @@ DATA = "ngsim_i80_chains"
 # ESS of at least 1000 for every vehicle and parameter (nuts: bulk ESS; smc: from the spread of
 # its independent replicates, see bayesdrive.inference.agreement.mcse_mean).
 ENGINE_OPTIONS = {
-    "smc": {"num_particles": 2000, "replicates": 8},
+    "smc": {"num_particles": 1000, "replicates": 8},
     "nuts": {"num_particles": 8000, "num_chains": 4, "num_warmup": 1000},
     "emcee": {"num_particles": 4000, "num_steps": 20000},
     "pf": {"num_particles": 4000},

@@ -27,17 +27,13 @@ favoured from the start, so tempering finds it in every seed tried. Its log-evid
 (``log_evidence``, the product of the stages' mean incremental weights) is unbiased as well; a
 sequential one far below it flags such a switch.
 
-**Moves** (both stages) act on u = logit((theta - lower) / (upper - lower)) where the prior has
-finite bounds (theta itself elsewhere), the target on u carrying the Jacobian, so parameters piled
-against a prior bound move freely. Random-walk and independent Metropolis-Hastings moves
-alternate, both built from the Gaussian fitted to the weighted cloud on u: the random walk
-proposes with its covariance times :math:`s^2`, starting from :math:`s = 2.38/\sqrt d` (Roberts,
+**Moves** (both stages) are random walks on u = logit((theta - lower) / (upper - lower)) where
+the prior has finite bounds (theta itself elsewhere), the target on u carrying the Jacobian, so
+parameters piled against a prior bound move freely. The proposal is Gaussian with the particles'
+weighted covariance of u times :math:`s^2`, starting from :math:`s = 2.38/\sqrt d` (Roberts,
 Gelman & Gilks 1997) and adapted per vehicle towards an acceptance rate of ``target_acceptance``
-(log s moves by acceptance - target after every random-walk move); the independent move proposes
-from the Gaussian itself, which crosses a near-Gaussian cloud in one jump (on vehicle 140, a
-ridge of v_des against a_max and b_pref, it raised the replicate ESS of v_des from about 450 to
-2300 at the same cost). After the last stage ``final_moves`` more moves under the full posterior
-decorrelate the returned, equally weighted, draws.
+(log s moves by acceptance - target after every move). After the last stage ``final_moves`` more
+moves under the full posterior decorrelate the returned, equally weighted, draws.
 
 **Replicates.** Draws of one SMC run are correlated through resampling in a way no
 autocorrelation along the draw order measures. ``replicates`` independent runs (keys split from
@@ -217,7 +213,7 @@ def _smc_vehicle(
     ):
         """Systematic resampling, then MH moves targeting p(theta) p(y_1..last_step | theta)^power."""
         key_resample, key_moves = jax.random.split(key)
-        centre, cov = weighted_mean_cov(to_free(state.theta), state.log_weight)
+        _, cov = weighted_mean_cov(to_free(state.theta), state.log_weight)
         chol = jnp.linalg.cholesky(cov + jitter)
         parents = systematic(key_resample, state.log_weight)
         theta, log_lik, log_prior = (
@@ -227,18 +223,12 @@ def _smc_vehicle(
         )
         unique = count_distinct_sorted(parents)
 
-        def log_fit(u: Array) -> Array:
-            """log density (up to a constant) of the Gaussian fitted to the weighted cloud."""
-            z = jax.scipy.linalg.solve_triangular(chol, (u - centre).T, lower=True)
-            return -0.5 * jnp.sum(z**2, axis=0)
-
-        def move(carry, xs):
+        def move(carry, key):
             theta, log_lik, log_prior, log_scale = carry
-            key, independent = xs
             key_step, key_accept = jax.random.split(key)
             noise = jax.random.normal(key_step, theta.shape, dtype=theta.dtype) @ chol.T
             free = to_free(theta)
-            prop_free = jnp.where(independent, centre + noise, free + jnp.exp(log_scale) * noise)
+            prop_free = free + jnp.exp(log_scale) * noise
             proposal = from_free(prop_free)
             prop_prior = log_prior_of(proposal)
             prop_lik = log_lik_up_to(proposal, last_step)
@@ -247,8 +237,6 @@ def _smc_vehicle(
                 + power * prop_lik
                 + log_jacobian(prop_free)
                 - (log_prior + power * log_lik + log_jacobian(free))
-                # The proposal ratio q(u) / q(u'), 1 for the symmetric random walk.
-                + jnp.where(independent, log_fit(free) - log_fit(prop_free), 0.0)
             )
             # Outside the prior support the likelihood may be NaN; the finite check rejects it.
             accept = jnp.isfinite(prop_prior) & (
@@ -259,17 +247,14 @@ def _smc_vehicle(
                 jnp.where(accept[:, None], proposal, theta),
                 jnp.where(accept, prop_lik, log_lik),
                 jnp.where(accept, prop_prior, log_prior),
-                jnp.where(independent, log_scale, log_scale + rate - config.target_acceptance),
+                log_scale + rate - config.target_acceptance,
             )
             return carry, rate
 
-        # Random-walk and independent moves alternate: the independent proposal (the Gaussian
-        # fitted to the cloud on the free scale) jumps across a cloud at once where the posterior
-        # is near Gaussian there; the random walk copes where it is not.
         (theta, log_lik, log_prior, log_scale), rates = jax.lax.scan(
             move,
             (theta, log_lik, log_prior, state.log_scale),
-            (jax.random.split(key_moves, num_moves), jnp.arange(num_moves) % 2 == 1),
+            jax.random.split(key_moves, num_moves),
         )
         moved = _Particles(theta, jnp.zeros(n, theta.dtype), log_lik, log_prior, log_scale)
         return moved, jnp.mean(rates), unique.astype(theta.dtype)
