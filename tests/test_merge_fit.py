@@ -83,7 +83,8 @@ def test_cidm_fit_learns_cooperation_from_merge_stays(stays):
         num_particles=64,
         seed=seed,
         source="ngsim_merge_episodes",
+        replicates=2,
     )
     c = tree["posterior"]["c"].values
-    assert c.shape[-1] == 3 and ((c >= 0) & (c <= 1)).all()
+    assert c.shape == (2, 64, 3) and ((c >= 0) & (c <= 1)).all()
     assert metadata(tree)["data_source"] == "ngsim_merge_episodes"

@@ -410,7 +410,8 @@ def run(
     series = step_inputs(arrays)
     num_vehicles = series.mask.shape[0]
     # Replicates are whole independent runs (own keys), laid out replicate-major as extra vehicles.
-    copies = jax.tree.map(lambda a: jnp.tile(a, (replicates, 1)), series)
+    # Repeat along the vehicle axis only (merge scenes carry a trailing merge-slot axis).
+    copies = jax.tree.map(lambda a: jnp.concatenate([a] * replicates), series)
     keys = jax.random.split(key, replicates * num_vehicles)
     out, compile_time, run_time = map_vehicles(
         per_vehicle,
