@@ -238,21 +238,28 @@ def main() -> None:
         steps = int(data.mask.sum())
         resampled = out.sample_stats["resampled"][1]
         moves = out.options["num_moves"]
-        # A move scores the blocks of SCORE_BLOCK steps up to the current step; the closing moves
-        # score each vehicle's whole series.
+        # A move scores the blocks of SCORE_BLOCK steps up to the current step. The closing
+        # tempering stage scores each vehicle's whole series once for its fresh prior draws, then
+        # temper_moves times per stage and final_moves times at the end.
         last_live = data.mask.shape[1] - 1 - np.argmax(data.mask[:, ::-1] > 0, axis=1)
-        scored_steps = np.concatenate([np.nonzero(resampled)[1], last_live])
-        blocks = (scored_steps // smc.SCORE_BLOCK + 1) * smc.SCORE_BLOCK
-        events = len(scored_steps)
+        rejuvenated = np.nonzero(resampled)[1]
+        blocks = (rejuvenated // smc.SCORE_BLOCK + 1) * smc.SCORE_BLOCK
+        whole = (last_live // smc.SCORE_BLOCK + 1) * smc.SCORE_BLOCK
+        stages = np.asarray(out.sample_stats["temper_stages"][1]).reshape(-1)[: len(whole)]
+        closing_scans = 1 + stages * out.options["temper_moves"] + out.options["final_moves"]
+        events = len(rejuvenated)
         padded = data.mask.shape[1]
-        evaluations = data.mask.size * m + moves * m * int(blocks.sum())
+        evaluations = data.mask.size * m + m * (
+            moves * int(blocks.sum()) + int(whole @ closing_scans)
+        )
         smc_lines.append(
             row(
                 label,
                 steps * m,
                 out.wall_time_s,
                 out.compile_time_s,
-                f"{count} vehicles x {m} particles, {padded} padded steps; {events} rejuvenations x {moves} moves; "
+                f"{count} vehicles x {m} particles, {padded} padded steps; {events} rejuvenations "
+                f"x {moves} moves, {int(stages.sum())} tempering stages; "
                 f"{evaluations / out.wall_time_s:.3g} likelihood evaluations/s",
             )
         )
@@ -288,8 +295,9 @@ def main() -> None:
             f"{reference_error:.1e} on real steps (float32 model).",
             "",
             "smc's likelihood evaluations count the reweighting of every particle on every padded "
-            "step plus, per rejuvenation (and the closing one per vehicle), every move scoring "
-            "every particle on the steps seen so far, rounded up to blocks of "
+            "step, per rejuvenation every move scoring every particle on the steps seen so far, "
+            "and the closing tempering stage (every particle scored on the whole series once, "
+            "then once per move of every stage and per final move), rounded up to blocks of "
             f"{smc.SCORE_BLOCK}. Vectorising vehicles turns rejuvenation's `lax.cond` into a "
             "select that runs it at every step, so that row computes far more than it counts; "
             "compare the two rows on the same vehicles.",
