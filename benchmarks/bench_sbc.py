@@ -7,7 +7,8 @@ study with the same seed fitting the sd-doubled likelihood, which must be reject
 ``reports/sbc/`` (or ``--out``): per study the rank histograms (PNG), ranks (CSV) and digest
 (JSON), and ``sbc_table.md`` with every p-value, coverage, the verdicts and the runtimes.
 
-Run: ``python benchmarks/bench_sbc.py [--replications 200] [--engines smc,nuts,emcee]``.
+Run: ``python benchmarks/bench_sbc.py [--replications 200] [--engines smc,nuts,emcee]``; a run of
+some engines keeps the other engines' studies from ``sbc_studies.json``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from bayesdrive.cli.sbc_cmd import write_outcome
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.fit import ENGINES
-from bayesdrive.inference.sbc import SBCOutcome, run_sbc, sd_doubled
+from bayesdrive.inference.sbc import run_sbc, sd_doubled
 
 PARAMS = ("d_min", "tau", "a_max", "sigma")
 # Each engine at the settings a user would run: ~1000 draws per replication.
@@ -36,24 +37,30 @@ ENGINE_OPTIONS = {
 }
 
 
-def table(rows: list[tuple[SBCOutcome, float]]) -> str:
-    """The markdown table: one row per study and parameter."""
+def table(digests: list[dict]) -> str:
+    """The markdown table: one row per study and parameter (digests of SBCOutcome.summary)."""
     lines = [
-        "| engine | fitted model | param | chi2 p | KS p | 90% coverage | min ESS | verdict | "
-        "study time (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| engine | fitted model | replications | param | chi2 p | KS p | 90% coverage | min ESS | "
+        "verdict | study time (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for outcome, seconds in rows:
-        level = outcome.alpha / len(outcome.names)
-        for k, name in enumerate(outcome.names):
-            verdict = "reject" if outcome.chi2_pvalue[k] < level else "pass"
+    for study in digests:
+        for name, test in study["parameters"].items():
+            verdict = "reject" if test["chi2_pvalue"] < study["bonferroni_level"] else "pass"
             lines.append(
-                f"| {outcome.engine} | {outcome.fit_model} | {name} | "
-                f"{outcome.chi2_pvalue[k]:.3g} | {outcome.ks_pvalue[k]:.3g} | "
-                f"{outcome.coverage[k]:.3f} | {np.min(outcome.ess[:, k]):.0f} | {verdict} | "
-                f"{seconds:.0f} |"
+                f"| {study['engine']} | {study['fit_model']} | {study['replications']} | {name} | "
+                f"{test['chi2_pvalue']:.3g} | {test['ks_pvalue']:.3g} | "
+                f"{test['coverage']:.3f} | {test['min_ess']:.0f} | {verdict} | "
+                f"{study['study_time_s']:.0f} |"
             )
     return "\n".join(lines) + "\n"
+
+
+def kept_studies(path: Path, rerun: set[str]) -> list[dict]:
+    """Studies of engines not rerun now, from an earlier run's digest file (none if absent)."""
+    if not path.exists():
+        return []
+    return [s for s in json.loads(path.read_text())["studies"] if s["engine"] not in rerun]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -66,8 +73,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
 
     started = time.perf_counter()
-    rows, digests = [], []
-    for engine in args.engines.split(","):
+    engines = args.engines.split(",")
+    digests = kept_studies(args.out / "sbc_studies.json", set(engines))
+    for engine in engines:
         for fit_model in (IDM, sd_doubled(IDM)):
             study_started = time.perf_counter()
             outcome = run_sbc(
@@ -85,7 +93,6 @@ def main(argv: list[str] | None = None) -> None:
             seconds = time.perf_counter() - study_started
             stem = f"sbc_{engine}" + ("" if fit_model is IDM else "_sd_doubled")
             write_outcome(outcome, args.out, stem)
-            rows.append((outcome, seconds))
             digests.append({**outcome.summary(), "study_time_s": seconds})
             print(
                 f"{engine} fitting {fit_model.name}: calibrated={outcome.calibrated}, "
@@ -102,10 +109,12 @@ def main(argv: list[str] | None = None) -> None:
         "with twice the execution-noise sd on the same simulated data (same seed): they must "
         "be rejected.\n\n"
         f"Engine settings: {json.dumps(ENGINE_OPTIONS)}.\n\n"
-        f"Total runtime {total / 60:.1f} min on {platform.machine()} "
-        f"({jax.device_count()} JAX device(s), shared 2-core machine).\n\n"
+        f"Runtime of this run ({', '.join(engines)}): {total / 60:.1f} min on "
+        f"{platform.machine()} ({jax.device_count()} JAX device(s), shared 2-core machine); "
+        "studies of other engines are kept from the previous run (their times in the table).\n\n"
     )
-    write_text_atomic(args.out / "sbc_table.md", header + table(rows))
+    digests.sort(key=lambda s: (list(ENGINE_OPTIONS).index(s["engine"]), s["fit_model"]))
+    write_text_atomic(args.out / "sbc_table.md", header + table(digests))
     write_text_atomic(
         args.out / "sbc_studies.json",
         json.dumps({"total_time_s": total, "studies": digests}, indent=2) + "\n",
