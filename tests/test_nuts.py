@@ -65,6 +65,7 @@ def test_result_layout_and_divergences_reported(vehicle, result):
     steps = result.sample_stats["n_steps"][1]
     assert np.all((2 ** (depth - 1) <= steps) & (steps <= 2**depth - 1))
     assert result.options["target_accept_prob"] == 0.95
+    assert result.options["dense_mass"] is False
 
 
 def test_pointwise_log_likelihood_scores_the_stored_draws(vehicle, result):

@@ -25,6 +25,12 @@ of ``benchmarks/bench_agreement.py`` (all six parameters) 0.95 still met 20, 18 
 vehicle. Divergences are reported per chain, draw and vehicle in ``sample_stats.diverging``
 (never hidden); ``bayesdrive diagnose`` adds R-hat, bulk and
 tail ESS and MCSE.
+
+``dense_mass=True`` adapts a full mass matrix instead of a diagonal one. Measured on NGSIM vehicle
+124 (``a_max``/``b_pref``/``tau`` correlated; 4 chains x 2000 draws after 1000 warm-up): minimum tail
+ESS 224 diagonal, 1213 dense, with half the leapfrog steps per draw. On vehicle 140 (a long
+``v_des`` tail) neither mass matrix, nor a 3000-iteration warm-up, gave a tail ESS above 700 per
+8000 draws; only more draws did.
 """
 
 from __future__ import annotations
@@ -72,6 +78,7 @@ class NUTSConfig(NamedTuple):
     target_accept_prob: float = 0.95
     max_tree_depth: int = 10
     log_likelihood_draws: int = 200
+    dense_mass: bool = False
 
 
 class NUTSDraws(NamedTuple):
@@ -110,6 +117,7 @@ def sample_nuts(
             num_warmup=config.num_warmup,
             target_accept_prob=config.target_accept_prob,
             max_tree_depth=config.max_tree_depth,
+            dense_mass=config.dense_mass,
             model_args=model_args,
             rng_key=key,
         )
@@ -226,6 +234,7 @@ def run(
     target_accept_prob: float = 0.95,
     max_tree_depth: int = 10,
     log_likelihood_draws: int = 200,
+    dense_mass: bool = False,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
 ) -> EngineResult:
@@ -254,6 +263,7 @@ def run(
         target_accept_prob=target_accept_prob,
         max_tree_depth=max_tree_depth,
         log_likelihood_draws=min(log_likelihood_draws, num_samples),
+        dense_mass=dense_mass,
     )
     per_vehicle = functools.partial(
         _nuts_vehicle,
