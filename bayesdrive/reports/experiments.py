@@ -591,6 +591,27 @@ MODEL_DESCRIPTIONS = {
 }
 
 
+def _card_means(units: list[dict], params: list[str]) -> list[str]:
+    """A model card's parameter lines: the spread of the posterior means across fitted units, or
+    for a single (pooled) unit its posterior mean and sd."""
+    if len(units) == 1:
+        only = units[0]
+        return [
+            "Posterior mean / sd:",
+            "",
+            *(f"- {n}: {only[n]['mean']:.2f} / {only[n]['sd']:.2f}" for n in params),
+        ]
+    return [
+        "Posterior means (mean / sd across fitted units):",
+        "",
+        *(
+            f"- {n}: {np.mean([u[n]['mean'] for u in units]):.2f}"
+            f" / {np.std([u[n]['mean'] for u in units]):.2f}"
+            for n in params
+        ),
+    ]
+
+
 def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Settings) -> list[str]:
     """Fitted driver models as artefacts: each smc posterior (posterior group and metadata only,
     float32) as ``<stem>.nc`` beside a short model card ``<stem>.md``; ``fitted`` maps a stem to
@@ -631,13 +652,7 @@ def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Sett
                 "- open with: `xarray.open_datatree(path, engine='h5netcdf')` or arviz; draws "
                 "are (chain, draw, vehicle) per parameter",
                 "",
-                "Posterior means (mean / sd across fitted units):",
-                "",
-                *(
-                    f"- {name}: {np.mean([v[name]['mean'] for v in summary_by_vehicle]):.2f}"
-                    f" / {np.std([v[name]['mean'] for v in summary_by_vehicle]):.2f}"
-                    for name in meta["params"]
-                ),
+                *_card_means(list(summary_by_vehicle), meta["params"]),
                 "",
             ]
         )

@@ -215,6 +215,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         plot_cooperation(experiment["cooperation_draws"], figures / "cooperation.png"),
         "The learned cooperation c against its prior",
     )
+    merge.note(
+        "The C-IDM's likelihood is piecewise constant in c (the yield decision is a threshold), "
+        "so the data can only rule ranges of c in or out: a posterior flat up to a cut-off says "
+        "that yielding more often than that cut-off allows would have explained the fitting "
+        "episodes worse, and nothing distinguishes the values below it."
+    )
 
     params = report.section("Per-vehicle parameters and filter convergence")
     table = pd.DataFrame(results["parameters"])
