@@ -15,16 +15,16 @@ from bayesdrive.data.atomic import write_atomic
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.simulation.generate import (
     START_SPEED_FRACTION,
+    SWEEP_DIFFERENCES,
     draw_pooled,
     draw_preset,
     generate_scenes,
     load_preset,
-    pair_sweep,
+    median_sweep,
 )
 from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "models" / "presets"
-SWEEP_DIFFERENCES = np.arange(-8.0, 8.1, 2.0)
 
 
 def _preset_path(name: str) -> Path | None:
@@ -102,10 +102,7 @@ def simulate(
     )
     write_atomic(out / "scenes.nc", lambda tmp: trajectories.to_netcdf(tmp, engine="h5netcdf"))
 
-    base = jax.tree.map(lambda leaf: np.median(np.asarray(leaf)), params)
-    sweep = pair_sweep(
-        key_sweep, model, base, SWEEP_DIFFERENCES, duration_s=min(duration, 60.0), dt=dt
-    )
+    sweep = median_sweep(key_sweep, model, params, duration_s=min(duration, 60.0), dt=dt)
     sweep_time = np.arange(sweep.v.shape[-1]) * dt
     plot_speed_gap_kde(
         {label: (speeds[:, 1:], gaps)}, out / "speed_gap_kde.png", f"generated scenes: {label}"

@@ -39,7 +39,14 @@ from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.fit import summary as fit_summary
 from bayesdrive.inference.output import load_result, metadata, save_result
 from bayesdrive.simulation.baselines import baseline_policy
-from bayesdrive.simulation.generate import draw_pooled, draw_preset, generate_scenes, load_preset
+from bayesdrive.simulation.generate import (
+    SWEEP_DIFFERENCES,
+    draw_pooled,
+    draw_preset,
+    generate_scenes,
+    load_preset,
+    median_sweep,
+)
 from bayesdrive.simulation.metrics import evaluate_policy, observed_data
 from bayesdrive.simulation.posterior import (
     fixed_params,
@@ -412,17 +419,34 @@ def scenes_step(
 ) -> dict:
     """Generated scenes from the paper's presets and from our pooled posteriors, against the data's
     speed and gap distributions (saved as arrays for the report's KDE plots)."""
-    from bayesdrive.reports.scene_plots import plot_speed_gap_kde
+    from bayesdrive.reports.scene_plots import plot_speed_gap_kde, plot_sweep
 
     out.mkdir(parents=True, exist_ok=True)
     key = jax.random.key(SEEDS["scenes"])
     num_steps, vehicles = 600, 16
-    sources = {}
+    sources, sweeps, presets = {}, [], []
     for preset_file in sorted(PRESET_DIR.glob("*.json")):
         preset = load_preset(preset_file)
-        key, sub_params, sub_scenes = jax.random.split(key, 3)
+        presets.append(
+            {
+                "preset": preset.name,
+                **{n: f"{m} ± {preset.sds[n]}" for n, m in preset.means.items()},
+            }
+        )
+        key, sub_params, sub_scenes, sub_sweep = jax.random.split(key, 4)
         params = draw_preset(sub_params, IDM, preset, settings.generated_scenes, vehicles)
         sources[preset.name] = generate_scenes(sub_scenes, IDM, params, num_steps=num_steps, dt=0.1)
+        sweep = median_sweep(sub_sweep, IDM, params, duration_s=num_steps * 0.1, dt=0.1)
+        path = out / f"sweep_{preset.name}.png"
+        plot_sweep(
+            np.arange(sweep.v.shape[-1]) * 0.1,
+            np.asarray(sweep.v[:, 1]),
+            np.asarray(sweep.gap[:, 1]),
+            SWEEP_DIFFERENCES,
+            path,
+            f"leader-follower sweep over desired-speed difference ({preset.name}, median draws)",
+        )
+        sweeps.append(str(path))
     for label, tree in trees.items():
         meta = metadata(tree)
         names = tuple(meta["params"])
@@ -464,6 +488,8 @@ def scenes_step(
         )
     return {
         "figures": figures,
+        "sweeps": sweeps,
+        "presets": presets,
         "table": table,
         "seed": SEEDS["scenes"],
         "scenes": settings.generated_scenes,

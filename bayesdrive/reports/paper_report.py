@@ -280,8 +280,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "The paper's tables are reproduced as printed; a b_pref of 9 m/s^2 and a free-flow tau of "
         "5 s are odd for an IDM. Our own presets pool the exact posteriors."
     )
+    scenes.table(
+        pd.DataFrame(results["scenes"]["presets"]),
+        caption="The paper's parameter tables (mean ± sd, independent normals), as printed",
+    )
     scenes.table(pd.DataFrame(results["scenes"]["table"]), caption="Generated scenes")
-    for path in results["scenes"]["figures"]:
+    for path in results["scenes"]["figures"] + results["scenes"]["sweeps"]:
         scenes.figure(Path(path), Path(path).stem.replace("_", " "))
 
     holdout = report.section("Generalisation to held-out data sets")

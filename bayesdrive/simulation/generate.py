@@ -30,15 +30,19 @@ from bayesdrive.simulation.rollout import Rollout, SceneArrays, broadcast_params
 __all__ = [
     "CAR_LENGTH_M",
     "START_SPEED_FRACTION",
+    "SWEEP_DIFFERENCES",
     "Preset",
     "draw_pooled",
     "draw_preset",
     "generate_scenes",
     "load_preset",
+    "median_sweep",
     "pair_sweep",
 ]
 
 START_SPEED_FRACTION = 0.8
+# Desired-speed differences (follower - leader, m/s) of the leader-follower sweep.
+SWEEP_DIFFERENCES = np.arange(-8.0, 8.1, 2.0)
 CAR_LENGTH_M = 4.5
 
 
@@ -177,3 +181,9 @@ def pair_sweep(
     )
     params = params._replace(v_des=params.v_des.at[:, 1].add(diffs))
     return generate_scenes(key, model, params, num_steps=num_steps, dt=dt)
+
+
+def median_sweep(key: Array, model: DriverModel, params: Any, *, duration_s: float, dt: float):
+    """:func:`pair_sweep` over :data:`SWEEP_DIFFERENCES` at the median of drawn ``params``."""
+    base = jax.tree.map(lambda leaf: np.median(np.asarray(leaf)), params)
+    return pair_sweep(key, model, base, SWEEP_DIFFERENCES, duration_s=duration_s, dt=dt)
