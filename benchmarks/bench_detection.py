@@ -8,10 +8,18 @@ as an NGSIM raw CSV, reads it back through the real reader and runs ``criticize`
 sizes this table shows detected in at least 95% of replications. Seeds are 1..N for every cell.
 
 Results are appended to ``<out>/detection_runs.csv`` as they come (a rerun skips finished cells,
-so the study can be stopped and resumed); the table goes to ``<out>/detection.md`` with Wilson
-95% intervals, and a picture to ``<out>/detection.png``.
+so the study can be stopped and resumed; with ``--first-seed`` a second process can work on the
+upper seeds at the same time, appending to the same file); the table goes to
+``<out>/detection.md`` with Wilson 95% intervals, and a picture to ``<out>/detection.png``.
 
     python benchmarks/bench_detection.py --seeds 20 --null-seeds 40 --out reports/criticism
+
+Staged, so that a stop still leaves the cells CI needs: first the null and the CI size, then the
+rest; ``--report-only`` redraws the table from the CSV.
+
+    python benchmarks/bench_detection.py --sizes large --seeds 20 --null-seeds 20
+    python benchmarks/bench_detection.py --sizes medium,small --seeds 10 --null-seeds 0
+    python benchmarks/bench_detection.py --report-only
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import argparse
 import csv
 import sys
 import tempfile
+import textwrap
 import time
 from pathlib import Path
 
@@ -56,7 +65,8 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     p = successes / n
     centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
     half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / (1 + z**2 / n)
-    return centre - half, centre + half
+    # Clipped: rounding can put an end a hair outside [0, 1] when p is 0 or 1.
+    return max(centre - half, 0.0), min(centre + half, 1.0)
 
 
 def run_one(cause: str, size: str, effect_range, seed: int, workdir: Path) -> dict:
@@ -91,47 +101,161 @@ def run_one(cause: str, size: str, effect_range, seed: int, workdir: Path) -> di
     }
 
 
-def table(runs: pd.DataFrame) -> str:
+# A cell backs a CI size only with at least this many replications (19 of 20 is 0.95).
+CLAIM_REPLICATIONS = 20
+SIZE_ORDER = ("none", "small", "medium", "large", "xlarge")
+
+
+def cell_rates(runs: pd.DataFrame) -> pd.DataFrame:
+    """One row per (cause, size), in the order of DETECTION_SIZES and SIZE_ORDER: replications,
+    hits, rate, Wilson interval and the other verdicts."""
+    causes = [NO_CAUSE, *DETECTION_SIZES]
+    rows = []
+    for (cause, size), cell in runs.groupby(["cause", "size"]):
+        n, hits = len(cell), int(cell["detected"].sum())
+        low, high = wilson(hits, n)
+        rows.append(
+            {
+                "cause": cause,
+                "size": size,
+                "effect": "-"
+                if cause == NO_CAUSE
+                else f"[{cell['low'].iloc[0]}, {cell['high'].iloc[0]}]",
+                "n": n,
+                "hits": hits,
+                "rate": hits / n,
+                "low": low,
+                "high": high,
+                "others": cell.loc[cell["verdict"] != cause, "verdict"].value_counts().to_dict(),
+            }
+        )
+    out = pd.DataFrame(rows)
+    return out.sort_values(
+        ["cause", "size"],
+        key=lambda col: col.map(
+            {c: i for i, c in enumerate(causes if col.name == "cause" else SIZE_ORDER)}
+        ),
+    ).reset_index(drop=True)
+
+
+def table(rates: pd.DataFrame) -> str:
     """The markdown detection table."""
     lines = [
         "| cause | size | effect range | replications | named correctly | rate | 95% interval "
         "| other verdicts |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for (cause, size), cell in runs.groupby(["cause", "size"], sort=False):
-        n, hits = len(cell), int(cell["detected"].sum())
-        low, high = wilson(hits, n)
-        others = cell.loc[cell["verdict"] != cause, "verdict"].value_counts().to_dict()
-        effect = "-" if cause == NO_CAUSE else f"[{cell['low'].iloc[0]}, {cell['high'].iloc[0]}]"
+    for r in rates.itertuples():
         lines.append(
-            f"| {cause} | {size} | {effect} | {n} | {hits} | {hits / n:.2f} | "
-            f"[{low:.2f}, {high:.2f}] | {others or ''} |"
+            f"| {r.cause} | {r.size} | {r.effect} | {r.n} | {r.hits} | {r.rate:.2f} | "
+            f"[{r.low:.2f}, {r.high:.2f}] | {r.others or ''} |"
         )
     return "\n".join(lines)
 
 
-def figure(runs: pd.DataFrame, path: Path) -> None:
+def figure(rates: pd.DataFrame, false_positive: str, path: Path) -> None:
+    """Detection rate per effect (groups) and size (bars) with Wilson intervals."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cells = runs[runs["cause"] != NO_CAUSE].groupby(["cause", "size"], sort=False)["detected"]
-    rates = cells.mean().unstack()
-    order = [s for s in ("small", "medium", "large") if s in rates.columns]
-    fig, ax = plt.subplots(figsize=(8, 3.8))
-    rates[order].plot.bar(ax=ax, rot=15)
-    null = runs[runs["cause"] == NO_CAUSE]
-    if len(null):
-        fp = 1 - null["detected"].mean()
-        ax.set_title(f"Detection rate per effect and size; false positives on null data: {fp:.2f}")
-    ax.axhline(0.95, color="k", ls="--", lw=1, label="95%")
+    effects = rates[rates["cause"] != NO_CAUSE]
+    causes = list(dict.fromkeys(effects["cause"]))
+    sizes = [s for s in SIZE_ORDER if s in set(effects["size"])]
+    width = 0.8 / max(len(sizes), 1)
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    for k, size in enumerate(sizes):
+        cell = effects[effects["size"] == size].set_index("cause").reindex(causes)
+        x = np.arange(len(causes)) + (k - (len(sizes) - 1) / 2) * width
+        bars = ax.bar(x, cell["rate"], width, label=size)
+        ax.bar_label(
+            bars,
+            ["" if pd.isna(n) else f"{n:.0f}" for n in cell["n"]],
+            fontsize=7,
+            label_type="center",
+        )
+        ax.errorbar(
+            x,
+            cell["rate"],
+            yerr=[cell["rate"] - cell["low"], cell["high"] - cell["rate"]],
+            fmt="none",
+            ecolor="k",
+            lw=0.8,
+            capsize=2,
+        )
+    labels = ["\n".join(textwrap.wrap(c.replace("_", " "), 14)) for c in causes]
+    ax.set_xticks(np.arange(len(causes)), labels, fontsize=8)
+    ax.set_title(
+        f"Named correctly, per effect and size (whiskers: Wilson 95%, in the bar: replications); "
+        f"null data: {false_positive}",
+        fontsize=9,
+    )
+    ax.axhline(0.95, color="k", ls="--", lw=1, label="0.95")
     ax.set_ylim(0, 1.05)
-    ax.set_ylabel("share named correctly")
-    ax.legend(fontsize=8)
+    ax.set_ylabel("share of replications")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def misses(runs: pd.DataFrame) -> str:
+    """The missed replications with the hidden cause's gain: was it screened in, how large?"""
+    missed = runs[(runs["cause"] != NO_CAUSE) & (runs["detected"] == 0)]
+    if missed.empty:
+        return "No effect was missed.\n"
+    lines = [
+        "Missed replications (gain of the hidden cause's extension: summed held-out elpd, its se "
+        "across vehicles; screened in: whether the checks pointed to it):",
+        "",
+        "| cause | size | seed | verdict | gain | se | screened in |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in missed.sort_values(["cause", "size", "seed"]).itertuples():
+        lines.append(
+            f"| {r.cause} | {r.size} | {r.seed} | {r.verdict} | {r.true_gain:.1f} | "
+            f"{r.true_se:.1f} | {'yes' if r.screened_in else 'no'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_report(runs_path: Path, out: Path) -> None:
+    """detection.md (the table, false positives, the sizes at or above 0.95) and detection.png."""
+    runs = pd.read_csv(runs_path)
+    rates = cell_rates(runs)
+    null = runs[runs["cause"] == NO_CAUSE]
+    fp = int((null["verdict"] != NO_CAUSE).sum())
+    fp_low, fp_high = wilson(fp, len(null))
+    false_positive = (
+        f"{fp} of {len(null)} ({fp / max(len(null), 1):.3f}, 95% interval "
+        f"[{fp_low:.3f}, {fp_high:.3f}])"
+    )
+    reliable = rates[
+        (rates["cause"] != NO_CAUSE) & (rates["rate"] >= 0.95) & (rates["n"] >= CLAIM_REPLICATIONS)
+    ]
+    by_cause = reliable.groupby("cause", sort=False)["size"].agg(", ".join)
+    unbacked = [c for c in DETECTION_SIZES if c not in by_cause.index]
+    text = (
+        "# Detection of hidden effects by `bayesdrive criticize`\n\n"
+        f"Generated by `benchmarks/bench_detection.py`. Scenario: {DETECTION_SCENARIO} "
+        f"(followers with per-driver effect sizes uniform on the range); settings: "
+        f"{DETECTION_CONFIG._asdict()}. Seeds 1..N per cell (N = replications). A replication "
+        "counts as detected when the verdict names the hidden cause (a significant gain for "
+        "another cause, or none, counts as a miss). Intervals: Wilson 95%.\n\n"
+        f"False positives on null data (verdict other than none): {false_positive}.\n\n"
+        + table(rates)
+        + f"\n\nSizes named correctly in at least 95% of at least {CLAIM_REPLICATIONS} "
+        "replications: "
+        + ("; ".join(f"{c}: {s}" for c, s in by_cause.items()) or "none")
+        + ". CI (tests/test_criticism_hidden.py) runs, per cause, one of these sizes"
+        + (f"; it skips {', '.join(unbacked)}, which no measured size backs" if unbacked else "")
+        + ".\n\n"
+        + misses(runs)
+    )
+    write_text_atomic(out / "detection.md", text)
+    figure(rates, f"{fp} of {len(null)} named a cause", out / "detection.png")
+    print(text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -139,19 +263,34 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=20, help="replications per effect and size")
     parser.add_argument("--null-seeds", type=int, default=40, help="replications without effect")
     parser.add_argument(
+        "--first-seed",
+        type=int,
+        default=1,
+        help="start at this seed (a second process can take the upper seeds; same CSV)",
+    )
+    parser.add_argument(
         "--causes", default=",".join(DETECTION_SIZES), help="comma-separated causes"
     )
     parser.add_argument("--sizes", default="small,medium,large")
     parser.add_argument("--out", type=Path, default=Path("reports/criticism"))
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rewrite detection.md and detection.png from the CSV without running anything "
+        "(e.g. after several processes shared the study)",
+    )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     runs_path = args.out / "detection_runs.csv"
+    if args.report_only:
+        write_report(runs_path, args.out)
+        return 0
     done = set()
     if runs_path.exists():
         previous = pd.read_csv(runs_path)
         done = set(zip(previous["cause"], previous["size"], previous["seed"], strict=True))
-    cells = [(NO_CAUSE, "none", None, s) for s in range(1, args.null_seeds + 1)]
-    for seed in range(1, args.seeds + 1):
+    cells = [(NO_CAUSE, "none", None, s) for s in range(args.first_seed, args.null_seeds + 1)]
+    for seed in range(args.first_seed, args.seeds + 1):
         for cause in args.causes.split(","):
             for size in args.sizes.split(","):
                 cells.append((cause, size, DETECTION_SIZES[cause][size], seed))
@@ -173,26 +312,7 @@ def main(argv: list[str] | None = None) -> int:
                     writer.writeheader()
                 writer.writerow(row)
             print(f"[{i}/{len(todo)}] {row}", flush=True)
-    runs = pd.read_csv(runs_path)
-    null = runs[runs["cause"] == NO_CAUSE]
-    fp = int((null["verdict"] != NO_CAUSE).sum())
-    fp_low, fp_high = wilson(fp, len(null))
-    text = (
-        "# Detection of hidden effects by `bayesdrive criticize`\n\n"
-        f"Generated by `benchmarks/bench_detection.py`. Scenario: {DETECTION_SCENARIO} "
-        f"(followers with per-driver effect sizes uniform on the range); settings: "
-        f"{DETECTION_CONFIG._asdict()}. Seeds 1..N per cell. A replication counts as detected "
-        "when the verdict names the hidden cause (a significant gain for another cause, or "
-        "none, counts as a miss).\n\n"
-        f"False positives on null data (verdict other than none): {fp} of {len(null)} "
-        f"({fp / max(len(null), 1):.3f}, 95% interval [{fp_low:.3f}, {fp_high:.3f}]).\n\n"
-        + table(runs)
-        + "\n\nCI (tests/test_criticism_hidden.py) runs, per cause, a size whose detection rate "
-        "here is at least 0.95.\n"
-    )
-    write_text_atomic(args.out / "detection.md", text)
-    figure(runs, args.out / "detection.png")
-    print(text)
+    write_report(runs_path, args.out)
     return 0
 
 

@@ -2,9 +2,12 @@
 through the real reader; ``criticize`` must name the effect, and on data without one say "none".
 
 The effect sizes are those the detection study (benchmarks/bench_detection.py, table in
-reports/criticism/detection.md) detects in at least 95% of its replications at this scenario and
-these settings, so a correct implementation passes these fixed-seed cases; one seed per cause,
-fixed in advance (not chosen by outcome).
+reports/criticism/detection.md: 20 replications per cell, seeds 1..20) names correctly in at least
+95% of its replications at this scenario and these settings: "large" for every cause it backs. On
+null data the study named no cause in 20 of 20 replications. The speed-dependent noise has no
+such size (large 16/20, xlarge 18/20: one vehicle whose extension loses heavily on held-out data
+sinks the test across 8 vehicles), so its case is skipped, visibly, until the criticism detects it
+reliably. One seed, 2026, outside the study's seeds and fixed in advance (not chosen by outcome).
 """
 
 from __future__ import annotations
@@ -19,10 +22,14 @@ from bayesdrive.drivers.extensions import NO_CAUSE
 
 SEED = 2026
 # The size whose detection rate in reports/criticism/detection.md is at least 0.95, per cause.
-CI_SIZE = {cause: "large" for cause in DETECTION_SIZES}
+UNBACKED = "speed_dependent_noise"  # no size reaches 0.95 there (module docstring)
+CI_SIZE = {cause: "large" for cause in DETECTION_SIZES if cause != UNBACKED}
+SKIP_UNBACKED = pytest.mark.skip(
+    reason="no size reaches 0.95 in reports/criticism/detection.md (large 0.80, xlarge 0.90)"
+)
 
 
-@pytest.mark.parametrize("cause", [*CI_SIZE, NO_CAUSE])
+@pytest.mark.parametrize("cause", [*CI_SIZE, NO_CAUSE, pytest.param(UNBACKED, marks=SKIP_UNBACKED)])
 def test_criticize_names_the_hidden_cause(cause, tmp_path):
     path = tmp_path / f"{cause}.csv"
     truth = generate(
