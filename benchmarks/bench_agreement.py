@@ -48,7 +48,9 @@ DATA = "ngsim_i80_chains"
 # spread of its independent replicates, see bayesdrive.inference.agreement.mcse_mean). 8 smc
 # replicates gave a minimum of 500 (vehicle 11), hence 20. nuts: a dense mass matrix lifted the
 # worst tail ESS (vehicle 124) about fivefold at half the steps per draw; vehicle 140's long v_des
-# tail needs many draws whatever the mass matrix. emcee: the kept run (num_steps - num_burn) must
+# tail needs many draws whatever the mass matrix. But in the full run (reports/agreement) the
+# dense matrix met 467 divergences on vehicle 11 and 217 on vehicle 112 (diagonal, 8000 draws: 31
+# in all), and nuts went narrow on vehicle 11: the next run should go back to diagonal. emcee: the kept run (num_steps - num_burn) must
 # exceed 50 autocorrelation times, and the slowest vehicles reached tau of about 425 steps.
 ENGINE_OPTIONS = {
     "smc": {"num_particles": 1000, "replicates": 20},
