@@ -47,15 +47,15 @@ DATA = "ngsim_i80_chains"
 # ESS of at least 1000 for every vehicle and parameter (nuts: bulk and tail ESS; smc: from the
 # spread of its independent replicates, see bayesdrive.inference.agreement.mcse_mean). 8 smc
 # replicates gave a minimum of 500 (vehicle 11), hence 20. nuts: a dense mass matrix lifted the
-# worst tail ESS (vehicle 124) about fivefold at half the steps per draw; vehicle 140's long v_des
-# tail needs many draws whatever the mass matrix. But in the full run (reports/agreement) the
-# dense matrix met 467 divergences on vehicle 11 and 217 on vehicle 112 (diagonal, 8000 draws: 31
-# in all), and nuts went narrow on vehicle 11: the next run should go back to diagonal. emcee: the kept run (num_steps - num_burn) must
-# exceed 50 autocorrelation times, and the slowest vehicles reached tau of about 425 steps.
+# worst tail ESS of vehicle 124 but met 467 divergences on vehicle 11 and 217 on vehicle 112 and
+# went narrow on vehicle 11 (diagonal, 8000 draws: 31 divergences in all), so the mass matrix is
+# diagonal; vehicle 140's long v_des tail needs many draws (diagonal, 32000: tail ESS 2272).
+# emcee: the kept run (num_steps - num_burn) must exceed 50 autocorrelation times; the slowest
+# vehicle (140) reached tau of about 700 steps.
 ENGINE_OPTIONS = {
     "smc": {"num_particles": 1000, "replicates": 20},
-    "nuts": {"num_particles": 32000, "num_chains": 4, "num_warmup": 2000, "dense_mass": True},
-    "emcee": {"num_particles": 4000, "num_steps": 32000, "num_burn": 5000},
+    "nuts": {"num_particles": 32000, "num_chains": 4, "num_warmup": 2000, "dense_mass": False},
+    "emcee": {"num_particles": 4000, "num_steps": 45000, "num_burn": 5000},
     "pf": {"num_particles": 4000},
 }
 
