@@ -15,7 +15,6 @@ from bayesdrive.data.atomic import write_atomic
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.simulation.generate import (
     START_SPEED_FRACTION,
-    SWEEP_DIFFERENCES,
     draw_pooled,
     draw_preset,
     generate_scenes,
@@ -103,15 +102,12 @@ def simulate(
     write_atomic(out / "scenes.nc", lambda tmp: trajectories.to_netcdf(tmp, engine="h5netcdf"))
 
     sweep = median_sweep(key_sweep, model, params, duration_s=min(duration, 60.0), dt=dt)
-    sweep_time = np.arange(sweep.v.shape[-1]) * dt
     plot_speed_gap_kde(
         {label: (speeds[:, 1:], gaps)}, out / "speed_gap_kde.png", f"generated scenes: {label}"
     )
     plot_sweep(
-        sweep_time,
-        np.asarray(sweep.v[:, 1]),
-        np.asarray(sweep.gap[:, 1]),
-        SWEEP_DIFFERENCES,
+        sweep,
+        dt,
         out / "sweep.png",
         f"leader-follower sweep over desired-speed difference ({label}, median parameters)",
     )

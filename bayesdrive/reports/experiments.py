@@ -40,7 +40,6 @@ from bayesdrive.inference.fit import summary as fit_summary
 from bayesdrive.inference.output import load_result, metadata, save_result
 from bayesdrive.simulation.baselines import baseline_policy
 from bayesdrive.simulation.generate import (
-    SWEEP_DIFFERENCES,
     draw_pooled,
     draw_preset,
     generate_scenes,
@@ -439,10 +438,8 @@ def scenes_step(
         sweep = median_sweep(sub_sweep, IDM, params, duration_s=num_steps * 0.1, dt=0.1)
         path = out / f"sweep_{preset.name}.png"
         plot_sweep(
-            np.arange(sweep.v.shape[-1]) * 0.1,
-            np.asarray(sweep.v[:, 1]),
-            np.asarray(sweep.gap[:, 1]),
-            SWEEP_DIFFERENCES,
+            sweep,
+            0.1,
             path,
             f"leader-follower sweep over desired-speed difference ({preset.name}, median draws)",
         )

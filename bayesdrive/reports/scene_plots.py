@@ -10,7 +10,9 @@ from matplotlib import colormaps
 from matplotlib.figure import Figure
 
 from bayesdrive.data.atomic import write_atomic
+from bayesdrive.simulation.generate import SWEEP_DIFFERENCES
 from bayesdrive.simulation.metrics import kde
+from bayesdrive.simulation.rollout import Rollout
 
 __all__ = ["plot_speed_gap_kde", "plot_sweep"]
 
@@ -40,15 +42,12 @@ def plot_speed_gap_kde(
     return _save(fig, path)
 
 
-def plot_sweep(
-    time_s: np.ndarray,
-    follower_speed: np.ndarray,
-    gap: np.ndarray,
-    differences: np.ndarray,
-    path: Path,
-    title: str,
-) -> Path:
-    """Follower speed and gap over time, one line per desired-speed difference (follower - leader)."""
+def plot_sweep(sweep: Rollout, dt: float, path: Path, title: str) -> Path:
+    """Follower speed and gap over time of a :func:`~bayesdrive.simulation.generate.median_sweep`,
+    one line per desired-speed difference (follower - leader)."""
+    time_s = np.arange(sweep.v.shape[-1]) * dt
+    follower_speed, gap = np.asarray(sweep.v[:, 1]), np.asarray(sweep.gap[:, 1])
+    differences = SWEEP_DIFFERENCES
     fig = Figure(figsize=(10, 3.8), layout="tight")
     ax_v, ax_g = fig.subplots(1, 2)
     colours = colormaps["coolwarm"](np.linspace(0, 1, len(differences)))
