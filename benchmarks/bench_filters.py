@@ -240,13 +240,14 @@ def main() -> None:
         moves = out.options["num_moves"]
         # A move scores the blocks of SCORE_BLOCK steps up to the current step. The closing
         # tempering stage scores each vehicle's whole series once for its fresh prior draws, then
-        # temper_moves times per stage and final_moves times at the end.
+        # temper_moves times per stage and, at the end, as many times as its closing moves ran.
         last_live = data.mask.shape[1] - 1 - np.argmax(data.mask[:, ::-1] > 0, axis=1)
         rejuvenated = np.nonzero(resampled)[1]
         blocks = (rejuvenated // smc.SCORE_BLOCK + 1) * smc.SCORE_BLOCK
         whole = (last_live // smc.SCORE_BLOCK + 1) * smc.SCORE_BLOCK
         stages = np.asarray(out.sample_stats["temper_stages"][1]).reshape(-1)[: len(whole)]
-        closing_scans = 1 + stages * out.options["temper_moves"] + out.options["final_moves"]
+        final_moves = np.asarray(out.sample_stats["final_moves"][1]).reshape(-1)[: len(whole)]
+        closing_scans = 1 + stages * out.options["temper_moves"] + final_moves
         events = len(rejuvenated)
         padded = data.mask.shape[1]
         evaluations = data.mask.size * m + m * (

@@ -202,6 +202,18 @@ def test_smc_rejuvenates_with_sane_acceptance(conjugate_run):
     assert 0.05 < np.nanmean(acceptance) < 0.9
 
 
+def test_closing_moves_run_until_the_draws_decorrelate(conjugate_run):
+    _, result, _ = conjugate_run
+    moves = np.asarray(result.sample_stats["final_moves"][1])
+    correlation = np.asarray(result.sample_stats["final_correlation"][1])
+    options = result.options
+    threshold = max(options["decorrelation"], 3.5 / np.sqrt(options["num_particles"]))
+    # Whole blocks of final_moves, stopped by the rule or by the cap, never past the cap.
+    assert np.all(moves % options["final_moves"] == 0)
+    assert np.all(moves <= options["max_final_moves"])
+    assert np.all((correlation <= threshold) | (moves >= options["max_final_moves"]))
+
+
 # --- recovery on the stochastic IDM --------------------------------------------------------
 RECOVERY_VEHICLES = 20
 RECOVERY_PARAMS = ("v_des", "sigma")
