@@ -55,7 +55,20 @@ FIELDS = [
     "true_significant",
     "screened_in",
     "seconds",
+    "sampler",
 ]
+
+
+def sampler_label(config=DETECTION_CONFIG) -> str:
+    """How many Metropolis-Hastings moves per tempering stage the run's sampler made."""
+    if config.unmoved_tolerance > 0:
+        return f">={config.num_moves} moves until unmoved<={config.unmoved_tolerance}"
+    return f"{config.num_moves} moves"
+
+
+# Cells are kept apart by sampler: a cell measured before a sampler change stays in the table,
+# marked, until it is rerun; CI runs the current one (SAMPLER).
+SAMPLER = sampler_label()
 
 
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -98,6 +111,7 @@ def run_one(cause: str, size: str, effect_range, seed: int, workdir: Path) -> di
         "true_significant": int(bool(gain and gain["significant"])),
         "screened_in": int(bool(entry and entry["screened_in"])),
         "seconds": round(time.perf_counter() - started, 1),
+        "sampler": SAMPLER,
     }
 
 
@@ -107,17 +121,18 @@ SIZE_ORDER = ("none", "small", "medium", "large", "xlarge")
 
 
 def cell_rates(runs: pd.DataFrame) -> pd.DataFrame:
-    """One row per (cause, size), in the order of DETECTION_SIZES and SIZE_ORDER: replications,
-    hits, rate, Wilson interval and the other verdicts."""
+    """One row per (cause, size, sampler), in the order of DETECTION_SIZES and SIZE_ORDER:
+    replications, hits, rate, Wilson interval and the other verdicts."""
     causes = [NO_CAUSE, *DETECTION_SIZES]
     rows = []
-    for (cause, size), cell in runs.groupby(["cause", "size"]):
+    for (cause, size, sampler), cell in runs.groupby(["cause", "size", "sampler"]):
         n, hits = len(cell), int(cell["detected"].sum())
         low, high = wilson(hits, n)
         rows.append(
             {
                 "cause": cause,
                 "size": size,
+                "sampler": sampler,
                 "effect": "-"
                 if cause == NO_CAUSE
                 else f"[{cell['low'].iloc[0]}, {cell['high'].iloc[0]}]",
@@ -130,45 +145,58 @@ def cell_rates(runs: pd.DataFrame) -> pd.DataFrame:
             }
         )
     out = pd.DataFrame(rows)
+    order = {"cause": causes, "size": SIZE_ORDER, "sampler": [SAMPLER]}
     return out.sort_values(
-        ["cause", "size"],
-        key=lambda col: col.map(
-            {c: i for i, c in enumerate(causes if col.name == "cause" else SIZE_ORDER)}
-        ),
+        ["cause", "size", "sampler"],
+        key=lambda col: col.map(lambda v: order[col.name].index(v) if v in order[col.name] else 99),
     ).reset_index(drop=True)
 
 
 def table(rates: pd.DataFrame) -> str:
     """The markdown detection table."""
     lines = [
-        "| cause | size | effect range | replications | named correctly | rate | 95% interval "
-        "| other verdicts |",
-        "|---|---|---|---|---|---|---|---|",
+        "| cause | size | effect range | sampler | replications | named correctly | rate "
+        "| 95% interval | other verdicts |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rates.itertuples():
         lines.append(
-            f"| {r.cause} | {r.size} | {r.effect} | {r.n} | {r.hits} | {r.rate:.2f} | "
-            f"[{r.low:.2f}, {r.high:.2f}] | {r.others or ''} |"
+            f"| {r.cause} | {r.size} | {r.effect} | {r.sampler} | {r.n} | {r.hits} | "
+            f"{r.rate:.2f} | [{r.low:.2f}, {r.high:.2f}] | {r.others or ''} |"
         )
     return "\n".join(lines)
 
 
 def figure(rates: pd.DataFrame, false_positive: str, path: Path) -> None:
-    """Detection rate per effect (groups) and size (bars) with Wilson intervals."""
+    """Detection rate per effect (groups) and size (bars) with Wilson intervals; where a cell was
+    measured with several samplers, the current one's."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
     effects = rates[rates["cause"] != NO_CAUSE]
+    effects = effects[
+        (effects["sampler"] == SAMPLER)
+        | ~effects.set_index(["cause", "size"]).index.isin(
+            effects[effects["sampler"] == SAMPLER].set_index(["cause", "size"]).index
+        )
+    ]
     causes = list(dict.fromkeys(effects["cause"]))
     sizes = [s for s in SIZE_ORDER if s in set(effects["size"])]
     width = 0.8 / max(len(sizes), 1)
     fig, ax = plt.subplots(figsize=(9, 4.2))
+    handles = []
     for k, size in enumerate(sizes):
         cell = effects[effects["size"] == size].set_index("cause").reindex(causes)
         x = np.arange(len(causes)) + (k - (len(sizes) - 1) / 2) * width
-        bars = ax.bar(x, cell["rate"], width, label=size)
+        bars = ax.bar(x, cell["rate"], width)
+        # Legend from a plain patch: a hatched first bar would hatch the size's legend entry.
+        handles.append(Patch(facecolor=bars.patches[0].get_facecolor(), label=size))
+        for bar, sampler in zip(bars, cell["sampler"], strict=True):
+            if isinstance(sampler, str) and sampler != SAMPLER:
+                bar.set_hatch("//")  # measured with an older sampler only
         ax.bar_label(
             bars,
             ["" if pd.isna(n) else f"{n:.0f}" for n in cell["n"]],
@@ -187,14 +215,14 @@ def figure(rates: pd.DataFrame, false_positive: str, path: Path) -> None:
     labels = ["\n".join(textwrap.wrap(c.replace("_", " "), 14)) for c in causes]
     ax.set_xticks(np.arange(len(causes)), labels, fontsize=8)
     ax.set_title(
-        f"Named correctly, per effect and size (whiskers: Wilson 95%, in the bar: replications); "
-        f"null data: {false_positive}",
+        f"Named correctly, per effect and size (whiskers: Wilson 95%, in the bar: replications)\n"
+        f"null data: {false_positive}; hatched: older sampler only",
         fontsize=9,
     )
-    ax.axhline(0.95, color="k", ls="--", lw=1, label="0.95")
+    handles.append(ax.axhline(0.95, color="k", ls="--", lw=1, label="0.95"))
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("share of replications")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -209,13 +237,13 @@ def misses(runs: pd.DataFrame) -> str:
         "Missed replications (gain of the hidden cause's extension: summed held-out elpd, its se "
         "across vehicles; screened in: whether the checks pointed to it):",
         "",
-        "| cause | size | seed | verdict | gain | se | screened in |",
-        "|---|---|---|---|---|---|---|",
+        "| cause | size | sampler | seed | verdict | gain | se | screened in |",
+        "|---|---|---|---|---|---|---|---|",
     ]
-    for r in missed.sort_values(["cause", "size", "seed"]).itertuples():
+    for r in missed.sort_values(["cause", "size", "sampler", "seed"]).itertuples():
         lines.append(
-            f"| {r.cause} | {r.size} | {r.seed} | {r.verdict} | {r.true_gain:.1f} | "
-            f"{r.true_se:.1f} | {'yes' if r.screened_in else 'no'} |"
+            f"| {r.cause} | {r.size} | {r.sampler} | {r.seed} | {r.verdict} | "
+            f"{r.true_gain:.1f} | {r.true_se:.1f} | {'yes' if r.screened_in else 'no'} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -224,7 +252,8 @@ def write_report(runs_path: Path, out: Path) -> None:
     """detection.md (the table, false positives, the sizes at or above 0.95) and detection.png."""
     runs = pd.read_csv(runs_path)
     rates = cell_rates(runs)
-    null = runs[runs["cause"] == NO_CAUSE]
+    # The false-positive rate of the current sampler (older null runs are in the table).
+    null = runs[(runs["cause"] == NO_CAUSE) & (runs["sampler"] == SAMPLER)]
     fp = int((null["verdict"] != NO_CAUSE).sum())
     fp_low, fp_high = wilson(fp, len(null))
     false_positive = (
@@ -234,16 +263,28 @@ def write_report(runs_path: Path, out: Path) -> None:
     reliable = rates[
         (rates["cause"] != NO_CAUSE) & (rates["rate"] >= 0.95) & (rates["n"] >= CLAIM_REPLICATIONS)
     ]
-    by_cause = reliable.groupby("cause", sort=False)["size"].agg(", ".join)
+    by_cause = reliable.groupby("cause", sort=False).apply(
+        lambda cell: ", ".join(f"{r.size} ({r.sampler})" for r in cell.itertuples()),
+        include_groups=False,
+    )
     unbacked = [c for c in DETECTION_SIZES if c not in by_cause.index]
+    now = rates[rates["sampler"] == SAMPLER]
+    current = set(zip(now["cause"], now["size"], strict=True))
+    older = {
+        f"{r.cause} {r.size}" for r in reliable.itertuples() if (r.cause, r.size) not in current
+    }
     text = (
         "# Detection of hidden effects by `bayesdrive criticize`\n\n"
         f"Generated by `benchmarks/bench_detection.py`. Scenario: {DETECTION_SCENARIO} "
         f"(followers with per-driver effect sizes uniform on the range); settings: "
         f"{DETECTION_CONFIG._asdict()}. Seeds 1..N per cell (N = replications). A replication "
         "counts as detected when the verdict names the hidden cause (a significant gain for "
-        "another cause, or none, counts as a miss). Intervals: Wilson 95%.\n\n"
-        f"False positives on null data (verdict other than none): {false_positive}.\n\n"
+        "another cause, or none, counts as a miss). Intervals: Wilson 95%. Sampler: the "
+        "Metropolis-Hastings moves per tempering stage the run used; the current settings "
+        f'make "{SAMPLER}" (bayesdrive.criticism.tempering, "How many moves"); cells '
+        "measured with an older sampler stay in the table, marked, until rerun.\n\n"
+        f"False positives on null data with the current sampler (verdict other than none): "
+        f"{false_positive}.\n\n"
         + table(rates)
         + f"\n\nSizes named correctly in at least 95% of at least {CLAIM_REPLICATIONS} "
         "replications: "
@@ -251,6 +292,12 @@ def write_report(runs_path: Path, out: Path) -> None:
         + ". CI (tests/test_criticism_hidden.py) runs, per cause, one of these sizes"
         + (f"; it skips {', '.join(unbacked)}, which no measured size backs" if unbacked else "")
         + ".\n\n"
+        + (
+            "CI runs the current sampler; these backing cells were measured only with an older "
+            f"one and not rerun since: {', '.join(sorted(older))}.\n\n"
+            if older
+            else ""
+        )
         + misses(runs)
     )
     write_text_atomic(out / "detection.md", text)
@@ -288,7 +335,8 @@ def main(argv: list[str] | None = None) -> int:
     done = set()
     if runs_path.exists():
         previous = pd.read_csv(runs_path)
-        done = set(zip(previous["cause"], previous["size"], previous["seed"], strict=True))
+        current = previous[previous["sampler"] == SAMPLER]
+        done = set(zip(current["cause"], current["size"], current["seed"], strict=True))
     cells = [(NO_CAUSE, "none", None, s) for s in range(args.first_seed, args.null_seeds + 1)]
     for seed in range(args.first_seed, args.seeds + 1):
         for cause in args.causes.split(","):

@@ -16,7 +16,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesdrive.criticism.tempering import FitConfig, fit_model, step_logpdfs, vehicle_steps
+from bayesdrive.criticism.tempering import (
+    FitConfig,
+    _move_until_moved,
+    fit_model,
+    step_logpdfs,
+    vehicle_steps,
+)
 from bayesdrive.drivers.base import DriverModel, ParamSpec
 from bayesdrive.drivers.extensions.compose import ExtendedModel, observed_lift
 from bayesdrive.drivers.extensions.inputs import ExtendedSeries
@@ -117,13 +123,41 @@ def gaussian_evidence(series: ExtendedSeries, row: int, mask: np.ndarray):
     return log_z, mean, np.sqrt(np.diag(np.linalg.inv(precision)))
 
 
-@pytest.fixture(scope="module")
-def fitted():
+# Fixed moves, and moves until every particle has moved with probability 0.99 (the detection
+# settings' rule): both must reproduce the closed forms.
+CONFIGS = {
+    "fixed_moves": FitConfig(num_particles=512, num_moves=5),
+    "until_moved": FitConfig(num_particles=512, num_moves=2, unmoved_tolerance=0.01),
+}
+
+
+@pytest.fixture(scope="module", params=list(CONFIGS))
+def fitted(request):
     series = simulate(seed=11, vehicles=4, steps=260, fit_steps=60)
-    result = fit_model(
-        jax.random.key(5), series, EXTENDED, config=FitConfig(num_particles=512, num_moves=5)
-    )
+    result = fit_model(jax.random.key(5), series, EXTENDED, config=CONFIGS[request.param])
     return series, result
+
+
+@pytest.mark.parametrize(
+    ("rate", "expected"),
+    [
+        (0.234, 18),  # 0.766^17 = 0.011 > 0.01 >= 0.766^18
+        (0.9, 3),  # num_moves is the minimum even when one move suffices
+        (0.0, 20),  # nothing accepted: stops at max_moves
+    ],
+)
+def test_moves_continue_until_every_particle_has_likely_moved(rate, expected):
+    """The stage's move count: at least num_moves, then until prod(1 - acceptance) <= 0.01."""
+    config = FitConfig(num_moves=3, unmoved_tolerance=0.01, max_moves=20)
+
+    def move(state, key):
+        del key
+        return (state[0] + 1.0,), jnp.asarray(rate, jnp.float32)
+
+    state, (count, rate_sum) = _move_until_moved(move, (jnp.zeros(()),), jax.random.key(0), config)
+    assert int(count) == expected
+    assert float(state[0]) == expected  # the move was applied that many times
+    assert float(rate_sum) == pytest.approx(rate * expected, rel=1e-5)
 
 
 def test_evidence_and_heldout_predictive_match_closed_form(fitted):

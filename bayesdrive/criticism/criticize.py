@@ -90,6 +90,9 @@ class CriticizeConfig(NamedTuple):
 
     num_particles: int = 256
     num_moves: int = 5
+    # Moves per tempering stage continue past num_moves until a particle has moved with
+    # probability 1 - this (bayesdrive.criticism.tempering, "How many moves"); 0: num_moves only.
+    unmoved_tolerance: float = 0.0
     screen_p: float = SCREEN_P
     alpha: float = ALPHA
     horizon_s: float = 5.0
@@ -99,8 +102,12 @@ class CriticizeConfig(NamedTuple):
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
-# bayesdrive.criticism.generator): fewer particles and no rollouts, to keep CI fast.
-DETECTION_CONFIG = CriticizeConfig(num_particles=128, num_moves=4, num_rollouts=0)
+# bayesdrive.criticism.generator): fewer particles and no rollouts, to keep CI fast; moves until
+# every particle has moved with probability 0.99 (Drovandi & Pettitt 2011's c = 0.01), since 4
+# fixed moves let the speed-noise posterior collapse (bayesdrive.criticism.tempering).
+DETECTION_CONFIG = CriticizeConfig(
+    num_particles=128, num_moves=4, unmoved_tolerance=0.01, num_rollouts=0
+)
 
 
 class CriticismResult(NamedTuple):
@@ -183,7 +190,11 @@ def criticize(
         raise KeyError(f"unknown cause(s) {unknown}; known: {list(CAUSES)}")
     say = progress or (lambda message: None)
     key = jax.random.key(seed)
-    fit_config = FitConfig(num_particles=config.num_particles, num_moves=config.num_moves)
+    fit_config = FitConfig(
+        num_particles=config.num_particles,
+        num_moves=config.num_moves,
+        unmoved_tolerance=config.unmoved_tolerance,
+    )
     started = time.perf_counter()
 
     series = extended_series(traj)

@@ -100,9 +100,9 @@ DETECTION_SCENARIO = {"num_platoons": 2, "followers": 4, "duration_s": 40.0, "cu
 DETECTION_SIZES: dict[str, dict[str, tuple[float, float]]] = {
     "reaction_delay": {"small": (0.1, 0.2), "medium": (0.2, 0.4), "large": (0.4, 0.7)},
     "autocorrelated_noise": {"small": (0.2, 0.4), "medium": (0.4, 0.6), "large": (0.6, 0.9)},
-    # "xlarge" (inside the prior) tests whether size is what keeps "large" below 0.95 in the
-    # detection table: it is not (18 of 20 against 16 of 20; the misses are not significant
-    # across the 8 vehicles, once with one vehicle's held-out density lower by ~4000 nats).
+    # "xlarge" (inside the prior) tested whether size was what kept "large" below 0.95 with 4
+    # fixed moves per tempering stage: it was not (18 of 20 against 16 of 20); the sampler was
+    # (bayesdrive.criticism.tempering, "How many moves").
     "speed_dependent_noise": {
         "small": (0.02, 0.05),
         "medium": (0.05, 0.1),
