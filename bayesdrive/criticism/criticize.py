@@ -98,7 +98,7 @@ class CriticizeConfig(NamedTuple):
     horizon_s: float = 5.0
     num_rollouts: int = 32  # per held-out window; 0 skips the rollouts (no RMSE, no multistep)
     causes: tuple[str, ...] = CAUSES
-    vehicle_batch: int = 32
+    vehicle_batch: int = 1  # see bayesdrive.criticism.tempering.fit_model
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in

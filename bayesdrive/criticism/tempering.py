@@ -469,7 +469,7 @@ def fit_model(
     config: FitConfig = DEFAULT_CONFIG,
     steps: VehicleSteps | None = None,
     start: FitResult | None = None,
-    vehicle_batch: int = 32,
+    vehicle_batch: int = 1,
     progress: Callable[[int, int], None] | None = None,
 ) -> FitResult:
     """Fit ``extended`` to every vehicle's fitting window and score its held-out window.
@@ -478,7 +478,11 @@ def fit_model(
     ``vehicle_batch`` at a time (the last batch is padded by repeating its last vehicle, so one
     program serves every batch: one compile per model and padded shape, cached for the process).
     ``steps`` may pass precomputed :func:`vehicle_steps` of ``series``; ``progress(done, total)``
-    is called after each batch.
+    is called after each batch. Batching changes only the speed, not the algorithm: under ``vmap``
+    the tempering and move loops run until the batch's slowest vehicle is done, so one vehicle
+    at a time (the default) was 1.6-2.2x faster at fixed moves and 2.2x at moves until moved
+    (20 vehicles x 60 s, 256 particles; a single vehicle's 256 particles x steps already fill
+    the vector units).
 
     With ``start`` (the base model's fit of the same series and particle count), an extension
     whose phase 1 from the prior ends with a fit-window log evidence more than ``stuck_margin``
