@@ -4,10 +4,10 @@ time reported apart.
 Data: the hidden-effect generator's platoons, 4 platoons x 5 followers, 60 s, no cut-ins (so there
 are exactly 20 followers), written as NGSIM raw and read back. Two data sets are timed: one with a
 reaction delay (the checks point to several causes, so several extensions are fitted) and one
-without any effect. Each is criticized twice with the default settings (256 particles, rollouts
-on): the first run compiles every program (its compile time is what the sampler reports for the
-fits, plus what the checks and rollouts take on first use), the second run (another seed) reuses
-them, so its wall time is the run time without compilation. Writes ``<out>/speed.md``.
+without any effect. Each is criticized twice with the default settings (128 particles, moves until
+moved, rollouts on): the first run compiles every program (its compile time is what the sampler
+reports for the fits, plus what the checks and rollouts take on first use), the second run
+(another seed) reuses them, so its wall time is the run time without compilation. Writes ``<out>/speed.md``.
 
     python benchmarks/bench_criticize.py --out reports/criticism
 """

@@ -45,6 +45,8 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
             "3",
             "--particles",
             "64",
+            "--unmoved-tolerance",
+            "0.05",
             "--rollouts",
             "4",
             "--causes",
@@ -58,6 +60,8 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     assert report["seed"] == 3
+    assert report["settings"]["num_particles"] == 64
+    assert report["settings"]["unmoved_tolerance"] == 0.05
     assert report["verdict"] in ("reaction_delay", "none")
     assert [c["name"] for c in report["causes"]] == ["reaction_delay"]
     names = {p.name for p in out.iterdir()}
@@ -79,3 +83,8 @@ def test_bad_input_is_a_one_line_error_with_exit_code_2(tmp_path, small_file):
     )
     assert unknown.exit_code == 2
     assert "bad_weather" in unknown.output
+    tolerance = CliRunner().invoke(
+        app, [str(small_file), "--format", "ngsim_raw", "--unmoved-tolerance", "1.5"]
+    )
+    assert tolerance.exit_code == 2
+    assert "--unmoved-tolerance" in tolerance.output

@@ -126,7 +126,7 @@ def gaussian_evidence(series: ExtendedSeries, row: int, mask: np.ndarray):
 # Fixed moves, and moves until every particle has moved with probability 0.99 (the detection
 # settings' rule): both must reproduce the closed forms.
 CONFIGS = {
-    "fixed_moves": FitConfig(num_particles=512, num_moves=5),
+    "fixed_moves": FitConfig(num_particles=512, num_moves=5, unmoved_tolerance=0.0),
     "until_moved": FitConfig(num_particles=512, num_moves=2, unmoved_tolerance=0.01),
 }
 

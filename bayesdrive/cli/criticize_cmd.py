@@ -21,8 +21,19 @@ def criticize_command(
     model: Annotated[str, typer.Option("--model", help="Base driver model.")] = "idm",
     seed: Annotated[int, typer.Option("--seed", help="Seed of every random draw.")] = 0,
     particles: Annotated[
-        int, typer.Option("--particles", help="Particles per vehicle and model.")
-    ] = 256,
+        int | None,
+        typer.Option(
+            "--particles", help="Particles per vehicle and model (default: the sampler's, 128)."
+        ),
+    ] = None,
+    unmoved_tolerance: Annotated[
+        float | None,
+        typer.Option(
+            "--unmoved-tolerance",
+            help="Move each tempering stage until a particle stays put with at most this "
+            "probability (0: a fixed number of moves; default: the sampler's, 0.01).",
+        ),
+    ] = None,
     driver: Annotated[
         str | None,
         typer.Option("--driver", help="Only vehicles with this driver (human, acc, unknown)."),
@@ -77,9 +88,16 @@ def criticize_command(
         traj = traj.subset(chosen_ids | leaders | second)
     if vehicles is not None:
         traj = traj.subset(traj.vehicle_ids[:vehicles])
-    if particles < 2 or rollouts < 0:
-        raise fail(f"need --particles >= 2 and --rollouts >= 0, got {particles}, {rollouts}")
-    config = CriticizeConfig(num_particles=particles, num_rollouts=rollouts, causes=chosen)
+    config = CriticizeConfig(num_rollouts=rollouts, causes=chosen)
+    if particles is not None:
+        config = config._replace(num_particles=particles)
+    if unmoved_tolerance is not None:
+        config = config._replace(unmoved_tolerance=unmoved_tolerance)
+    if config.num_particles < 2 or rollouts < 0 or not 0 <= config.unmoved_tolerance < 1:
+        raise fail(
+            "need --particles >= 2, --rollouts >= 0 and 0 <= --unmoved-tolerance < 1, got "
+            f"{config.num_particles}, {rollouts}, {config.unmoved_tolerance}"
+        )
 
     quiet = json_out == "-"
     with Progress(

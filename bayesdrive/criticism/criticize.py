@@ -45,7 +45,13 @@ import numpy as np
 from bayesdrive.criticism.checks import Check, Residuals, multistep_check, run_checks
 from bayesdrive.criticism.gain import ALPHA, Gain, elpd_gain, holm, rmse_change
 from bayesdrive.criticism.rollout import Rollouts, heldout_windows, rollout
-from bayesdrive.criticism.tempering import FitConfig, FitResult, fit_model, vehicle_steps
+from bayesdrive.criticism.tempering import (
+    DEFAULT_CONFIG,
+    FitConfig,
+    FitResult,
+    fit_model,
+    vehicle_steps,
+)
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import SPLIT_RULE
 from bayesdrive.drivers.base import DriverModel
@@ -88,11 +94,11 @@ PROCESSING_ARTEFACTS: dict[str, dict[str, str]] = {
 class CriticizeConfig(NamedTuple):
     """Settings of a criticism run; ``causes`` is the family of causes considered."""
 
-    num_particles: int = 256
-    num_moves: int = 5
+    num_particles: int = DEFAULT_CONFIG.num_particles
+    num_moves: int = DEFAULT_CONFIG.num_moves
     # Moves per tempering stage continue past num_moves until a particle has moved with
     # probability 1 - this (bayesdrive.criticism.tempering, "How many moves"); 0: num_moves only.
-    unmoved_tolerance: float = 0.0
+    unmoved_tolerance: float = DEFAULT_CONFIG.unmoved_tolerance
     screen_p: float = SCREEN_P
     alpha: float = ALPHA
     horizon_s: float = 5.0
@@ -102,12 +108,10 @@ class CriticizeConfig(NamedTuple):
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
-# bayesdrive.criticism.generator): fewer particles and no rollouts, to keep CI fast; moves until
-# every particle has moved with probability 0.99 (Drovandi & Pettitt 2011's c = 0.01), since 4
-# fixed moves let the speed-noise posterior collapse (bayesdrive.criticism.tempering).
-DETECTION_CONFIG = CriticizeConfig(
-    num_particles=128, num_moves=4, unmoved_tolerance=0.01, num_rollouts=0
-)
+# bayesdrive.criticism.generator): the default sampler (moves until every particle has moved with
+# probability 0.99, Drovandi & Pettitt 2011's c = 0.01, since 4 fixed moves let the speed-noise
+# posterior collapse: bayesdrive.criticism.tempering), without rollouts, to keep CI fast.
+DETECTION_CONFIG = CriticizeConfig(num_rollouts=0)
 
 
 class CriticismResult(NamedTuple):

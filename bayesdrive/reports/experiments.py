@@ -112,7 +112,7 @@ class Settings:
     criticism_seconds: float
 
 
-FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 256, 32, 120.0)
+FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 128, 32, 120.0)
 QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 1, 128, 8, 45.0)
 
 
