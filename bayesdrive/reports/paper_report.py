@@ -119,13 +119,14 @@ def plot_parameters(table: pd.DataFrame, path: Path) -> Path:
     fig = Figure(figsize=(12, 3.5), layout="tight")
     axes = fig.subplots(1, len(params))
     labels = list(pd.unique(table["data"]))
+    # Data-set names are too long for six narrow panels: letters on the axis, the key above.
+    letters = [chr(ord("A") + i) for i in range(len(labels))]
     for ax, name in zip(axes, params, strict=True):
         ax.boxplot([table.loc[table["data"] == lab, name] for lab in labels], widths=0.6)
-        ax.set_xticks(
-            range(1, len(labels) + 1), [lab.split(":")[0][:8] for lab in labels], fontsize=7
-        )
+        ax.set_xticks(range(1, len(labels) + 1), letters)
         ax.set_title(name)
-    fig.suptitle("posterior mean per vehicle (smc), by data set")
+    key = ", ".join(f"{letter}: {lab}" for letter, lab in zip(letters, labels, strict=True))
+    fig.suptitle(f"posterior mean per vehicle (smc), by data set ({key})", fontsize=10)
     return _save(fig, path)
 
 
