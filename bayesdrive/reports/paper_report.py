@@ -253,10 +253,11 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "the model draws independently at every step while the processed data are smooth "
         "(compare the criticism section's verdicts)."
     )
+    # The folder's name, not its absolute path: the clips travel with the report.
     turing.text(
         f"For human judges: {results['turing']['pairs']} pairs of clips (real and idm-smc, order "
-        f"drawn from a seeded generator) in {results['turing']['clips']}; answer_sheet.json there "
-        "says which clip of each pair is real."
+        f"drawn from a seeded generator) in the folder {Path(results['turing']['clips']).name}/ "
+        "beside this report; answer_sheet.json there says which clip of each pair is real."
     )
     for label, rows in results["turing"]["classifier"].items():
         frame = pd.DataFrame(
