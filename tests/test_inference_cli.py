@@ -81,3 +81,18 @@ def test_held_out_data_is_never_fitted(tmp_path):
     assert result.exit_code == 2
     assert "held out for evaluation only" in one_line(result.stderr)
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("engine", ["nuts", "emcee", "lm"])
+def test_fit_runs_the_cross_check_engines(data_dir, tmp_path, engine):
+    """Every engine behind --engine writes its result and summary; the per-step filter pictures
+    exist only for the filters, so the others must not fail on them."""
+    args = ["fit", str(data_dir / CHAIN), "--engine", engine, "--vehicles", "1"]
+    args += ["--particles", "200", "--params", "v_des,sigma", "--seed", "2", "--out", str(tmp_path)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.nc", "summary.json"]
+    tree = load_result(tmp_path / "result.nc")
+    assert metadata(tree)["engine"] == engine
+    assert "wrote result.nc, summary.json to" in one_line(result.stdout)

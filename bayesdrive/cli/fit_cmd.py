@@ -64,7 +64,7 @@ def merge_arrays(traj: Trajectories, window: str) -> FollowerArrays:
     return merge_follower_arrays(scenarios)
 
 
-def _print(result: dict[str, Any], out: Path) -> None:
+def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
     params = result["params"]
     table = Table(
         title=escape(
@@ -92,11 +92,7 @@ def _print(result: dict[str, Any], out: Path) -> None:
         f"inference {result['wall_time_s']:.2f} s, compilation {result['compile_time_s']:.2f} s; "
         f"seed {result['seed']}"
     )
-    console.print(
-        escape(
-            f"wrote {out}/result.nc, summary.json, ess.png, unique_particles.png, convergence.png"
-        )
-    )
+    console.print(escape(f"wrote {', '.join(written)} to {out}"))
 
 
 def fit(
@@ -161,10 +157,10 @@ def fit(
 
     result = summary(tree)
     emit_json(result, str(folder / "summary.json"))
-    write_filter_plots(tree, folder)
+    plots = write_filter_plots(tree, folder)
     try:
         save_result(tree, folder / "result.nc")
     except ImportError as error:
         raise fail(f"cannot write {folder / 'result.nc'}: {error}") from None
     if not emit_json(result, json_out):
-        _print(result, folder)
+        _print(result, folder, ["result.nc", "summary.json", *(p.name for p in plots)])

@@ -106,7 +106,11 @@ def plot_convergence(tree: xr.DataTree, path: str | Path) -> Path:
 
 
 def write_filter_plots(tree: xr.DataTree, out_dir: str | Path) -> list[Path]:
-    """All three pictures into ``out_dir``: ess.png, unique_particles.png, convergence.png."""
+    """All three pictures into ``out_dir``: ess.png, unique_particles.png, convergence.png; none
+    for a result without per-step filter statistics (the MCMC engines and lm: ``diagnose`` is
+    their picture)."""
+    if "sample_stats" not in tree.children or "ess" not in tree["sample_stats"].data_vars:
+        return []
     out_dir = Path(out_dir)
     return [
         plot_ess(tree, out_dir / "ess.png"),
