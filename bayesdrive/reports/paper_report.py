@@ -324,9 +324,18 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     )
     for label, found in results.get("criticism", {}).items():
         artefact = found.get("verdict_is_possible_processing_artefact")
+        sampler = found["settings"]
+        moves = (
+            f"moves until a particle stays put with probability at most "
+            f"{sampler['unmoved_tolerance']:g}"
+            if sampler.get("unmoved_tolerance")
+            else f"{sampler['num_moves']} moves"
+        )
         criticism.text(
             f"{label} ({found['data']['vehicles']} vehicles of {found['scenes']} scenes, the "
-            f"first {found['seconds_per_scene']:.0f} s of each): verdict '{found['verdict']}'."
+            f"first {found['seconds_per_scene']:.0f} s of each; {sampler['num_particles']} "
+            f"particles per vehicle and model, {moves} per tempering stage): verdict "
+            f"'{found['verdict']}'."
         )
         if artefact:
             criticism.note(f"The verdict may be a processing artefact: {artefact}")
