@@ -3,11 +3,10 @@ through the real reader; ``criticize`` must name the effect, and on data without
 
 The effect sizes are those the detection study (benchmarks/bench_detection.py, table in
 reports/criticism/detection.md: 20 replications per cell, seeds 1..20) names correctly in at least
-95% of its replications at this scenario and these settings: "large" for every cause. The
-speed-dependent noise, the cut-in over-reaction and the null data were measured with the current
-sampler (moves until every particle has likely moved: 20 of 20 each, the null naming no cause);
-the other causes' cells with the earlier one (4 fixed moves), see the report. One seed, 2026,
-outside the study's seeds and fixed in advance (not chosen by outcome).
+95% of its replications at this scenario and these settings: "large" for every cause, each
+measured with the current sampler (moves until every particle has likely moved): 20 of 20 for
+every cause, and the null named no cause in 20 of 20. One seed, 2026, outside the study's seeds
+and fixed in advance (not chosen by outcome).
 """
 
 from __future__ import annotations
