@@ -52,7 +52,7 @@ DATA = "ngsim_i80_chains"
 # draws: 31 divergences in all), so the mass matrix is diagonal. Vehicle 124's a_max and b_pref
 # sds rest on rare visits to a b_pref tail (P(b_pref > 3.5) about 0.015): at 32000 draws four
 # seeds gave an a_max sd of 0.065-0.080 (reference 0.073, bench_reference.py), so the sd alone
-# was off by up to 10%; 128000 draws halve that. emcee: the kept run (num_steps - num_burn) must
+# was off by up to 12%; 128000 draws halve that. emcee: the kept run (num_steps - num_burn) must
 # exceed 50 autocorrelation times; the slowest vehicles reached tau of 1400-1800 steps, and
 # at 60000 kept steps vehicle 124's a_max sd still varied by 5% between seeds, hence 125000.
 ENGINE_OPTIONS = {

@@ -484,7 +484,7 @@ def fit_model(
     ``steps`` may pass precomputed :func:`vehicle_steps` of ``series``; ``progress(done, total)``
     is called after each batch. Batching changes only the speed, not the algorithm: under ``vmap``
     the tempering and move loops run until the batch's slowest vehicle is done, so one vehicle
-    at a time (the default) was 1.6-2.2x faster at fixed moves and 2.2x at moves until moved
+    at a time (the default) was 1.6-2.2x faster at fixed moves and 1.7-2.3x at moves until moved
     (20 vehicles x 60 s, 256 particles; a single vehicle's 256 particles x steps already fill
     the vector units).
 
