@@ -145,11 +145,15 @@ def test_duplicate_frame_names_row(tmp_path):
         read(write(tmp_path, table))
 
 
-def test_time_going_backwards_names_row(tmp_path):
+def test_rows_out_of_time_order_are_sorted_as_a_logged_repair(tmp_path):
     table = ngsim_table()
-    table.loc[[2, 3]] = table.loc[[3, 2]].to_numpy()
-    with pytest.raises(DataError, match=r"row 5, column 'Frame_ID': time goes backwards"):
-        read(write(tmp_path, table))
+    swapped = table.copy()
+    swapped.loc[[2, 3]] = table.loc[[3, 2]].to_numpy()
+    traj = read(write(tmp_path, swapped))
+    assert any("not in time order" in r and "row 5" in r for r in traj.repairs)
+    in_order = read(write(tmp_path, table, name="in_order.csv"))
+    np.testing.assert_array_equal(traj.tracks["x"], in_order.tracks["x"])
+    np.testing.assert_array_equal(traj.tracks["t"], in_order.tracks["t"])
 
 
 def test_empty_file_and_header_only(tmp_path):
@@ -236,9 +240,10 @@ def test_strict_turns_negative_gaps_into_an_error(tmp_path):
     table.loc[(table["Vehicle_ID"] == 2) & (table["Frame_ID"] == 102), "Space_Headway"] = 10.0
     path = write(tmp_path, table)
     traj = read(path)
-    assert list(traj.flags["kind"]) == ["negative_gap"]
-    assert traj.flags["t"].iloc[0] == pytest.approx(10.2)
-    with pytest.raises(DataError, match=r"strict mode refuses flagged data: 1 negative_gap"):
+    # Space_Headway now contradicts the positions too (10 ft against 50 ft): both flags, one sample.
+    assert sorted(traj.flags["kind"]) == ["gap_mismatch", "negative_gap"]
+    assert traj.flags["t"].tolist() == pytest.approx([10.2, 10.2])
+    with pytest.raises(DataError, match=r"strict mode refuses flagged data: 1 gap_mismatch"):
         read(path, strict=True)
 
 
@@ -257,17 +262,22 @@ PROPERTY_SETTINGS = settings(
 @st.composite
 def ngsim_tables(draw) -> pd.DataFrame:
     """A valid NGSIM table: 1-3 cars in one lane over the same frames, each following the one
-    ahead, in feet; speeds above jam speed, car lengths."""
+    ahead, in feet; positions advance by speed x dt, Space_Headway is the front-to-front distance
+    of the positions, speeds above jam speed, car lengths."""
     cars = draw(st.integers(1, 3))
     frames = draw(st.integers(2, 12))
     first_frame = draw(st.integers(1, 5000))
     finite = {"allow_nan": False, "allow_infinity": False}
     lengths = [draw(st.floats(9.0, 24.0, **finite)) for _ in range(cars)]
-    spacings = [draw(st.floats(20.0, 300.0, **finite)) for _ in range(cars)]
+    spacings = [draw(st.floats(60.0, 300.0, **finite)) for _ in range(cars)]
     rows = []
     front = 2000.0
+    fronts = []
     for car in range(cars):
         front -= spacings[car]
+        speeds = np.array([draw(st.floats(40.0, 60.0, **finite)) for _ in range(frames)])
+        y = front + np.r_[0.0, np.cumsum(0.05 * (speeds[1:] + speeds[:-1]))]
+        fronts.append(y)
         for k in range(frames):
             rows.append(
                 {
@@ -276,16 +286,16 @@ def ngsim_tables(draw) -> pd.DataFrame:
                     "Total_Frames": frames,
                     "Global_Time": 1_113_433_000_000 + 100 * (first_frame + k),
                     "Local_X": draw(st.floats(0.0, 80.0, **finite)),
-                    "Local_Y": front + draw(st.floats(0.0, 3.0, **finite)) * k,
+                    "Local_Y": y[k],
                     "v_Length": lengths[car],
                     "v_Width": 6.0,
                     "v_Class": 2,
-                    "v_Vel": draw(st.floats(8.0, 100.0, **finite)),
+                    "v_Vel": speeds[k],
                     "v_Acc": draw(st.floats(-11.2, 11.2, **finite)),
                     "Lane_ID": 1,
                     "Preceding": car,  # 0 for the first car: no leader
                     "Following": car + 2 if car + 1 < cars else 0,
-                    "Space_Headway": draw(st.floats(0.0, 400.0, **finite)) if car else 0.0,
+                    "Space_Headway": fronts[car - 1][k] - y[k] if car else 0.0,
                     "Time_Headway": 0.0,
                 }
             )

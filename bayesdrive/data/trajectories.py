@@ -37,18 +37,13 @@ equals ``gap`` wherever both are present; readers either take ``gap`` from the s
 from __future__ import annotations
 
 import dataclasses
-import logging
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from bayesdrive.data.errors import DataError
-
-__all__ = ["FLAG_COLUMNS", "TRACK_COLUMNS", "Trajectories", "validate_tracks"]
-
-log = logging.getLogger(__name__)
+__all__ = ["DRIVERS", "FLAG_COLUMNS", "REPAIR_PREFIX", "TRACK_COLUMNS", "Trajectories"]
 
 TRACK_COLUMNS: dict[str, str] = {
     "vehicle_id": "object",
@@ -64,15 +59,8 @@ TRACK_COLUMNS: dict[str, str] = {
 }
 FLAG_COLUMNS = ["vehicle_id", "t", "kind", "message"]
 DRIVERS = ("human", "acc", "unknown")
-
-# A passenger car is at most ~6 m long; a median length above this in "metres" is feet.
-MAX_CAR_LENGTH_M = 8.0
-# A US tractor-trailer is up to ~23 m (NGSIM I-80 has 74-76 ft trucks); longer than this is feet.
-MAX_VEHICLE_LENGTH_M = 30.0
-# Stopped cars in a jam keep 1-4 m bumper to bumper; a median jam spacing (front to front) far above
-# 15 m while speeds are below 2 m/s reads as feet passed as metres.
-MAX_JAM_SPACING_M = 15.0
-JAM_SPEED_MPS = 2.0
+# Notes that record a change to the data start with this; ``read(strict=True)`` refuses them.
+REPAIR_PREFIX = "repair: "
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +74,9 @@ class Trajectories:
         format: name of the reader that produced it (``"ngsim_chains"``, ``"openacc"``, ...).
         source: where it was read from (path or data set name).
         flags: physically impossible samples (columns :data:`FLAG_COLUMNS`).
-        notes: documented assumptions and repairs the reader made (e.g. assumed lengths).
+        notes: documented assumptions and repairs the reader made (e.g. assumed lengths);
+            repairs (changes to the data) start with :data:`REPAIR_PREFIX`.
+        inputs: sha256 (hex) of every file read, by path, so a result names the exact bytes.
     """
 
     tracks: pd.DataFrame
@@ -98,6 +88,12 @@ class Trajectories:
         default_factory=lambda: pd.DataFrame(columns=FLAG_COLUMNS)
     )
     notes: tuple[str, ...] = ()
+    inputs: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def repairs(self) -> list[str]:
+        """The changes made to the input data (the notes starting with :data:`REPAIR_PREFIX`)."""
+        return [n[len(REPAIR_PREFIX) :] for n in self.notes if n.startswith(REPAIR_PREFIX)]
 
     @property
     def vehicle_ids(self) -> list[str]:
@@ -157,176 +153,6 @@ class Trajectories:
             flags=self.flags[kept(self.flags)].reset_index(drop=True),
         )
         return cropped.subset(pd.unique(cropped.tracks["vehicle_id"]))
-
-
-def _where(source: str, frame: pd.DataFrame, index, column: str) -> str:
-    """'file, row R, column C' for an error message; rows carry their source row when known.
-
-    A ``_file`` column, if present, names each row's own file (readers that merge several files
-    into one table set it), so the message names the file the row came from.
-    """
-    row = frame.loc[index, "_row"] if "_row" in frame.columns else index
-    if "_file" in frame.columns and isinstance(frame.loc[index, "_file"], str):
-        source = frame.loc[index, "_file"]
-    return f"{source}, row {row}, column {column!r}"
-
-
-def validate_tracks(
-    tracks: pd.DataFrame,
-    *,
-    source: str,
-    dt: float,
-    column_names: Mapping[str, str] | None = None,
-) -> pd.DataFrame:
-    """Check a tracks table against the schema and return it typed and sorted.
-
-    ``column_names`` maps schema columns to the source's own column names, so that errors name the
-    column the user sees in the file. A ``_row`` column, if present, gives the source row numbers
-    for messages, and a ``_file`` column the file each row came from; both are dropped from the
-    result. Raises :class:`DataError` naming file, row and
-    column for: missing columns, NaN in required columns, duplicate frames, time going backwards,
-    an empty table, negative speeds or lengths, a leader id that names no vehicle, a time step
-    that is not a multiple of ``dt``, and lengths or jam spacings that can only be feet.
-    """
-    names = dict(column_names or {})
-
-    def shown(column: str) -> str:
-        return names.get(column, column)
-
-    if len(tracks) == 0:
-        raise DataError(f"{source}: no data rows (empty file or nothing left after the header)")
-    missing = [c for c in TRACK_COLUMNS if c not in tracks.columns]
-    if missing:
-        raise DataError(f"{source}: missing column(s) {', '.join(shown(c) for c in missing)}")
-    if not (np.isfinite(dt) and dt > 0):
-        raise DataError(f"{source}: sampling interval must be positive, got {dt!r}")
-
-    for column in ("t", "x", "v", "length"):
-        bad = tracks[column].isna() | ~np.isfinite(tracks[column].astype(float))
-        if bad.any():
-            first = bad.idxmax()
-            raise DataError(
-                f"{_where(source, tracks, first, shown(column))}: value is NaN or infinite "
-                f"({int(bad.sum())} such row(s) in all)"
-            )
-    for column, what in (("v", "speed"), ("length", "vehicle length")):
-        bad = tracks[column] < 0 if column == "v" else tracks[column] <= 0
-        if bad.any():
-            first = bad.idxmax()
-            raise DataError(
-                f"{_where(source, tracks, first, shown(column))}: negative {what} "
-                f"{tracks.loc[first, column]!r}"
-            )
-    unknown_drivers = ~tracks["driver"].isin(DRIVERS)
-    if unknown_drivers.any():
-        first = unknown_drivers.idxmax()
-        raise DataError(
-            f"{_where(source, tracks, first, shown('driver'))}: driver must be one of {DRIVERS}, "
-            f"got {tracks.loc[first, 'driver']!r}"
-        )
-
-    ordered = tracks.reset_index(drop=True)
-    by_vehicle = ordered.groupby("vehicle_id", sort=False)["t"]
-    step = by_vehicle.diff()
-    duplicate = step == 0
-    if duplicate.any():
-        first = duplicate.idxmax()
-        raise DataError(
-            f"{_where(source, ordered, first, shown('t'))}: duplicate frame for vehicle "
-            f"{ordered.loc[first, 'vehicle_id']} at t={ordered.loc[first, 't']}"
-        )
-    backwards = step < 0
-    if backwards.any():
-        first = backwards.idxmax()
-        raise DataError(
-            f"{_where(source, ordered, first, shown('t'))}: time goes backwards for vehicle "
-            f"{ordered.loc[first, 'vehicle_id']} ({ordered.loc[first - 1, 't']} then "
-            f"{ordered.loc[first, 't']})"
-        )
-    ratio = step / dt
-    off_grid = step.notna() & (np.abs(ratio - np.round(ratio)) > 1e-3)
-    if off_grid.any():
-        first = off_grid.idxmax()
-        raise DataError(
-            f"{_where(source, ordered, first, shown('t'))}: time step {step[first]:.6g} s is not "
-            f"a multiple of the sampling interval {dt} s"
-        )
-
-    known = set(ordered["vehicle_id"])
-    leaders = ordered["leader_id"]
-    dangling = leaders.notna() & ~leaders.isin(known)
-    if dangling.any():
-        first = dangling.idxmax()
-        raise DataError(
-            f"{_where(source, ordered, first, shown('leader_id'))}: leader id "
-            f"{ordered.loc[first, 'leader_id']!r} names no vehicle in the data"
-        )
-    no_gap = leaders.notna() & ordered["gap"].isna()
-    if no_gap.any():
-        first = no_gap.idxmax()
-        raise DataError(
-            f"{_where(source, ordered, first, shown('gap'))}: vehicle has a leader but no gap"
-        )
-
-    _refuse_feet(ordered, source=source, shown=shown)
-
-    typed = ordered.drop(columns=[c for c in ordered.columns if c not in TRACK_COLUMNS])
-    typed = typed.astype(TRACK_COLUMNS)
-    typed["leader_id"] = typed["leader_id"].where(typed["leader_id"].notna(), None)
-    return typed.sort_values(["vehicle_id", "t"], kind="stable").reset_index(drop=True)
-
-
-def _refuse_feet(tracks: pd.DataFrame, *, source: str, shown) -> None:
-    """Refuse data whose lengths or jam spacings can only be feet read as metres.
-
-    Congested speeds in ft/s (10-30) still look like plausible m/s, so speed alone cannot tell;
-    vehicle length and the spacing of stopped cars can.
-    """
-    too_long = tracks["length"] > MAX_VEHICLE_LENGTH_M
-    median_length = float(tracks["length"].median())
-    if median_length > MAX_CAR_LENGTH_M or too_long.any():
-        first = too_long.idxmax() if too_long.any() else tracks.index[0]
-        raise DataError(
-            f"{_where(source, tracks, first, shown('length'))}: vehicle lengths (median "
-            f"{median_length:.1f}) are too long to be metres; are these feet? "
-            "Pass the unit explicitly (e.g. --units ft)"
-        )
-    jammed = tracks["leader_id"].notna() & (tracks["v"] < JAM_SPEED_MPS)
-    if jammed.sum() >= 10:
-        spacing = (tracks.loc[jammed, "gap"] + tracks.loc[jammed, "length"]).median()
-        if spacing > MAX_JAM_SPACING_M:
-            first = jammed.idxmax()
-            raise DataError(
-                f"{_where(source, tracks, first, shown('gap'))}: stopped vehicles keep a median "
-                f"spacing of {spacing:.1f}, too long for metres; are these feet? "
-                "Pass the unit explicitly (e.g. --units ft)"
-            )
-
-
-def empty_flags() -> pd.DataFrame:
-    return pd.DataFrame(
-        {c: pd.Series(dtype="object" if c != "t" else "float64") for c in FLAG_COLUMNS}
-    )
-
-
-def flag_negative_gaps(tracks: pd.DataFrame) -> pd.DataFrame:
-    """Flag samples whose bumper gap is not positive: physically impossible, so never fitted."""
-    bad = tracks["gap"].notna() & (tracks["gap"] <= 0)
-    flagged = tracks.loc[bad, ["vehicle_id", "t", "gap", "leader_id"]]
-    if flagged.empty:
-        return empty_flags()
-    log.warning("%d sample(s) with a non-positive bumper gap flagged", len(flagged))
-    return pd.DataFrame(
-        {
-            "vehicle_id": flagged["vehicle_id"].to_numpy(),
-            "t": flagged["t"].to_numpy(),
-            "kind": "negative_gap",
-            "message": [
-                f"bumper gap {g:.2f} m to leader {lead}"
-                for g, lead in zip(flagged["gap"], flagged["leader_id"], strict=True)
-            ],
-        }
-    )
 
 
 def _clock_groups(scenes: pd.DataFrame) -> dict[str, int]:

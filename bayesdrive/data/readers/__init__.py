@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from bayesdrive.data.errors import DataError
-from bayesdrive.data.readers._common import REPAIR_PREFIX
+from bayesdrive.data.readers._common import open_text, require_regular_file
 from bayesdrive.data.readers.columns import HOLDOUT_LAYOUTS, read_columns
 from bayesdrive.data.readers.highd import read_highd
 from bayesdrive.data.readers.interaction import read_interaction
@@ -59,6 +59,8 @@ FORMATS: dict[str, Callable[..., Trajectories]] = {
 }
 # Lines read to recognise a CSV (OpenACC puts a few metadata rows before its header).
 SNIFF_LINES = 12
+# Suffixes of text tables recognised by content (the name decides nothing more).
+TEXT_SUFFIXES = (".csv", ".txt", ".dat", ".tsv")
 
 
 def read(
@@ -74,6 +76,8 @@ def read(
     starting with ``"repair: "``).
     """
     path = Path(path)
+    if path.exists() and not path.is_dir():
+        require_regular_file(path)
     if format is None:
         format, detected = detect_format(path)
         options = {**detected, **options}
@@ -94,11 +98,11 @@ def _refuse_flags_and_repairs(traj: Trajectories, path: Path) -> None:
             + ", ".join(f"{n} {kind} sample(s)" for kind, n in kinds.items())
             + f"; first: vehicle {first['vehicle_id']} at t={first['t']:g} s: {first['message']}"
         )
-    repairs = [n for n in traj.notes if n.startswith(REPAIR_PREFIX)]
+    repairs = traj.repairs
     if repairs:
         raise DataError(
             f"{path}: strict mode refuses data that needed {len(repairs)} repair(s); first: "
-            f"{repairs[0][len(REPAIR_PREFIX) :]}"
+            f"{repairs[0]}"
         )
 
 
@@ -112,6 +116,7 @@ def detect_format(path: str | Path) -> tuple[str, dict[str, Any]]:
         raise DataError(f"{path}: no such file or folder")
     if path.is_dir():
         return _detect_folder(path)
+    require_regular_file(path)
     found = _detect_file(path)
     if found is None:
         raise DataError(
@@ -137,7 +142,8 @@ def _detect_folder(path: Path) -> tuple[str, dict[str, Any]]:
     if "dataset_with_episode_ids.csv" in names or "dataset.npy" in names:
         return "merge_episodes", {}
     seen = {}
-    for file in sorted(path.glob("*.csv"))[:20] + sorted(path.glob("*.txt"))[:5]:
+    tables = [f for suffix in TEXT_SUFFIXES for f in sorted(path.glob(f"*{suffix}"))[:20]]
+    for file in (f for f in tables if f.is_file()):
         found = _detect_file(file)
         if found is not None:
             return found, {}
@@ -152,9 +158,9 @@ def _detect_folder(path: Path) -> tuple[str, dict[str, Any]]:
 
 def _first_line(path: Path) -> str:
     try:
-        with path.open("r", errors="replace") as handle:
+        with open_text(path) as handle:
             return handle.readline().strip()
-    except OSError:
+    except (OSError, DataError):
         return ""
 
 
@@ -163,13 +169,15 @@ def _detect_file(path: Path) -> str | None:
         return "merge_episodes"
     if path.name.endswith("_tracks.csv"):
         return "highd"
-    if path.suffix not in (".csv", ".txt"):
+    if path.suffix.lower() not in TEXT_SUFFIXES:
         return None
     try:
-        with path.open("r", newline="", errors="replace") as handle:
-            rows = [row for _, row in zip(range(SNIFF_LINES), csv.reader(handle), strict=False)]
-    except OSError:
+        with open_text(path) as handle:
+            lines = [line for _, line in zip(range(SNIFF_LINES), handle, strict=False)]
+    except (OSError, DataError):
         return None
+    delimiter = "\t" if lines and "\t" in lines[0] and "," not in lines[0] else ","
+    rows = list(csv.reader(lines, delimiter=delimiter))
     if not rows:
         return None
     header = {c.strip().lower() for c in rows[0]}

@@ -1,48 +1,59 @@
 """Helpers every reader shares, so no reader re-implements them.
 
-Reading: :func:`input_files` (a file or a folder), :func:`read_table` (CSV with the 1-based source
-line number of every row in ``_row`` and the file in ``_file``), :func:`require_columns`,
-:func:`numeric_columns` (non-numbers and NaN are errors naming file, row and column),
-:func:`snap_to_grid` (times onto the ``dt`` grid). Building: :func:`make_tracks` (a schema table with
-defaults), :func:`integrate_speed`, :func:`leader_values`, :func:`gaps_from_positions`,
+Reading: :func:`input_files` (a file or a folder), :func:`open_text` (a regular text file, BOM
+removed), :func:`read_table` (CSV, tab-separated or parquet, with the 1-based source line number of
+every row in ``_row`` and the file in ``_file``), :func:`require_columns`, :func:`numeric_columns`
+(non-numbers and NaN are errors naming file, row and column), :func:`integer_ids` and
+:func:`integer_column` (ids kept as exact strings, frames refused unless whole numbers),
+:func:`sort_rows` (time-ordered formats put in order, a logged repair), :func:`snap_to_grid` (times
+onto the ``dt`` grid). Building: :func:`make_tracks` (a schema table with defaults),
+:func:`integrate_speed`, :func:`leader_values`, :func:`gaps_from_positions`,
 :func:`harmonise_lengths`, :func:`merge_copies` (samples present in several files). Ending:
-:func:`finish` (validate, flag negative gaps, wrap in :class:`Trajectories`). Every repair goes
-through :class:`Notes`, which logs it as a warning and records it in ``Trajectories.notes``.
+:func:`finish` (the checks of :mod:`bayesdrive.data.validate`, input checksums, wrap in
+:class:`Trajectories`). Every repair goes through :class:`Notes`, which logs it as a warning and
+records it in ``Trajectories.notes``.
 """
 
 from __future__ import annotations
 
+import csv
+import hashlib
 import logging
-from collections.abc import Iterable, Mapping, Sequence
+import re
+import stat
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import pandas as pd
 
 from bayesdrive.data.errors import DataError
-from bayesdrive.data.trajectories import (
-    FLAG_COLUMNS,
-    Trajectories,
-    flag_negative_gaps,
-    validate_tracks,
-)
+from bayesdrive.data.trajectories import FLAG_COLUMNS, REPAIR_PREFIX, Trajectories
+from bayesdrive.data.validate import check_tracks, leader_values, plain
 
 __all__ = [
     "DEFAULT_LENGTH_M",
     "REPAIR_PREFIX",
     "Notes",
+    "exact_ids",
     "finish",
     "gaps_from_positions",
     "harmonise_lengths",
     "input_files",
+    "integer_column",
+    "integer_ids",
     "integrate_speed",
     "leader_values",
     "make_tracks",
     "merge_copies",
     "numeric_columns",
+    "open_text",
     "read_table",
     "require_columns",
+    "require_regular_file",
     "snap_to_grid",
+    "sort_rows",
     "time_steps",
 ]
 
@@ -50,10 +61,8 @@ __all__ = [
 DEFAULT_LENGTH_M = 4.5
 # A time this far off the dt grid (in units of dt) is not float rounding but a wrong sampling rate.
 GRID_TOLERANCE = 1e-3
-
-
-# Notes that record a change to the data start with this; ``read(strict=True)`` refuses them.
-REPAIR_PREFIX = "repair: "
+# An integer written by a float writer ("17.0") is the integer; leading zeros and "+" are dropped.
+_INTEGER_TEXT = re.compile(r"(?P<sign>[+-]?)0*(?P<digits>\d+)(?:\.0*)?")
 
 
 class Notes:
@@ -79,12 +88,31 @@ class Notes:
         self.items.append(REPAIR_PREFIX + message)
 
 
+def require_regular_file(path: Path) -> None:
+    """Refuse anything but a regular file: opening a named pipe or a device would hang or stream."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(mode):
+        raise DataError(
+            f"{path}: not a regular file (a named pipe, socket or device?); give a file"
+        )
+
+
+def open_text(path: Path) -> TextIO:
+    """Open a regular file as text; a UTF-8 byte-order mark is removed, bad bytes replaced."""
+    require_regular_file(path)
+    return path.open("r", encoding="utf-8-sig", errors="replace", newline="")
+
+
 def input_files(path: str | Path, patterns: Sequence[str], *, what: str) -> list[Path]:
     """The file ``path`` itself, or the files in folder ``path`` matching ``patterns`` (sorted)."""
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
-    if path.is_file():
+    if not path.is_dir():
+        require_regular_file(path)
         return [path]
     found = sorted({f for pattern in patterns for f in path.glob(pattern) if f.is_file()})
     if not found:
@@ -94,20 +122,34 @@ def input_files(path: str | Path, patterns: Sequence[str], *, what: str) -> list
     return found
 
 
+def _head(path: Path, count: int) -> list[str]:
+    with open_text(path) as handle:
+        return [line.rstrip("\r\n") for _, line in zip(range(count), handle, strict=False)]
+
+
 def read_table(
     path: Path,
     *,
+    notes: Notes,
     header_line: int = 0,
     names: Sequence[str] | None = None,
-    sep: str = ",",
+    sep: str | None = None,
+    text_columns: Iterable[str] | Callable[[str], bool] = (),
     fmt: str,
 ) -> pd.DataFrame:
-    """Read a CSV (or parquet) whose header is on 0-based line ``header_line``.
+    """Read a table whose header is on 0-based line ``header_line``.
 
-    Adds ``_row`` (1-based line number in the file, header included, so row 2 is the first data
-    row of a file with a header on line 1) and ``_file``. ``names`` reads a file without a header.
-    Blank lines are kept (as all-NaN rows) so that line numbers stay true and they are reported.
+    The columns named in ``text_columns`` (case-insensitive; or those it accepts, if a function)
+    are read as text, so ids keep every
+    digit (:func:`integer_ids`); :func:`numeric_columns` checks and converts the number columns. ``sep`` None takes a tab when the header has tabs and no
+    commas, else a comma. A UTF-8 byte-order mark is removed. Adds ``_row`` (1-based line number in
+    the file, header included, so row 2 is the first data row of a file with a header on line 1)
+    and ``_file``. ``names`` reads a file without a header. Blank lines are dropped with a logged
+    note (line numbers stay true); data rows ending in one more, empty field than the header (a
+    trailing comma) are read without it, noted; a non-empty extra field is an error.
     """
+    path = Path(path)
+    require_regular_file(path)
     if path.suffix == ".parquet":
         try:
             frame = pd.read_parquet(path)
@@ -118,28 +160,74 @@ def read_table(
         if frame.empty:
             raise DataError(f"{path}: no data rows")
         return frame
+    head = _head(path, header_line + 2)
+    if sep is None:
+        header_text = head[header_line] if len(head) > header_line else ""
+        sep = "\t" if "\t" in header_text and "," not in header_text else ","
+    columns = list(names) if names is not None else None
+    trailing = False
+    if names is None and sep != r"\s+" and len(head) > header_line + 1:
+        header = next(csv.reader([head[header_line]], delimiter=sep))
+        first = next(csv.reader([head[header_line + 1]], delimiter=sep), [])
+        if len(first) == len(header) + 1:
+            trailing = True
+            columns = [c.strip() for c in header] + ["_trailing"]
+    if not callable(text_columns):
+        wanted = {str(c).lower() for c in text_columns}
+        text_columns = lambda name: name.lower() in wanted  # noqa: E731
+    if columns is not None:
+        seen_names = columns
+    elif sep == r"\s+":
+        seen_names = head[header_line].split() if len(head) > header_line else []
+    else:
+        seen_names = next(csv.reader([head[header_line]], delimiter=sep), [])
+    text = {c: str for c in seen_names if text_columns(c.strip())}
     try:
         frame = pd.read_csv(
             path,
-            skiprows=header_line,
-            header=None if names is not None else 0,
-            names=list(names) if names is not None else None,
+            skiprows=header_line + (1 if trailing else 0),
+            header=None if columns is not None else 0,
+            names=columns,
             sep=sep,
+            dtype=text or None,
+            index_col=False,
+            encoding="utf-8-sig",
             skip_blank_lines=False,
             low_memory=False,
         )
     except pd.errors.EmptyDataError:
         raise DataError(f"{path}: empty file (expected a {fmt} table)") from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: cannot parse as a {fmt} CSV ({exc})") from None
-    if frame.empty:
-        raise DataError(f"{path}: no data rows (empty file or nothing left after the header)")
+        raise DataError(f"{path}: cannot parse as a {fmt} table ({exc})") from None
     first_data_line = header_line + (1 if names is not None else 2)
     frame.columns = [c.strip() if isinstance(c, str) else c for c in frame.columns]
-    where = pd.DataFrame(
-        {"_row": np.arange(len(frame)) + first_data_line, "_file": str(path)}, index=frame.index
-    )
-    return pd.concat([frame, where], axis=1)
+    frame.index = pd.RangeIndex(len(frame)) + first_data_line
+    if trailing:
+        extra = frame["_trailing"].notna() & (frame["_trailing"].str.strip() != "")
+        if extra.any():
+            raise DataError(
+                f"{path}, row {extra.idxmax()}: {len(columns)} fields but the header has "
+                f"{len(columns) - 1} (a stray delimiter?)"
+            )
+        frame = frame.drop(columns="_trailing")
+        notes.assume(
+            f"{path.name}: data rows end with a trailing delimiter (one empty field more than the "
+            "header); the empty last field is ignored",
+            warn=True,
+        )
+    blank = frame.isna().all(axis=1)
+    if blank.any():
+        lines = list(frame.index[blank])
+        notes.assume(
+            f"{path.name}: {len(lines)} blank line(s) skipped (line(s) "
+            f"{', '.join(map(str, lines[:10]))}{' ...' if len(lines) > 10 else ''})",
+            warn=True,
+        )
+        frame = frame[~blank]
+    if frame.empty:
+        raise DataError(f"{path}: no data rows (empty file or nothing left after the header)")
+    where = pd.DataFrame({"_row": frame.index, "_file": str(path)}, index=frame.index)
+    return pd.concat([frame, where], axis=1).reset_index(drop=True)
 
 
 def require_columns(
@@ -191,6 +279,93 @@ def numeric_columns(
                 )
         frame[column] = values
     return frame
+
+
+def exact_ids(frame: pd.DataFrame, column: str) -> pd.Series:
+    """The ids of ``column`` as exact text (object dtype); missing stays missing.
+
+    Whole numbers lose what a float writer or padding adds ("0017", "+17", "17.0" are "17");
+    other text is kept, stripped. A typed float id (parquet) above 2**53 cannot be exact: an error
+    naming file, row and column. (Read id columns as text: :func:`read_table`'s ``text_columns``.)
+    """
+    raw = frame[column]
+    if isinstance(raw.dtype, pd.CategoricalDtype):  # parquet files store codes as categories
+        raw = raw.astype(object)
+    codes, uniques = pd.factorize(raw)
+    canonical = []
+    for index, value in enumerate(uniques):
+        try:
+            canonical.append(_exact_id(value))
+        except ValueError as exc:
+            row, file = _first_bad(frame, codes == index)
+            raise DataError(f"{file}, row {row}, column {column!r}: {exc}") from None
+    # factorize marks missing values with -1: the appended None.
+    return pd.Series(np.array([*canonical, None], dtype=object)[codes], index=frame.index)
+
+
+def _exact_id(value: object) -> str:
+    if isinstance(value, float | np.floating):
+        if abs(value) > 2**53:
+            raise ValueError(
+                f"id {plain(value)} is stored as a float too large to be exact; store ids as "
+                "integers or text"
+            )
+        value = int(value) if float(value).is_integer() else value
+    text = str(value).strip()
+    whole = _INTEGER_TEXT.fullmatch(text)
+    if not whole:
+        return text
+    digits = whole.group("digits")
+    return "-" + digits if whole.group("sign") == "-" and digits != "0" else digits
+
+
+def integer_ids(frame: pd.DataFrame, column: str) -> np.ndarray:
+    """The integer ids of ``column`` as exact strings (:func:`exact_ids`): never through a float,
+    where 17 digits collide and 30 overflow. Empty cells and text that is not a whole number are
+    errors naming file, row and column."""
+    ids = exact_ids(frame, column)
+    bad = ~ids.map(lambda v: isinstance(v, str) and _INTEGER_TEXT.fullmatch(v) is not None)
+    bad = bad.to_numpy(dtype=bool)
+    if bad.any():
+        row, file = _first_bad(frame, bad)
+        value = frame[column].iloc[int(np.argmax(bad))]
+        what = "empty" if pd.isna(value) else f"not a whole number: {value!r}"
+        raise DataError(f"{file}, row {row}, column {column!r}: id is {what}")
+    return ids.to_numpy(dtype=object)
+
+
+def integer_column(frame: pd.DataFrame, column: str) -> np.ndarray:
+    """A numeric column (already through :func:`numeric_columns`) as int64; a fraction refuses.
+
+    Frame numbers and lane ids are whole numbers: ``100.5`` is a damaged cell, not frame 100.
+    """
+    values = frame[column].to_numpy(dtype=float)
+    fractional = values != np.round(values)
+    if fractional.any():
+        row, file = _first_bad(frame, fractional)
+        raise DataError(
+            f"{file}, row {row}, column {column!r}: {plain(values[int(np.argmax(fractional))])} "
+            "is not a whole number"
+        )
+    return values.astype(np.int64)
+
+
+def sort_rows(
+    frame: pd.DataFrame, by: Sequence[str], *, notes: Notes, path: Path, what: str
+) -> pd.DataFrame:
+    """``frame`` in the order of ``by`` (numeric columns); rows out of order are a logged repair.
+
+    For formats whose rows are time steps (a shuffled file is still the same recording).
+    """
+    ordered = frame.sort_values(list(by), kind="stable")
+    moved = ordered["_row"].to_numpy() != frame["_row"].to_numpy()
+    if moved.any():
+        first = frame["_row"].iloc[int(np.argmax(moved))]
+        notes.repair(
+            f"{path.name}: rows are not in {what} order (first out of place: row {first}); "
+            f"{int(moved.sum())} row(s) sorted by {', '.join(by)}"
+        )
+    return ordered.reset_index(drop=True)
 
 
 def snap_to_grid(
@@ -269,21 +444,6 @@ def integrate_speed(t: np.ndarray, v: np.ndarray) -> np.ndarray:
     return x
 
 
-def leader_values(tracks: pd.DataFrame, column: str, dt: float) -> pd.Series:
-    """The leader's ``column`` on each row at the same time; NaN without a leader sample."""
-    key = np.round(tracks["t"].to_numpy(dtype=float) / dt).astype(np.int64)
-    own = pd.DataFrame(
-        {
-            "leader_id": tracks["vehicle_id"].to_numpy(),
-            "_k": key,
-            "_value": tracks[column].to_numpy(dtype=float),
-        }
-    ).drop_duplicates(["leader_id", "_k"])
-    asked = pd.DataFrame({"leader_id": tracks["leader_id"].to_numpy(), "_k": key})
-    found = asked.merge(own, on=["leader_id", "_k"], how="left")["_value"]
-    return pd.Series(found.to_numpy(), index=tracks.index)
-
-
 def gaps_from_positions(tracks: pd.DataFrame, dt: float) -> pd.Series:
     """Bumper gap ``x_leader - x - length_leader`` at the same time; NaN where no leader sample."""
     return leader_values(tracks, "x", dt) - tracks["x"] - leader_values(tracks, "length", dt)
@@ -317,30 +477,60 @@ def finish(
     scenes: pd.DataFrame,
     notes: Notes,
     column_names: Mapping[str, str] | None = None,
+    file_units: Mapping[str, float] | None = None,
+    measured_gap: bool = False,
     extra_flags: pd.DataFrame | None = None,
+    extra_inputs: Iterable[Path] = (),
 ) -> Trajectories:
-    """Validate ``tracks``, flag non-positive gaps and wrap everything in a :class:`Trajectories`."""
-    valid = validate_tracks(tracks, source=str(source), dt=dt, column_names=column_names)
-    flags = flag_negative_gaps(valid)
+    """Check ``tracks`` (:func:`bayesdrive.data.validate.check_tracks`), record what the checks
+    found and the sha256 of every input (the rows' ``_file`` plus ``extra_inputs``: maps, metadata
+    files), and wrap everything in a :class:`Trajectories`."""
+    files = (
+        sorted({*map(str, pd.unique(tracks["_file"])), *map(str, extra_inputs)})
+        if ("_file" in tracks.columns)
+        else sorted(map(str, extra_inputs))
+    )
+    checked = check_tracks(
+        tracks,
+        source=str(source),
+        dt=dt,
+        column_names=column_names,
+        file_units=file_units,
+        measured_gap=measured_gap,
+    )
+    for message in checked.repairs:
+        notes.repair(message)
+    for message in checked.findings:
+        notes.assume(message, warn=True)
+    flags = checked.flags
     if extra_flags is not None and not extra_flags.empty:
         flags = pd.concat([flags, extra_flags[FLAG_COLUMNS]], ignore_index=True)
     if len(flags):
         kinds = flags.groupby("kind").size()
-        notes.assume(
-            "flagged (kept, left out of fitting): "
-            + ", ".join(f"{n} {kind} sample(s)" for kind, n in kinds.items())
+        message = "flagged (kept, left out of fitting): " + ", ".join(
+            f"{n} {kind} sample(s)" for kind, n in kinds.items()
         )
+        notes.assume(message, warn=True)
     scenes = scenes.drop_duplicates(["scene_id", "vehicle_id"]).reset_index(drop=True)
     scenes["vehicle_id"] = scenes["vehicle_id"].astype(str)
     return Trajectories(
-        tracks=valid,
+        tracks=checked.tracks,
         scenes=scenes,
-        dt=float(dt),
+        dt=float(checked.dt),
         format=fmt,
         source=str(source),
         flags=flags.reset_index(drop=True),
         notes=tuple(notes.items),
+        inputs={f: _sha256(Path(f)) for f in files},
     )
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def merge_copies(

@@ -48,13 +48,16 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     DEFAULT_LENGTH_M,
     Notes,
+    exact_ids,
     finish,
     gaps_from_positions,
     harmonise_lengths,
     input_files,
+    integer_column,
     make_tracks,
     merge_copies,
     numeric_columns,
+    open_text,
     read_table,
     require_columns,
     snap_to_grid,
@@ -320,7 +323,7 @@ def _read(
                 + f"{', '.join(keys['optional'])})"
             )
         sources = input_files(path, patterns, what="trajectory")
-        frames = [_load(f, columns, time_factor) for f in sources]
+        frames = [_load(f, columns, time_factor, notes) for f in sources]
         if dt is None:
             dt = _infer_dt(frames, columns, mode, notes)
         maker = _vehicles if mode == "vehicles" else _pairs
@@ -345,7 +348,9 @@ def _read(
     tracks = _finish_tracks(
         tracks, headway=headway, position=position, dt=dt, length=length, notes=notes
     )
-    names = {k: v for k, v in (columns or {}).items() if k in ("vehicle_id", "t", "x", "v", "a")}
+    names = {
+        k: v for k, v in (columns or {}).items() if k in ("vehicle_id", "t", "x", "v", "a", "gap")
+    }
     return finish(
         tracks.drop(columns=["_scene"]),
         fmt=FORMAT,
@@ -354,11 +359,15 @@ def _read(
         scenes=scenes,
         notes=notes,
         column_names=names,
+        file_units=dict.fromkeys(("x", "v", "a", "gap", "length"), factor),
+        measured_gap=mode != "wide" and "gap" in columns,
     )
 
 
-def _load(path: Path, columns: Mapping[str, str], time_factor: float) -> pd.DataFrame:
-    frame = read_table(path, fmt="trajectory")
+def _load(path: Path, columns: Mapping[str, str], time_factor: float, notes: Notes) -> pd.DataFrame:
+    ids = ("vehicle_id", "leader_id", "follower_id", "scene_id")
+    text = [name for key, name in columns.items() if key in ids]
+    frame = read_table(path, fmt="trajectory", notes=notes, text_columns=text)
     require_columns(frame, list(dict.fromkeys(columns.values())), source=path, fmt="mapped")
     time_column = columns["t"]
     numeric_columns(frame, [time_column])
@@ -381,21 +390,14 @@ def _infer_dt(frames: list[pd.DataFrame], columns, mode: str, notes: Notes) -> f
     return dt
 
 
-def _ids(values: pd.Series) -> pd.Series:
-    """Ids as strings (integral numbers without a trailing '.0'); None where missing."""
-    if isinstance(values.dtype, pd.CategoricalDtype):
-        values = values.astype(object)
-    if pd.api.types.is_numeric_dtype(values):
-        numbers = values.astype(float)
-        integral = np.isfinite(numbers) & (numbers == np.round(numbers))
-        text = values.astype(str).where(~integral, numbers.round().astype("Int64").astype(str))
-    else:
-        text = values.astype(object).map(lambda v: str(v).strip())
-    return text.astype(object).where(values.notna(), None)
+def _ids(frame: pd.DataFrame, column: str) -> pd.Series:
+    """Ids as exact strings (:func:`exact_ids`); None where missing."""
+    ids = exact_ids(frame, column)
+    return ids.where(ids.notna(), None)
 
 
 def _required_ids(frame: pd.DataFrame, column: str) -> np.ndarray:
-    ids = _ids(frame[column])
+    ids = _ids(frame, column)
     missing = ids.isna().to_numpy()
     if missing.any():
         first = int(np.argmax(missing))
@@ -422,7 +424,7 @@ def _vehicles(path, frame, columns, factor, dt, *, no_leader, **_) -> pd.DataFra
     numeric_columns(frame, [columns["x"], columns["v"]])
     steps = snap_to_grid(frame["_t"], dt, frame, column=columns["t"])
     leader = (
-        _none_leaders(_ids(frame[columns["leader_id"]]), no_leader)
+        _none_leaders(_ids(frame, columns["leader_id"]), no_leader)
         if "leader_id" in columns
         else None
     )
@@ -442,7 +444,7 @@ def _vehicles(path, frame, columns, factor, dt, *, no_leader, **_) -> pd.DataFra
     tracks["_length"] = _optional(frame, columns, "length", factor)
     tracks["_has_gap"] = "gap" in columns
     tracks["_scene"] = (
-        _ids(frame[columns["scene_id"]]).to_numpy() if "scene_id" in columns else path.stem
+        _ids(frame, columns["scene_id"]).to_numpy() if "scene_id" in columns else path.stem
     )
     return tracks
 
@@ -450,8 +452,12 @@ def _vehicles(path, frame, columns, factor, dt, *, no_leader, **_) -> pd.DataFra
 def _lanes(frame, columns):
     if "lane_id" not in columns:
         return pd.NA
-    numeric_columns(frame, [columns["lane_id"]], allow_nan=[columns["lane_id"]])
-    return pd.array(frame[columns["lane_id"]].round(), dtype="Int64")
+    column = columns["lane_id"]
+    numeric_columns(frame, [column], allow_nan=[column])
+    known = frame[column].notna().to_numpy()
+    lanes = pd.array(np.full(len(frame), pd.NA), dtype="Int64")
+    lanes[known] = integer_column(frame[known], column)
+    return lanes
 
 
 def _pair_ids(path: Path, frame, columns, id_pattern) -> tuple[np.ndarray, np.ndarray]:
@@ -483,7 +489,7 @@ def _pairs(path, frame, columns, factor, dt, *, id_pattern, **_) -> pd.DataFrame
     numeric_columns(frame, required)
     steps = snap_to_grid(frame["_t"], dt, frame, column=columns["t"])
     follower, leader = _pair_ids(path, frame, columns, id_pattern)
-    scene = _ids(frame[columns["scene_id"]]).to_numpy() if "scene_id" in columns else path.stem
+    scene = _ids(frame, columns["scene_id"]).to_numpy() if "scene_id" in columns else path.stem
     t = time_steps(steps, dt)
     lanes = _lanes(frame, columns)
     common = {"t": t, "row": frame["_row"].to_numpy(), "file": str(path)}
@@ -533,7 +539,7 @@ def _wide(path: Path, files, factor: float, dt, notes: Notes) -> tuple[pd.DataFr
         file = folder / name
         if not file.exists():
             raise DataError(f"{file}: no such file (wide layout quantity {key!r})")
-        matrices[key] = _read_matrix(file)
+        matrices[key] = _read_matrix(file, notes)
     shapes = {k: m.shape for k, m in matrices.items()}
     if len(set(shapes.values())) > 1:
         raise DataError(f"{folder}: wide matrices differ in shape: {shapes}")
@@ -565,14 +571,14 @@ def _wide(path: Path, files, factor: float, dt, notes: Notes) -> tuple[pd.DataFr
     return pd.concat(parts, ignore_index=True), dt
 
 
-def _read_matrix(file: Path) -> np.ndarray:
+def _read_matrix(file: Path, notes: Notes) -> np.ndarray:
     """A headerless numeric matrix; its columns are named 1, 2, ... in error messages."""
-    with file.open("r", errors="replace") as handle:
+    with open_text(file) as handle:
         first = handle.readline()
     if not first.strip():
         raise DataError(f"{file}: empty file (expected a wide matrix)")
     names = [str(j + 1) for j in range(len(first.split(",")))]
-    frame = read_table(file, names=names, fmt="wide matrix")
+    frame = read_table(file, names=names, fmt="wide matrix", notes=notes)
     numeric_columns(frame, names)
     return frame[names].to_numpy(dtype=float)
 

@@ -37,11 +37,14 @@ from bayesdrive.data.readers._common import (
     Notes,
     finish,
     gaps_from_positions,
+    integer_column,
+    integer_ids,
     leader_values,
     make_tracks,
     numeric_columns,
     read_table,
     require_columns,
+    require_regular_file,
     time_steps,
 )
 from bayesdrive.data.trajectories import Trajectories
@@ -89,7 +92,8 @@ def read_highd(path: str | Path) -> Trajectories:
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
-    if path.is_file():
+    if not path.is_dir():
+        require_regular_file(path)
         match = re.fullmatch(r"(.+)_tracks\.csv", path.name)
         if not match:
             raise DataError(f"{path}: a highD track file is named XX_tracks.csv")
@@ -98,7 +102,7 @@ def read_highd(path: str | Path) -> Trajectories:
         recordings = [
             (path, m.group(1))
             for f in sorted(path.glob("*_tracks.csv"))
-            if (m := re.fullmatch(r"(.+)_tracks\.csv", f.name))
+            if f.is_file() and (m := re.fullmatch(r"(.+)_tracks\.csv", f.name))
         ]
         if not recordings:
             raise DataError(f"{path}: no highD recordings (XX_tracks.csv) in this folder")
@@ -122,18 +126,22 @@ def read_highd(path: str | Path) -> Trajectories:
         scenes=scenes,
         notes=notes,
         column_names=SCHEMA_NAMES,
+        extra_inputs=[p for folder, prefix in recordings for p in _companions(folder, prefix)],
     )
+
+
+def _companions(folder: Path, prefix: str) -> tuple[Path, Path]:
+    return folder / f"{prefix}_tracksMeta.csv", folder / f"{prefix}_recordingMeta.csv"
 
 
 def _read_recording(folder: Path, prefix: str, notes: Notes):
     tracks_path = folder / f"{prefix}_tracks.csv"
-    meta_path = folder / f"{prefix}_tracksMeta.csv"
-    recording_path = folder / f"{prefix}_recordingMeta.csv"
+    meta_path, recording_path = _companions(folder, prefix)
     for needed in (meta_path, recording_path):
         if not needed.exists():
             raise DataError(f"{tracks_path}: its companion file {needed.name} is missing")
 
-    recording = read_table(recording_path, fmt="highD recordingMeta")
+    recording = read_table(recording_path, fmt="highD recordingMeta", notes=notes)
     require_columns(recording, RECORDING_COLUMNS, source=recording_path, fmt="highD recordingMeta")
     numeric_columns(recording, RECORDING_COLUMNS)
     rate = float(recording["frameRate"].iloc[0])
@@ -141,19 +149,21 @@ def _read_recording(folder: Path, prefix: str, notes: Notes):
         raise DataError(f"{recording_path}, row 2, column 'frameRate': must be positive")
     dt = 1.0 / rate
 
-    meta = read_table(meta_path, fmt="highD tracksMeta")
+    meta = read_table(meta_path, fmt="highD tracksMeta", notes=notes, text_columns=["id"])
     require_columns(meta, META_COLUMNS, source=meta_path, fmt="highD tracksMeta")
-    numeric_columns(meta, META_COLUMNS)
+    numeric_columns(meta, [c for c in META_COLUMNS if c != "id"])
     bad = ~meta["drivingDirection"].isin([1, 2])
     if bad.any():
         row = meta["_row"].iloc[int(np.argmax(bad.to_numpy()))]
         raise DataError(f"{meta_path}, row {row}, column 'drivingDirection': must be 1 or 2")
-    direction_of = dict(zip(meta["id"].astype(np.int64), meta["drivingDirection"], strict=True))
+    direction_of = dict(zip(integer_ids(meta, "id"), meta["drivingDirection"], strict=True))
 
-    frame = read_table(tracks_path, fmt="highD tracks")
+    frame = read_table(
+        tracks_path, fmt="highD tracks", notes=notes, text_columns=["id", "precedingId"]
+    )
     require_columns(frame, TRACK_COLUMNS, source=tracks_path, fmt="highD tracks")
-    numeric_columns(frame, TRACK_COLUMNS)
-    ids = frame["id"].astype(np.int64)
+    numeric_columns(frame, [c for c in TRACK_COLUMNS if c not in ("id", "precedingId")])
+    ids = pd.Series(integer_ids(frame, "id"))
     direction = ids.map(direction_of)
     unknown = direction.isna().to_numpy()
     if unknown.any():
@@ -167,8 +177,8 @@ def _read_recording(folder: Path, prefix: str, notes: Notes):
     left_edge = frame["x"].to_numpy()
     front = np.where(sign > 0, left_edge + length, -left_edge)
 
-    preceding = frame["precedingId"].astype(np.int64)
-    has_leader = (preceding != 0).to_numpy()
+    preceding = pd.Series(integer_ids(frame, "precedingId"))
+    has_leader = (preceding != "0").to_numpy()
     leader_direction = preceding.map(direction_of).to_numpy()
     crossing = has_leader & (leader_direction != direction.to_numpy())
     if crossing.any():
@@ -182,14 +192,14 @@ def _read_recording(folder: Path, prefix: str, notes: Notes):
         return prefix + ":" + values.astype(str)
 
     leader = vid(preceding).where(has_leader, None)
-    frames = frame["frame"].astype(np.int64).to_numpy()
+    frames = integer_column(frame, "frame")
     tracks = make_tracks(
         vehicle_id=vid(ids).to_numpy(),
         t=time_steps(frames, dt),
         x=front,
         v=sign * frame["xVelocity"].to_numpy(),
         a=sign * frame["xAcceleration"].to_numpy(),
-        lane_id=frame["laneId"].astype(np.int64).to_numpy(),
+        lane_id=integer_column(frame, "laneId"),
         leader_id=leader.to_numpy(),
         length=length,
         row=frame["_row"].to_numpy(),

@@ -42,10 +42,12 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     Notes,
     finish,
+    integer_ids,
     make_tracks,
     numeric_columns,
     read_table,
     require_columns,
+    require_regular_file,
     snap_to_grid,
     time_steps,
 )
@@ -71,7 +73,7 @@ COLUMNS = [
     "length",
     "width",
 ]
-NUMERIC = ["track_id", "frame_id", "timestamp_ms", "x", "y", "vx", "vy", "psi_rad", "length"]
+NUMERIC = ["frame_id", "timestamp_ms", "x", "y", "vx", "vy", "psi_rad", "length"]
 # Centrelines are densified to this spacing for the nearest-point search, then refined exactly.
 SEARCH_SPACING_M = 0.5
 CANDIDATES = 16
@@ -124,6 +126,7 @@ def utm_xy(lat: np.ndarray, lon: np.ndarray, origin: tuple[float, float]) -> np.
 def read_lanelets(path: str | Path, *, origin: tuple[float, float] = (0.0, 0.0)) -> list[Lanelet]:
     """Parse a lanelet2 ``.osm`` map into lanelet centrelines (see the module docstring)."""
     path = Path(path)
+    require_regular_file(path)
     try:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError) as exc:
@@ -131,27 +134,36 @@ def read_lanelets(path: str | Path, *, origin: tuple[float, float] = (0.0, 0.0))
     ids, lats, lons, local = [], [], [], {}
     for node in root.iter("node"):
         tags = {t.get("k"): t.get("v") for t in node.iter("tag")}
-        node_id = int(node.get("id"))
+        node_id = _map_number(path, node, "id", int)
         if "local_x" in tags and "local_y" in tags:
-            local[node_id] = (float(tags["local_x"]), float(tags["local_y"]))
+            local[node_id] = tuple(
+                _map_number(path, node, key, float, tags[key]) for key in ("local_x", "local_y")
+            )
         else:
             ids.append(node_id)
-            lats.append(float(node.get("lat")))
-            lons.append(float(node.get("lon")))
+            lats.append(_map_number(path, node, "lat", float))
+            lons.append(_map_number(path, node, "lon", float))
     points = dict(local)
     if ids:
         xy = utm_xy(np.array(lats), np.array(lons), origin)
         points.update(zip(ids, map(tuple, xy), strict=True))
-    ways = {
-        int(way.get("id")): np.array([points[int(nd.get("ref"))] for nd in way.iter("nd")])
-        for way in root.iter("way")
-    }
+    ways = {}
+    for way in root.iter("way"):
+        refs = [_map_number(path, nd, "ref", int) for nd in way.iter("nd")]
+        unknown = [r for r in refs if r not in points]
+        if unknown:
+            raise DataError(
+                f"{path}: way {way.get('id')} refers to node {unknown[0]}, which is not in the map"
+            )
+        if len(refs) < 2:
+            raise DataError(f"{path}: way {way.get('id')} has {len(refs)} node(s); a bound needs 2")
+        ways[_map_number(path, way, "id", int)] = np.array([points[r] for r in refs])
     lanelets = []
     for relation in root.iter("relation"):
         tags = {t.get("k"): t.get("v") for t in relation.iter("tag")}
         if tags.get("type") != "lanelet":
             continue
-        roles = {m.get("role"): int(m.get("ref")) for m in relation.iter("member")}
+        roles = {m.get("role"): _map_number(path, m, "ref", int) for m in relation.iter("member")}
         if "left" not in roles or "right" not in roles:
             raise DataError(f"{path}: lanelet {relation.get('id')} lacks a left or right bound")
         try:
@@ -160,10 +172,22 @@ def read_lanelets(path: str | Path, *, origin: tuple[float, float] = (0.0, 0.0))
             raise DataError(
                 f"{path}: lanelet {relation.get('id')} names way {exc.args[0]}, not in the map"
             ) from None
-        lanelets.append(_centreline(int(relation.get("id")), left, right))
+        lanelets.append(_centreline(_map_number(path, relation, "id", int), left, right))
     if not lanelets:
         raise DataError(f"{path}: no lanelets (relations with type=lanelet) in the map")
     return lanelets
+
+
+def _map_number(path: Path, element: ET.Element, key: str, kind, text: str | None = None):
+    """``element``'s attribute ``key`` (or ``text``) as a number; a clear error when absent or bad."""
+    text = element.get(key) if text is None else text
+    try:
+        return kind(text)
+    except (TypeError, ValueError):
+        what = "missing" if text is None else f"not a number: {text!r}"
+        raise DataError(
+            f"{path}: {element.tag} {element.get('id', '(no id)')}: {key} is {what}"
+        ) from None
 
 
 def _resample(line: np.ndarray, count: int) -> np.ndarray:
@@ -239,11 +263,17 @@ def read_interaction(
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
     folder = path if path.is_dir() else path.parent
-    files = [path] if path.is_file() else sorted(folder.glob("vehicle_tracks_*.csv"))
+    if not path.is_dir():
+        require_regular_file(path)
+    files = (
+        [path]
+        if not path.is_dir()
+        else sorted(f for f in folder.glob("vehicle_tracks_*.csv") if f.is_file())
+    )
     if not files:
         raise DataError(f"{path}: no INTERACTION track files (vehicle_tracks_*.csv)")
     if map_path is None:
-        maps = sorted(folder.glob("*.osm"))
+        maps = sorted(f for f in folder.glob("*.osm") if f.is_file())
         if len(maps) != 1:
             raise DataError(
                 f"{folder}: need exactly one lanelet2 .osm map next to the tracks (found "
@@ -262,12 +292,21 @@ def read_interaction(
     scenes = pd.concat([s for _, s in parts], ignore_index=True)
     names = {"vehicle_id": "track_id", "t": "timestamp_ms", "x": "x/y", "v": "vx/vy"}
     return finish(
-        tracks, fmt=FORMAT, source=path, dt=DT, scenes=scenes, notes=notes, column_names=names
+        tracks,
+        fmt=FORMAT,
+        source=path,
+        dt=DT,
+        scenes=scenes,
+        notes=notes,
+        column_names=names,
+        extra_inputs=[Path(map_path)],
     )
 
 
 def _read_file(path: Path, lanelets: list[Lanelet], notes: Notes):
-    frame = read_table(path, fmt="INTERACTION vehicle_tracks")
+    frame = read_table(
+        path, fmt="INTERACTION vehicle_tracks", notes=notes, text_columns=["track_id"]
+    )
     require_columns(frame, COLUMNS, source=path, fmt="INTERACTION vehicle_tracks")
     numeric_columns(frame, NUMERIC)
     steps = snap_to_grid(frame["timestamp_ms"] / 1000.0, DT, frame, column="timestamp_ms")
@@ -281,7 +320,7 @@ def _read_file(path: Path, lanelets: list[Lanelet], notes: Notes):
             warn=True,
         )
     length = frame["length"].to_numpy()
-    ids = path.stem + ":" + frame["track_id"].astype(np.int64).astype(str)
+    ids = path.stem + ":" + pd.Series(integer_ids(frame, "track_id"))
     work = pd.DataFrame(
         {"vehicle_id": ids, "k": steps, "lane": lane, "s": s, "length": length}
     ).reset_index()

@@ -40,11 +40,14 @@ from bayesdrive.data.readers._common import (
     Notes,
     finish,
     gaps_from_positions,
+    integer_column,
     make_tracks,
     numeric_columns,
     read_table,
     require_columns,
+    require_regular_file,
     snap_to_grid,
+    sort_rows,
     time_steps,
 )
 from bayesdrive.data.trajectories import Trajectories
@@ -88,7 +91,7 @@ def read_merge_episodes(path: str | Path, *, length: float = ASSUMED_LENGTH_M) -
         else:
             raise DataError(f"{path}: neither {CSV_NAME} nor {NPY_NAME} in this folder")
     notes = Notes(log)
-    frame = _read_npy(path, notes) if path.suffix == ".npy" else _read_csv(path)
+    frame = _read_npy(path, notes) if path.suffix == ".npy" else _read_csv(path, notes)
 
     notes.assume(
         "merge episodes: ego x = -distance to the end of the acceleration lane (merge point at "
@@ -99,7 +102,7 @@ def read_merge_episodes(path: str | Path, *, length: float = ASSUMED_LENGTH_M) -
     notes.assume(f"no vehicle lengths: every car assumed {length} m long")
 
     steps = snap_to_grid(frame["t_s"], DT, frame, column="t_s")
-    episode = frame["episode"].astype(np.int64).to_numpy()
+    episode = integer_column(frame, "episode")
     x_ego = -frame["ego_dist_to_accel_lane_end_m"].to_numpy()
     v_ego = frame["ego_v_mps"].to_numpy()
     same_episode = np.r_[False, episode[1:] == episode[:-1]]
@@ -205,14 +208,15 @@ def _seen_before(here: np.ndarray, episode: np.ndarray) -> np.ndarray:
     return earlier > 0
 
 
-def _read_csv(path: Path) -> pd.DataFrame:
-    frame = read_table(path, fmt="merge-episode")
+def _read_csv(path: Path, notes: Notes) -> pd.DataFrame:
+    frame = read_table(path, fmt="merge-episode", notes=notes)
     require_columns(frame, CSV_COLUMNS, source=path, fmt="merge-episode")
     numeric_columns(frame, CSV_COLUMNS)
-    return frame
+    return sort_rows(frame, ["episode", "t_s"], notes=notes, path=path, what="episode and time")
 
 
 def _read_npy(path: Path, notes: Notes) -> pd.DataFrame:
+    require_regular_file(path)
     try:
         array = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:

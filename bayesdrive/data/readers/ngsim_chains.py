@@ -29,6 +29,7 @@ from __future__ import annotations
 import collections
 import itertools
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,12 +43,14 @@ from bayesdrive.data.readers._common import (
     finish,
     gaps_from_positions,
     input_files,
+    integer_ids,
     make_tracks,
     merge_copies,
     numeric_columns,
     read_table,
     require_columns,
     snap_to_grid,
+    sort_rows,
     time_steps,
 )
 from bayesdrive.data.trajectories import Trajectories
@@ -104,7 +107,7 @@ def read_ngsim_chains(path: str | Path, *, length: float = ASSUMED_LENGTH_M) -> 
     )
     slots: list[_Slot] = []
     for index, file in enumerate(files):
-        slots.extend(_read_chain(file, index))
+        slots.extend(_read_chain(file, index, notes))
     stems = [f.stem for f in files]
 
     file_edges = _match_all(slots, stems)
@@ -180,28 +183,35 @@ def read_ngsim_chains(path: str | Path, *, length: float = ASSUMED_LENGTH_M) -> 
     return finish(tracks, fmt=FORMAT, source=path, dt=DT, scenes=scenes, notes=notes)
 
 
-def _read_chain(path: Path, index: int) -> list[_Slot]:
-    frame = read_table(path, fmt="NGSIM chain")
+def _read_chain(path: Path, index: int, notes: Notes) -> list[_Slot]:
+    frame = read_table(
+        path,
+        fmt="NGSIM chain",
+        notes=notes,
+        text_columns=lambda name: re.fullmatch(r"ID\d+", name) is not None,
+    )
     n = 0
     while f"ID{n + 1}" in frame.columns:
         n += 1
     expected = ["t1"] + [f"{c}{i}" for i in range(1, max(n, 1) + 1) for c in ("ID", "Y", "v", "a")]
     require_columns(frame, expected, source=path, fmt="NGSIM chain (t1, IDi, Yi, vi, ai)")
-    numeric_columns(frame, expected)
+    id_columns = [f"ID{i}" for i in range(1, n + 1)]
+    numeric_columns(frame, [c for c in expected if c not in id_columns])
+    frame = sort_rows(frame, ["t1"], notes=notes, path=path, what="time")
     steps = snap_to_grid(frame["t1"], DT, frame, column="t1")
     slots = []
     previous = None
     seen = set()
     for i in range(1, n + 1):
-        ids = frame[f"ID{i}"].to_numpy()
+        ids = integer_ids(frame, f"ID{i}")
         changed = ids != ids[0]
         if changed.any():
             row = frame["_row"].iloc[int(np.argmax(changed))]
             raise DataError(
                 f"{path}, row {row}, column 'ID{i}': vehicle id changes within the file "
-                f"({ids[0]:g} then {ids[int(np.argmax(changed))]:g}); a chain slot holds one vehicle"
+                f"({ids[0]} then {ids[int(np.argmax(changed))]}); a chain slot holds one vehicle"
             )
-        vehicle = str(int(ids[0]))
+        vehicle = ids[0]
         if vehicle in seen:
             raise DataError(f"{path}, row 2, column 'ID{i}': vehicle {vehicle} occurs twice")
         seen.add(vehicle)

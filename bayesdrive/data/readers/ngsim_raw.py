@@ -32,9 +32,12 @@ from bayesdrive.data.readers._common import (
     Notes,
     finish,
     input_files,
+    integer_column,
+    integer_ids,
     leader_values,
     make_tracks,
     numeric_columns,
+    open_text,
     read_table,
     require_columns,
     time_steps,
@@ -117,6 +120,9 @@ SCHEMA_NAMES = {
     "gap": "Space_Headway",
     "length": "v_Length",
 }
+# Every length-based schema column is feet in the file (for messages in the file's own units).
+FILE_UNITS = dict.fromkeys(("x", "v", "a", "gap", "length"), FOOT_M)
+ID_COLUMNS = ("Vehicle_ID", "Preceding", "Following")
 
 
 def read_ngsim_raw(
@@ -142,20 +148,29 @@ def read_ngsim_raw(
         scenes=scenes,
         notes=notes,
         column_names=SCHEMA_NAMES,
+        file_units=FILE_UNITS,
+        measured_gap=True,
     )
 
 
-def _load(path: Path) -> pd.DataFrame:
-    with path.open("r", errors="replace") as handle:
+def _load(path: Path, notes: Notes) -> pd.DataFrame:
+    with open_text(path) as handle:
         first = handle.readline()
     if not first.strip():
         raise DataError(f"{path}: empty file (expected an NGSIM table)")
-    if "," not in first:
+    if "," not in first and "\t" not in first:
         tokens = first.split()
         if tokens and _is_number(tokens[0]):
-            return read_table(path, names=TXT_COLUMNS, sep=r"\s+", fmt="NGSIM")
-        return read_table(path, sep=r"\s+", fmt="NGSIM")
-    return read_table(path, fmt="NGSIM")
+            return read_table(
+                path,
+                names=TXT_COLUMNS,
+                sep=r"\s+",
+                fmt="NGSIM",
+                notes=notes,
+                text_columns=ID_COLUMNS,
+            )
+        return read_table(path, sep=r"\s+", fmt="NGSIM", notes=notes, text_columns=ID_COLUMNS)
+    return read_table(path, fmt="NGSIM", notes=notes, text_columns=ID_COLUMNS)
 
 
 def _is_number(text: str) -> bool:
@@ -169,30 +184,28 @@ def _is_number(text: str) -> bool:
 def _read_file(
     path: Path, *, missing_leaders: str, notes: Notes
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
-    frame = _load(path)
+    frame = _load(path, notes)
     by_lower = {str(c).lower(): c for c in frame.columns}
     frame = frame.rename(
         columns={by_lower[c.lower()]: c for c in TXT_COLUMNS if c.lower() in by_lower}
     )
     require_columns(frame, REQUIRED, source=path, fmt="NGSIM")
-    # Every published numeric column present is checked: a damaged cell anywhere means a damaged
-    # file, even in a column this reader does not use.
-    numeric = [c for c in TXT_COLUMNS if c in frame.columns]
-    numeric_columns(frame, numeric)
+    # Every published column present is checked: a damaged cell anywhere means a damaged file,
+    # even in a column this reader does not use. Ids stay exact text, never floats.
+    ids = {c: integer_ids(frame, c) for c in ID_COLUMNS if c in frame.columns}
+    numeric_columns(frame, [c for c in TXT_COLUMNS if c in frame.columns and c not in ids])
     scene = path.stem
-
-    def ids(values: pd.Series) -> pd.Series:
-        return scene + ":" + values.astype(np.int64).astype(str)
-
-    preceding = frame["Preceding"].astype(np.int64)
+    frames = integer_column(frame, "Frame_ID")
+    preceding = pd.Series(ids["Preceding"])
+    no_leader = preceding == "0"
     tracks = make_tracks(
-        vehicle_id=ids(frame["Vehicle_ID"]).to_numpy(),
-        t=time_steps(frame["Frame_ID"].astype(np.int64).to_numpy(), DT),
+        vehicle_id=(scene + ":" + pd.Series(ids["Vehicle_ID"])).to_numpy(),
+        t=time_steps(frames, DT),
         x=frame["Local_Y"].to_numpy() * FOOT_M,
         v=frame["v_Vel"].to_numpy() * FOOT_M,
         a=frame["v_Acc"].to_numpy() * FOOT_M,
-        lane_id=frame["Lane_ID"].astype(np.int64).to_numpy(),
-        leader_id=ids(preceding).where(preceding != 0, None).to_numpy(),
+        lane_id=integer_column(frame, "Lane_ID"),
+        leader_id=(scene + ":" + preceding).where(~no_leader, None).to_numpy(),
         length=frame["v_Length"].to_numpy() * FOOT_M,
         row=frame["_row"].to_numpy(),
         file=str(path),
@@ -205,11 +218,14 @@ def _read_file(
         first = int(np.argmax(missing))
         message = (
             f"{path}, row {frame['_row'].iloc[first]}, column 'Preceding': leader "
-            f"{int(preceding.iloc[first])} has no row at frame {int(frame['Frame_ID'].iloc[first])} "
+            f"{preceding.iloc[first]} has no row at frame {frames[first]} "
             f"in this file ({int(missing.sum())} such row(s))"
         )
         if missing_leaders == "error":
-            raise DataError(message + "; pass missing_leaders='drop' to drop these links")
+            raise DataError(
+                message + "; in Python, read(path, missing_leaders='drop') drops these links "
+                "(logged); otherwise add the leader's rows"
+            )
         notes.repair(
             f"{path.name}: {int(missing.sum())} row(s) name a leader that is not in the file at "
             "that frame; leader set to None there (missing_leaders='drop')"

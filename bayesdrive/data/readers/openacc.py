@@ -61,8 +61,11 @@ from bayesdrive.data.readers._common import (
     integrate_speed,
     make_tracks,
     numeric_columns,
+    open_text,
     read_table,
+    require_regular_file,
     snap_to_grid,
+    sort_rows,
     time_steps,
 )
 from bayesdrive.data.trajectories import Trajectories
@@ -95,30 +98,39 @@ def read_openacc(path: str | Path, *, lengths: Mapping[str, float] | None = None
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such file or folder")
-    if path.is_file():
+    notes = Notes(log)
+    if not path.is_dir():
+        require_regular_file(path)
         files, root = [path], path.parent
     else:
-        files = sorted(
-            f
-            for f in path.rglob("*.csv")
-            if "specification" not in f.name.lower() and _header_line(f) is not None
+        candidates = sorted(
+            f for f in path.rglob("*.csv") if f.is_file() and "specification" not in f.name.lower()
         )
+        files = [f for f in candidates if _header_line(f) is not None]
         root = path
         if not files:
             raise DataError(
                 f"{path}: no OpenACC files in this folder (CSV files whose header row starts with "
                 f"'Time' followed by Speed1, ...)"
             )
-    notes = Notes(log)
+        skipped = [f.relative_to(path).as_posix() for f in candidates if f not in files]
+        if skipped:
+            notes.assume(
+                f"{len(skipped)} CSV file(s) without an OpenACC header row ('Time', Speed1, ...) "
+                f"in the first {MAX_METADATA_ROWS} lines skipped: {', '.join(skipped)}",
+                warn=True,
+            )
     notes.assume(
         "OpenACC: x = trapezoid integral of the Doppler speed (not ENU), followers placed so "
         "that x_i - x_(i+1) - length_i = IVS_i in the median over their common samples; "
         "gap = IVS (measured)"
     )
     parts = []
+    specs = set()
     for file in files:
         scene = file.relative_to(root).with_suffix("").as_posix()
-        spec_lengths = _spec_lengths(file.parent, notes)
+        spec, spec_lengths = _spec_lengths(file.parent, notes)
+        specs.update([spec] if spec else [])
         parts.append(_read_file(file, scene, {**spec_lengths, **(lengths or {})}, notes))
     tracks = pd.concat([p for p, _, _ in parts], ignore_index=True)
     scenes = pd.concat([s for _, s, _ in parts], ignore_index=True)
@@ -130,26 +142,28 @@ def read_openacc(path: str | Path, *, lengths: Mapping[str, float] | None = None
         dt=DT,
         scenes=scenes,
         notes=notes,
+        measured_gap=False,  # x is integrated speed placed by IVS itself: not independent of it
         extra_flags=pd.concat(jumps, ignore_index=True) if jumps else None,
+        extra_inputs=specs,
     )
 
 
 def _header_line(path: Path) -> int | None:
     """0-based line of the header row (first field ``Time``), or None."""
     try:
-        with path.open("r", newline="", errors="replace") as handle:
+        with open_text(path) as handle:
             for index, row in enumerate(csv.reader(handle)):
                 if row and row[0].strip() == "Time":
                     return index
                 if index >= MAX_METADATA_ROWS:
                     return None
-    except OSError:
+    except (OSError, DataError):
         return None
     return None
 
 
 def _metadata(path: Path, header_line: int) -> dict[str, list[str]]:
-    with path.open("r", newline="", errors="replace") as handle:
+    with open_text(path) as handle:
         rows = [row for _, row in zip(range(header_line), csv.reader(handle), strict=False)]
     meta = {}
     for row in rows:
@@ -162,25 +176,25 @@ def _normalise_name(name: str) -> str:
     return re.sub(r"[^a-z0-9]", "", name.lower())
 
 
-def _spec_lengths(folder: Path, notes: Notes) -> dict[str, float]:
-    """Vehicle lengths from a ``*veh_specifications.csv``, if it has a length column."""
-    specs = sorted(folder.glob("*[Ss]pecifications.csv"))
+def _spec_lengths(folder: Path, notes: Notes) -> tuple[Path | None, dict[str, float]]:
+    """The ``*veh_specifications.csv`` read and its vehicle lengths, if it has a length column."""
+    specs = sorted(f for f in folder.glob("*[Ss]pecifications.csv") if f.is_file())
     if not specs:
-        return {}
-    table = pd.read_csv(specs[0])
-    length_columns = [c for c in table.columns if "length" in c.lower()]
+        return None, {}
+    table = read_table(specs[0], fmt="OpenACC vehicle specifications", notes=notes)
+    columns = [c for c in table.columns if c not in ("_row", "_file")]
+    length_columns = [c for c in columns if "length" in str(c).lower()]
     if not length_columns:
         notes.assume(
-            f"{specs[0].name} lists no vehicle length (columns: "
-            f"{', '.join(c.strip() for c in table.columns)})"
+            f"{specs[0].name} lists no vehicle length (columns: {', '.join(map(str, columns))})"
         )
-        return {}
+        return specs[0], {}
     column = length_columns[0]
+    numeric_columns(table, [column], allow_nan=[column])
     factor = 0.001 if "mm" in column.lower() else 1.0
-    name_column = table.columns[0]
-    return {
+    return specs[0], {
         str(name): float(value) * factor
-        for name, value in zip(table[name_column], table[column], strict=True)
+        for name, value in zip(table[columns[0]], table[column], strict=True)
         if pd.notna(value)
     }
 
@@ -205,7 +219,7 @@ def _read_file(
             f"{MAX_METADATA_ROWS} lines. Expected columns: {EXPECTED}"
         )
     meta = _metadata(path, header)
-    frame = read_table(path, header_line=header, fmt="OpenACC")
+    frame = read_table(path, header_line=header, fmt="OpenACC", notes=notes)
     numbers = sorted(
         int(m.group(1)) for c in frame.columns if (m := re.fullmatch(r"Speed(\d+)", str(c)))
     )
@@ -215,14 +229,9 @@ def _read_file(
             f"Expected columns: {EXPECTED}"
         )
     numeric_columns(frame, ["Time"])
-    t_raw = frame["Time"].to_numpy() - frame["Time"].iloc[0]
-    steps = snap_to_grid(t_raw, DT, frame, column="Time")
-    step_sizes = np.diff(steps)
-    if len(step_sizes) and np.median(step_sizes) != 1:
-        raise DataError(
-            f"{path}, column 'Time': median time step {np.median(step_sizes) * DT:g} s; "
-            f"OpenACC files are sampled at {1 / DT:g} Hz"
-        )
+    frame = sort_rows(frame, ["Time"], notes=notes, path=path, what="time")
+    # The rate is found from the steps by the validation layer (a 5 Hz file is not 10 Hz with holes).
+    steps = snap_to_grid(frame["Time"].to_numpy() - frame["Time"].iloc[0], DT, frame, column="Time")
     position_columns = [
         c for c in frame.columns if re.fullmatch(r"(E|N|U|IVS|Lat|Lon|Alt|VE|VN|VU)\d+", str(c))
     ]
@@ -491,11 +500,16 @@ def enu_consistency(path: str | Path) -> pd.DataFrame:
     header = _header_line(path)
     if header is None:
         raise DataError(f"{path}: not an OpenACC file (no header row starting with 'Time')")
-    frame = read_table(path, header_line=header, fmt="OpenACC")
+    frame = read_table(path, header_line=header, fmt="OpenACC", notes=Notes(log))
     numbers = sorted(
         int(m.group(1)) for c in frame.columns if (m := re.fullmatch(r"Speed(\d+)", str(c)))
     )
     numeric_columns(frame, ["Time"])
+    numeric_columns(
+        frame,
+        [c for c in frame.columns if re.fullmatch(r"(Speed|E|N)\d+", str(c))],
+        allow_nan=frame.columns,
+    )
     t = frame["Time"].to_numpy() - frame["Time"].iloc[0]
     present = {i: frame[f"Speed{i}"].notna().to_numpy() for i in numbers}
     result = enu_consistency_from(t, frame, numbers, present)
