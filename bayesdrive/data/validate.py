@@ -43,6 +43,9 @@ INCREMENT_RATIO = (0.67, 1.5)
 GAP_RATE = (0.5, 2.0)
 # The ratio checks need this much expected motion (m) to say anything.
 MIN_MOTION_M = 20.0
+# A step in which a gap changes by more than this (50 m/s at 10 Hz) is a jump, not motion: the
+# gap-rate check leaves it out (gap jumps are flagged or compared with positions elsewhere).
+GAP_JUMP_M = 5.0
 # A gap column that disagrees with the positions by more than a car length is flagged.
 GAP_MISMATCH_M = 5.0
 # More than half of all gaps non-positive: positions and lengths are not in the same unit.
@@ -294,11 +297,13 @@ def _check_plausible(tracks: pd.DataFrame, ctx: _Context, dt: float) -> None:
     closing = (0.5 * (relative + relative.groupby(tracks["vehicle_id"]).shift()) * step).where(
         same_leader
     )
+    gap_change = vehicle["gap"].diff().where(same_leader)
+    smooth = (gap_change.abs() <= GAP_JUMP_M) & (closing.abs() <= GAP_JUMP_M)
     _refuse_ratio(
         tracks,
         ctx,
-        vehicle["gap"].diff().where(same_leader),
-        closing,
+        gap_change.where(smooth),
+        closing.where(smooth),
         GAP_RATE,
         ("gap", "v"),
         "gaps change",

@@ -163,6 +163,17 @@ def follower_arrays(
     kept = [p for p in per_vehicle if p[-1].any()]
     if not kept:
         raise DataError(f"{traj.source}: no usable car-following steps in the {window!r} window")
+    left_out = [p[0] for p in per_vehicle if not p[-1].any()]
+    if left_out:
+        log.warning(
+            "%d of %d vehicle(s) have no usable step in the %s window (one dt apart, unflagged%s) "
+            "and are left out: %s",
+            len(left_out),
+            len(per_vehicle),
+            window,
+            ", with a leader" if require_leader else "",
+            ", ".join(left_out),
+        )
 
     longest = max(len(p[1]) for p in kept)
     width = int(np.ceil(longest / bucket) * bucket)

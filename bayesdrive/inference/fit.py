@@ -107,8 +107,10 @@ def fit(
             data, window=window, vehicle_ids=None if vehicle_ids is None else list(vehicle_ids)
         )
         source, data_format, flagged = data.source, data.format, len(data.flags)
+        inputs, repairs = dict(data.inputs), data.repairs
     else:
         arrays, data_format, flagged = data, "arrays", None
+        inputs = repairs = None
     if max_vehicles is not None:
         arrays = first_vehicles(arrays, max_vehicles)
     result = run_engine(
@@ -144,6 +146,8 @@ def fit(
             "num_vehicles": len(arrays.vehicle_ids),
             "usable_steps": int(np.asarray(arrays.mask).sum()),
             "flagged_samples": flagged,
+            "input_sha256": inputs,
+            "input_repairs": repairs,
             "max_vehicles": max_vehicles,
             "engine_options": result.options,
             "compile_time_s": result.compile_time_s,
@@ -199,6 +203,8 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "data_source",
         "window",
         "flagged_samples",
+        "input_sha256",
+        "input_repairs",
         "max_vehicles",
         "usable_steps",
         "wall_time_s",

@@ -13,6 +13,8 @@ Groups (dims in brackets):
 * ``observed_data``: the :class:`~bayesdrive.data.views.FollowerArrays` the engine saw [vehicle, step].
 
 Root attributes hold the metadata (:data:`REQUIRED_METADATA` plus versions and creation time).
+A fit on read data also records ``input_sha256`` (file path -> sha256 of every input file) and
+``input_repairs`` (the changes the reader made to the input, ``Trajectories.repairs``).
 netCDF attributes take only strings and numbers, so lists, dicts, booleans and None are stored as
 JSON text; the attribute ``json_attrs`` names those, and :func:`metadata` decodes them. Opening a
 result needs nothing but xarray or ArviZ: ``xarray.open_datatree(path)`` or

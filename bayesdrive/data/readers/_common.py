@@ -203,7 +203,7 @@ def read_table(
     frame.columns = [c.strip() if isinstance(c, str) else c for c in frame.columns]
     frame.index = pd.RangeIndex(len(frame)) + first_data_line
     if trailing:
-        extra = frame["_trailing"].notna() & (frame["_trailing"].str.strip() != "")
+        extra = frame["_trailing"].notna() & (frame["_trailing"].astype(str).str.strip() != "")
         if extra.any():
             raise DataError(
                 f"{path}, row {extra.idxmax()}: {len(columns)} fields but the header has "
@@ -381,10 +381,12 @@ def snap_to_grid(
     off = np.abs(ratio - steps) > GRID_TOLERANCE
     if off.any():
         row, file = _first_bad(frame, off)
-        value = np.asarray(times)[int(np.argmax(off))]
+        index = int(np.argmax(off))
+        # The file's own value where the column is there (times may be shifted or scaled).
+        value = frame[column].iloc[index] if column in frame.columns else np.asarray(times)[index]
         raise DataError(
-            f"{file}, row {row}, column {column!r}: time {value!r} is not on the {dt} s grid "
-            f"(expected samples every {dt} s)"
+            f"{file}, row {row}, column {column!r}: time {plain(value)} is not on the "
+            f"{plain(dt)} s grid (expected samples every {plain(dt)} s)"
         )
     return steps.astype(np.int64)
 
