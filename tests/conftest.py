@@ -3,6 +3,9 @@
 ``data_dir`` is ``$BAYESDRIVE_DATA_DIR`` or ``<repo>/../shared/data``; ``holdout_dir`` is
 ``$BAYESDRIVE_HOLDOUT_DIR`` or ``<repo>/../shared/holdout``. When the folder is missing, a test
 using it fails in CI (``$CI`` set) and is skipped, with the reason shown, elsewhere.
+
+Hypothesis: with ``$CI`` set the ``ci`` profile is loaded, derandomized, so a CI run draws the
+same examples every time (a failure there is reproducible, never a flake).
 """
 
 from __future__ import annotations
@@ -11,6 +14,11 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+settings.register_profile("ci", derandomize=True, deadline=None, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 REPO = Path(__file__).resolve().parents[1]
 
