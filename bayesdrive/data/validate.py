@@ -48,8 +48,6 @@ MIN_MOTION_M = 20.0
 GAP_JUMP_M = 5.0
 # A gap column that disagrees with the positions by more than a car length is flagged.
 GAP_MISMATCH_M = 5.0
-# More than half of all gaps non-positive: positions and lengths are not in the same unit.
-MAX_NEGATIVE_GAP_SHARE = 0.5
 # A time this far off the dt grid (in units of dt) is not float rounding but a wrong sampling rate.
 GRID_TOLERANCE = 1e-3
 
@@ -310,15 +308,6 @@ def _check_plausible(tracks: pd.DataFrame, ctx: _Context, dt: float) -> None:
         "the relative speeds",
         slope=True,
     )
-
-    gaps = tracks.loc[tracks["leader_id"].notna(), "gap"]
-    if len(gaps) >= 10 and (gaps <= 0).mean() > MAX_NEGATIVE_GAP_SHARE:
-        first = gaps.index[int(np.argmax((gaps <= 0).to_numpy()))]
-        raise DataError(
-            f"{ctx.where(tracks, first, 'gap')}: {(gaps <= 0).mean():.0%} of the gaps are "
-            "zero or negative (followers inside their leaders): positions and vehicle lengths "
-            "cannot be in the same unit; check the declared units"
-        )
 
 
 def _refuse_ratio(
