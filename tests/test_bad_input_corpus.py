@@ -745,7 +745,7 @@ def openacc_zalazone_file_on_its_own(tmp_path):
 
 @case("valid_refused")
 def openacc_many_metadata_rows_without_date(tmp_path):
-    meta = [*OPENACC_META[1:], "Comment,one", "Comment,two"]
+    meta = [*OPENACC_META[1:], *(f"Comment,{i}" for i in range(15))]  # header on line 20
     path = write_openacc(tmp_path / "run.csv", openacc_table(), meta=meta)
     assert detect_format(path)[0] == "openacc"
 

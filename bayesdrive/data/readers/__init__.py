@@ -37,6 +37,7 @@ from bayesdrive.data.readers.interaction import read_interaction
 from bayesdrive.data.readers.merge_episodes import read_merge_episodes
 from bayesdrive.data.readers.ngsim_chains import read_ngsim_chains
 from bayesdrive.data.readers.ngsim_raw import read_ngsim_raw
+from bayesdrive.data.readers.openacc import MAX_METADATA_ROWS as OPENACC_METADATA_ROWS
 from bayesdrive.data.readers.openacc import read_openacc
 from bayesdrive.data.trajectories import Trajectories
 
@@ -57,8 +58,9 @@ FORMATS: dict[str, Callable[..., Trajectories]] = {
     "ngsim_matrices": functools.partial(read_columns, layout="ngsim_i80_pairs_raw_c"),
     "ngsim_vehicles": functools.partial(read_columns, layout="ngsim_us101_vehicles"),
 }
-# Lines read to recognise a CSV (OpenACC puts a few metadata rows before its header).
-SNIFF_LINES = 12
+# Lines read to recognise a CSV: OpenACC puts metadata rows before its header, as many as its
+# reader accepts.
+SNIFF_LINES = OPENACC_METADATA_ROWS + 1
 # Suffixes of text tables recognised by content (the name decides nothing more).
 TEXT_SUFFIXES = (".csv", ".txt", ".dat", ".tsv")
 

@@ -329,7 +329,8 @@ def integer_ids(frame: pd.DataFrame, column: str) -> np.ndarray:
     if bad.any():
         row, file = _first_bad(frame, bad)
         value = frame[column].iloc[int(np.argmax(bad))]
-        what = "empty" if pd.isna(value) else f"not a whole number: {value!r}"
+        shown = repr(value) if isinstance(value, str) else plain(value)
+        what = "empty" if pd.isna(value) else f"not a whole number: {shown}"
         raise DataError(f"{file}, row {row}, column {column!r}: id is {what}")
     return ids.to_numpy(dtype=object)
 

@@ -131,7 +131,7 @@ def read_ngsim_raw(
     """Read one NGSIM file, or every ``*.csv``/``*.txt`` in a folder, into SI trajectories."""
     if missing_leaders not in ("error", "drop"):
         raise DataError(f"missing_leaders must be 'error' or 'drop', got {missing_leaders!r}")
-    files = input_files(path, ["*.csv", "*.txt"], what="NGSIM")
+    files = input_files(path, ["*.csv", "*.txt", "*.dat", "*.tsv"], what="NGSIM")
     notes = Notes(log)
     notes.assume(
         "NGSIM: feet converted with 0.3048 m/ft; x = Local_Y (front of vehicle); "
