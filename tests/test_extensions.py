@@ -11,7 +11,8 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from bayesdrive.data.trajectories import Trajectories, validate_tracks
+from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.validate import validate_tracks
 from bayesdrive.drivers.base import EgoState, fill_params
 from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, extend
 from bayesdrive.drivers.extensions.autocorrelated_noise import implied_acceleration

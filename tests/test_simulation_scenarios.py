@@ -6,7 +6,8 @@ import pytest
 
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
-from bayesdrive.data.trajectories import Trajectories, validate_tracks
+from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.validate import validate_tracks
 from bayesdrive.data.views import split_time
 from bayesdrive.simulation.scenarios import (
     heldout_episodes,

@@ -20,7 +20,7 @@ import pandas as pd
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import DRIVERS, FLAG_COLUMNS, TRACK_COLUMNS
 
-__all__ = ["Checked", "check_tracks", "empty_flags", "leader_values", "plain"]
+__all__ = ["Checked", "check_tracks", "empty_flags", "leader_values", "plain", "validate_tracks"]
 
 # A passenger car is at most ~6 m long; a median length above this in "metres" is feet.
 MAX_CAR_LENGTH_M = 8.0
@@ -180,6 +180,19 @@ def check_tracks(
         repairs=tuple(repairs),
         findings=tuple(findings),
     )
+
+
+def validate_tracks(tracks: pd.DataFrame, *, source: str, dt: float) -> pd.DataFrame:
+    """:func:`check_tracks` for a table built in code (simulations, tests): the checked table.
+
+    Such a table must need nothing: a repair or a reinterpretation (e.g. of the sampling rate)
+    is an error here, since no reader's notes would record it.
+    """
+    checked = check_tracks(tracks, source=source, dt=dt)
+    changed = [*checked.repairs, *checked.findings]
+    if changed:
+        raise DataError(f"{source}: a table built in code needs no repair, but: {changed[0]}")
+    return checked.tracks
 
 
 def _check_schema(tracks: pd.DataFrame, ctx: _Context, dt: float) -> None:
