@@ -176,6 +176,68 @@ def columns_valid_metres_accepted_negative_control(tmp_path):
     assert traj.flags.empty and not traj.repairs
 
 
+def _pairs_table(n: int = 100, follower=2, leader=1):
+    table = vehicles_table(n)
+    lead, follow = (table[table["car"] == c].reset_index(drop=True) for c in ("a", "b"))
+    return pd.DataFrame(
+        {
+            "t": lead["time"],
+            "fid": follower,
+            "lid": leader,
+            "xf": follow["pos"],
+            "vf": follow["speed"],
+            "xl": lead["pos"],
+            "vl": lead["speed"],
+        }
+    )
+
+
+PAIR_MAP = {
+    "t": "t",
+    "follower_id": "fid",
+    "leader_id": "lid",
+    "x_follower": "xf",
+    "v_follower": "vf",
+    "x_leader": "xl",
+    "v_leader": "vl",
+}
+
+
+def _pairs(path, **kw):
+    return read(path, format="columns", mode="pairs", columns=PAIR_MAP, dt=0.1, **kw)
+
+
+@case("units")
+def wide_matrices_positions_in_feet_speeds_in_metres(tmp_path):
+    table = _pairs_table()
+    quantities = {"x_leader": "xl", "v_leader": "vl", "x_follower": "xf", "v_follower": "vf"}
+    for key, column in quantities.items():
+        values = table[column] / (FT if key.startswith("x") else 1.0)
+        values.to_frame().to_csv(tmp_path / f"{key}.csv", index=False, header=False)
+    files = {key: f"{key}.csv" for key in quantities}
+    call = lambda: read(tmp_path, format="columns", mode="wide", files=files, dt=0.1)  # noqa: E731
+    refuses(r"positions advance 3\.28 times as much as the speeds say", call)
+
+
+@case("ids")
+def pairs_17_digit_ids(tmp_path):
+    path = tmp_path / "pairs.csv"
+    _pairs_table(follower=ID_17[1], leader=ID_17[0]).to_csv(path, index=False)
+    traj = _pairs(path)
+    assert sorted(traj.vehicle_ids) == [str(i) for i in ID_17]
+    assert traj.vehicle(str(ID_17[1]))["leader_id"].eq(str(ID_17[0])).all()
+
+
+@case("misleading")
+def pairs_shuffled_rows_sorted(tmp_path):
+    table = _pairs_table()
+    path = tmp_path / "pairs.csv"
+    table.sample(frac=1.0, random_state=6).to_csv(path, index=False)
+    traj = _pairs(path)
+    repaired(traj, r"rows of a pair are not in time order")
+    np.testing.assert_allclose(traj.vehicle("2")["x"], table["xf"])
+
+
 # --- rate: a 5 Hz file is not 10 Hz with holes ---------------------------------------------------
 
 

@@ -328,7 +328,16 @@ def _read(
             dt = _infer_dt(frames, columns, mode, notes)
         maker = _vehicles if mode == "vehicles" else _pairs
         parts = [
-            maker(f, frame, columns, factor, dt, id_pattern=id_pattern, no_leader=no_leader)
+            maker(
+                f,
+                frame,
+                columns,
+                factor,
+                dt,
+                id_pattern=id_pattern,
+                no_leader=no_leader,
+                notes=notes,
+            )
             for f, frame in zip(sources, frames, strict=True)
         ]
         tracks = pd.concat(parts, ignore_index=True)
@@ -484,11 +493,18 @@ def _pair_ids(path: Path, frame, columns, id_pattern) -> tuple[np.ndarray, np.nd
     )
 
 
-def _pairs(path, frame, columns, factor, dt, *, id_pattern, **_) -> pd.DataFrame:
+def _pairs(path, frame, columns, factor, dt, *, id_pattern, notes, **_) -> pd.DataFrame:
     required = [columns[k] for k in ("x_follower", "v_follower", "x_leader", "v_leader")]
     numeric_columns(frame, required)
     steps = snap_to_grid(frame["_t"], dt, frame, column=columns["t"])
     follower, leader = _pair_ids(path, frame, columns, id_pattern)
+    # Copies are merged in time order below; a pair's rows out of order are a repair to record.
+    back = (frame["_t"].groupby(follower).diff() < 0).to_numpy()
+    if back.any():
+        notes.repair(
+            f"{path.name}: rows of a pair are not in time order (first out of place: row "
+            f"{frame['_row'].iloc[int(np.argmax(back))]}); sorted by time"
+        )
     scene = _ids(frame, columns["scene_id"]).to_numpy() if "scene_id" in columns else path.stem
     t = time_steps(steps, dt)
     lanes = _lanes(frame, columns)
