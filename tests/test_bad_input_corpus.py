@@ -694,6 +694,39 @@ def chains_trailing_comma_on_every_line(tmp_path):
     np.testing.assert_allclose(traj.vehicle("11")["v"], table["v1"])
 
 
+@case("misleading")
+def ngsim_blank_line_then_trailing_commas(tmp_path):
+    table = ngsim_table()
+    path = write_ngsim(tmp_path, table)
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0], ""] + [line + "," for line in lines[1:]]) + "\n")
+    traj = read(path)
+    noted(traj, r"trailing delimiter")
+    np.testing.assert_allclose(
+        traj.vehicle("trajectories-0400-0415:2")["gap"],
+        (table.loc[table["Vehicle_ID"] == 2, "Space_Headway"] - 15.0) * FT,
+    )
+
+
+@case("valid_refused")
+def interaction_vehicle_crossing_into_the_next_lanelet(tmp_path):
+    """x restarts in each lanelet (documented): the jump is not read as a unit error."""
+    nodes = [(1, 0, 0), (2, 100, 0), (3, 0, 3.5), (4, 100, 3.5), (5, 200, 0), (6, 200, 3.5)]
+    second = (
+        '  <way id="12"><nd ref="2"/><nd ref="5"/></way>\n'
+        '  <way id="13"><nd ref="4"/><nd ref="6"/></way>\n'
+        '  <relation id="21"><member type="way" ref="13" role="left"/>'
+        '<member type="way" ref="12" role="right"/><tag k="type" v="lanelet"/></relation>\n'
+    )
+    osm = osm_text(nodes=nodes).replace("</osm>", second + "</osm>")
+    table = interaction_table(n=120)  # 10 m/s from x = 60-80 m: both cars pass x = 100 m
+    traj = read(write_interaction(tmp_path, table, osm))
+    assert set(traj.tracks["lane_id"]) == {20, 21}
+    np.testing.assert_allclose(
+        traj.vehicle("vehicle_tracks_001:1")["v"], table.loc[table["track_id"] == 1, "vx"]
+    )
+
+
 # --- valid files that were refused -------------------------------------------------------------
 
 

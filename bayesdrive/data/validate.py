@@ -296,8 +296,11 @@ def _check_plausible(tracks: pd.DataFrame, ctx: _Context, dt: float) -> None:
     vehicle = tracks.groupby("vehicle_id", sort=False)
     step = vehicle["t"].diff()
     consecutive = np.abs(step - dt) < 1e-6 * dt
-    expected = (0.5 * (tracks["v"] + vehicle["v"].shift()) * step).where(consecutive)
-    moved = vehicle["x"].diff().where(consecutive)
+    # A change of lane may re-base x (INTERACTION restarts x in each lanelet): not motion.
+    lane, previous_lane = tracks["lane_id"], vehicle["lane_id"].shift()
+    same_lane = (lane == previous_lane).fillna(True).astype(bool)
+    expected = (0.5 * (tracks["v"] + vehicle["v"].shift()) * step).where(consecutive & same_lane)
+    moved = vehicle["x"].diff().where(consecutive & same_lane)
     _refuse_ratio(
         tracks, ctx, moved, expected, INCREMENT_RATIO, ("x", "v"), "positions advance", "the speeds"
     )

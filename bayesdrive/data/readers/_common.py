@@ -140,9 +140,9 @@ def read_table(
     """Read a table whose header is on 0-based line ``header_line``.
 
     The columns named in ``text_columns`` (case-insensitive; or those it accepts, if a function)
-    are read as text, so ids keep every
-    digit (:func:`integer_ids`); :func:`numeric_columns` checks and converts the number columns. ``sep`` None takes a tab when the header has tabs and no
-    commas, else a comma. A UTF-8 byte-order mark is removed. Adds ``_row`` (1-based line number in
+    are read as text, so ids keep every digit (:func:`integer_ids`); :func:`numeric_columns`
+    checks and converts the number columns. ``sep`` None takes a tab when the header has tabs and
+    no commas, else a comma. A UTF-8 byte-order mark is removed. Adds ``_row`` (1-based line number in
     the file, header included, so row 2 is the first data row of a file with a header on line 1)
     and ``_file``. ``names`` reads a file without a header. Blank lines are dropped with a logged
     note (line numbers stay true); data rows ending in one more, empty field than the header (a
@@ -160,15 +160,17 @@ def read_table(
         if frame.empty:
             raise DataError(f"{path}: no data rows")
         return frame
-    head = _head(path, header_line + 2)
+    head = _head(path, header_line + 12)
     if sep is None:
         header_text = head[header_line] if len(head) > header_line else ""
         sep = "\t" if "\t" in header_text and "," not in header_text else ","
     columns = list(names) if names is not None else None
     trailing = False
-    if names is None and sep != r"\s+" and len(head) > header_line + 1:
+    data_lines = [line for line in head[header_line + 1 :] if line.strip()]
+    if names is None and sep != r"\s+" and data_lines:
         header = next(csv.reader([head[header_line]], delimiter=sep))
-        first = next(csv.reader([head[header_line + 1]], delimiter=sep), [])
+        first = next(csv.reader(data_lines[:1], delimiter=sep))
+        # pandas would take the extra first field for an index and shift every column.
         if len(first) == len(header) + 1:
             trailing = True
             columns = [c.strip() for c in header] + ["_trailing"]
