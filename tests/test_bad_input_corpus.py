@@ -109,9 +109,18 @@ def ngsim_speed_column_in_metres_positions_in_feet(tmp_path):
 
 @case("units")
 def openacc_speed_in_kmh_at_highway_speed(tmp_path):
+    table = openacc_table(speed_factor=3.6).drop(columns=["E1", "N1", "E2", "N2"])  # no ENU
+    path = write_openacc(tmp_path / "run.csv", table)
+    message = refuses(r"row 7, column 'Speed<i>': speed 90 is above 70 m/s", lambda: read(path))
+    assert "km/h" in message
+
+
+@case("units")
+def openacc_speed_in_kmh_caught_by_the_enu_path_first(tmp_path):
     path = write_openacc(tmp_path / "run.csv", openacc_table(speed_factor=3.6))
-    message = refuses(r"column 'Speed1'|column 'v'", lambda: read(path), file=path)
-    assert "km/h" in message and "above 70 m/s" in message
+    refuses(
+        r"column 'Speed1': the ENU path \(E1, N1\) is 0\.28 times", lambda: read(path), file=path
+    )
 
 
 @case("units")
@@ -124,6 +133,19 @@ def openacc_speed_in_kmh_at_town_speed(tmp_path):
     table["IVS1"] = 30.0 + np.r_[0, np.cumsum(0.05 * ((v1 - v2)[1:] + (v1 - v2)[:-1]))]
     path = write_openacc(tmp_path / "run.csv", table)
     refuses(r"gaps change 0\.2\d times as much as the relative speeds say", lambda: read(path))
+
+
+@case("units")
+def openacc_kmh_without_a_gap_caught_by_the_enu_path(tmp_path):
+    table = openacc_table().drop(columns=["IVS1"])
+    for column in ("Speed1", "Speed2"):
+        table[column] = (table[column] - 15.0) * 3.6  # 10 m/s as 36 "m/s"; E/N are metres
+    table["E1"] = table["E1"] * (10.0 / 25.0)
+    table["E2"] = table["E2"] * (10.0 / 25.0)
+    path = write_openacc(tmp_path / "run.csv", table)
+    refuses(
+        r"column 'Speed1': the ENU path \(E1, N1\) is 0\.\d+ times the distance", lambda: read(path)
+    )
 
 
 @case("units")

@@ -20,7 +20,15 @@ import pandas as pd
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import DRIVERS, FLAG_COLUMNS, TRACK_COLUMNS
 
-__all__ = ["Checked", "check_tracks", "empty_flags", "leader_values", "plain", "validate_tracks"]
+__all__ = [
+    "Checked",
+    "check_distance_ratio",
+    "check_tracks",
+    "empty_flags",
+    "leader_values",
+    "plain",
+    "validate_tracks",
+]
 
 # A passenger car is at most ~6 m long; a median length above this in "metres" is feet.
 MAX_CAR_LENGTH_M = 8.0
@@ -297,8 +305,9 @@ def _check_plausible(tracks: pd.DataFrame, ctx: _Context, dt: float) -> None:
     step = vehicle["t"].diff()
     consecutive = np.abs(step - dt) < 1e-6 * dt
     # A change of lane may re-base x (INTERACTION restarts x in each lanelet): not motion.
-    lane, previous_lane = tracks["lane_id"], vehicle["lane_id"].shift()
-    same_lane = (lane == previous_lane).fillna(True).astype(bool)
+    lane = tracks["lane_id"].astype("Int64")
+    same_lane = (lane == lane.groupby(tracks["vehicle_id"], sort=False).shift()).fillna(True)
+    same_lane = same_lane.astype(bool)
     expected = (0.5 * (tracks["v"] + vehicle["v"].shift()) * step).where(consecutive & same_lane)
     moved = vehicle["x"].diff().where(consecutive & same_lane)
     _refuse_ratio(
@@ -344,6 +353,20 @@ def _refuse_ratio(
         f"{bounds[1]:g}): columns {ctx.shown(columns[0])!r} and {ctx.shown(columns[1])!r} are not "
         "in matching units (feet and metres? km/h and m/s?) or the time column is scaled wrongly"
     )
+
+
+def check_distance_ratio(measured_m: float, integrated_m: float, *, where: str, what: str) -> None:
+    """Refuse a distance measured independently of the speeds (an OpenACC ENU path) that is not
+    the integrated speed within :data:`INCREMENT_RATIO`: the speed column is in another unit."""
+    if integrated_m < MIN_MOTION_M:
+        return
+    ratio = measured_m / integrated_m
+    if not INCREMENT_RATIO[0] <= ratio <= INCREMENT_RATIO[1]:
+        raise DataError(
+            f"{where}: {what} is {ratio:.2f} times the distance the speeds integrate to "
+            f"({measured_m:.0f} m against {integrated_m:.0f} m; expected {INCREMENT_RATIO[0]:g} to "
+            f"{INCREMENT_RATIO[1]:g}): is the speed in km/h or another unit?"
+        )
 
 
 def _refuse_wrong_length_units(tracks: pd.DataFrame, ctx: _Context) -> None:

@@ -69,6 +69,7 @@ from bayesdrive.data.readers._common import (
     time_steps,
 )
 from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.validate import check_distance_ratio
 
 __all__ = ["DT", "UNITS", "enu_consistency", "read_openacc"]
 
@@ -85,6 +86,8 @@ UNITS = {
 EXPECTED = (
     "Time, Speed1, [Lat1, Lon1, Alt1, E1, N1, U1, ...], ..., IVS1..IVS(n-1), Driver1..Driver(n)"
 )
+# Column names in messages (the row names the car: row of Speed<i> of car i).
+SCHEMA_NAMES = {"t": "Time", "v": "Speed<i>", "x": "Speed<i> (integrated)", "gap": "IVS<i-1>"}
 # Metadata rows are few; the header must appear this early.
 MAX_METADATA_ROWS = 50
 DRIVERS = {"human": "human", "acc": "acc"}
@@ -142,6 +145,7 @@ def read_openacc(path: str | Path, *, lengths: Mapping[str, float] | None = None
         dt=DT,
         scenes=scenes,
         notes=notes,
+        column_names=SCHEMA_NAMES,
         measured_gap=False,  # x is integrated speed placed by IVS itself: not independent of it
         extra_flags=pd.concat(jumps, ignore_index=True) if jumps else None,
         extra_inputs=specs,
@@ -294,6 +298,13 @@ def _read_file(
         )
     check = enu_consistency_from(t, frame, numbers, present)
     if check is not None and len(check):
+        for row in check.itertuples():
+            check_distance_ratio(
+                row.enu_path_m,
+                row.integrated_m,
+                where=f"{path}, column 'Speed{row.vehicle}'",
+                what=f"the ENU path (E{row.vehicle}, N{row.vehicle})",
+            )
         worst = check.loc[check["difference_m"].abs().idxmax()]
         notes.assume(
             f"{path.name}: ENU path vs integrated speed differ by up to "
