@@ -315,7 +315,8 @@ def flag_negative_gaps(tracks: pd.DataFrame) -> pd.DataFrame:
     flagged = tracks.loc[bad, ["vehicle_id", "t", "gap", "leader_id"]]
     if flagged.empty:
         return empty_flags()
-    log.warning("%d sample(s) with a non-positive bumper gap flagged", len(flagged))
+    # A note, not a warning: the flags travel with the data and every summary counts them.
+    log.info("%d sample(s) with a non-positive bumper gap flagged", len(flagged))
     return pd.DataFrame(
         {
             "vehicle_id": flagged["vehicle_id"].to_numpy(),

@@ -63,7 +63,7 @@ from bayesdrive.data.readers._common import (
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.units import FOOT_M, to_metres_factor
 
-__all__ = ["HOLDOUT_LAYOUTS", "MODES", "UNITS", "read_columns"]
+__all__ = ["HOLDOUT_LAYOUTS", "MODES", "UNITS", "read_columns", "read_dataframe"]
 
 log = logging.getLogger(__name__)
 
@@ -272,9 +272,34 @@ def read_columns(
     return _read(Path(path), **options)
 
 
+def read_dataframe(
+    frame: pd.DataFrame,
+    columns: Mapping[str, str],
+    *,
+    mode: str = "vehicles",
+    units: str | float = "m",
+    name: str = "dataframe",
+    **options: Any,
+) -> Trajectories:
+    """A pandas DataFrame in layout ``mode`` ("vehicles" or "pairs") through the column map
+    ``columns``, exactly as :func:`read_columns` reads a file of the same columns (same options,
+    same checks, same repairs). Messages name the frame ``name`` and a row by its position
+    (``frame.iloc[row]``); the result's ``source`` is ``name``."""
+    if mode not in ("vehicles", "pairs"):
+        raise DataError(f"{name}: a DataFrame is read in mode 'vehicles' or 'pairs', not {mode!r}")
+    known = sorted(set(_DEFAULTS) - {"columns", "mode", "units", "patterns", "files"})
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise DataError(f"{name}: unknown DataFrame option(s) {unknown}; known: {', '.join(known)}")
+    table = frame.reset_index(drop=True).assign(_row=np.arange(len(frame)), _file=name)
+    settings = {**_DEFAULTS, **options, "columns": columns, "mode": mode, "units": units}
+    return _read(Path(name), tables=[table], **settings)
+
+
 def _read(
     path: Path,
     *,
+    tables: list[pd.DataFrame] | None = None,
     columns,
     units,
     headway,
@@ -319,8 +344,12 @@ def _read(
                 + f"expected {', '.join(keys['required'])} (optional: "
                 + f"{', '.join(keys['optional'])})"
             )
-        sources = input_files(path, patterns, what="trajectory")
-        frames = [_load(f, columns, time_factor) for f in sources]
+        if tables is None:
+            sources = input_files(path, patterns, what="trajectory")
+            tables = [read_table(f, fmt="trajectory") for f in sources]
+        else:
+            sources = [path] * len(tables)
+        frames = [_with_time(table, columns, time_factor) for table in tables]
         if dt is None:
             dt = _infer_dt(frames, columns, mode, notes)
         maker = _vehicles if mode == "vehicles" else _pairs
@@ -357,9 +386,12 @@ def _read(
     )
 
 
-def _load(path: Path, columns: Mapping[str, str], time_factor: float) -> pd.DataFrame:
-    frame = read_table(path, fmt="trajectory")
-    require_columns(frame, list(dict.fromkeys(columns.values())), source=path, fmt="mapped")
+def _with_time(frame: pd.DataFrame, columns: Mapping[str, str], time_factor: float) -> pd.DataFrame:
+    """``frame`` (with ``_row`` and ``_file``) checked for the mapped columns, time in ``_t``."""
+    source = frame["_file"].iloc[0] if len(frame) else "table"
+    if frame.empty:
+        raise DataError(f"{source}: no data rows")
+    require_columns(frame, list(dict.fromkeys(columns.values())), source=source, fmt="mapped")
     time_column = columns["t"]
     numeric_columns(frame, [time_column])
     frame["_t"] = frame[time_column] * float(time_factor)
