@@ -19,6 +19,7 @@ from bayesdrive.criticism.criticize import CriticismResult, CriticizeConfig
 from bayesdrive.criticism.criticize import criticize as _criticize
 from bayesdrive.data.readers.columns import read_dataframe
 from bayesdrive.data.registry import load
+from bayesdrive.data.registry import resolve as data_path
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import MODELS, get_model
@@ -30,6 +31,7 @@ from bayesdrive.simulation.scenarios import merge_fit_arrays
 
 __all__ = [
     "criticize",
+    "data_path",
     "evaluate",
     "fit",
     "from_dataframe",

@@ -5,7 +5,8 @@ Units: whatever the caller declares. ``units`` is ``"m"``, ``"ft"`` or a factor 
 speeds, accelerations, gaps, lengths). The reader never guesses units; feet passed as metres are
 refused by the schema checks (lengths > 8 m, jam spacings > 15 m).
 
-Three layouts (``mode``):
+Three layouts (``mode``; when not given, ``"pairs"`` for a column map naming ``x_follower``,
+else ``"vehicles"``):
 
 - ``"vehicles"``: one row per vehicle and time. Map ``vehicle_id``, ``t``, ``x``, ``v`` and
   optionally ``a``, ``lane_id``, ``leader_id``, ``gap``, ``length``, ``scene_id``. Leader ids
@@ -269,6 +270,8 @@ def read_columns(
     options = {**_DEFAULTS}
     options.update({k: v for k, v in preset.items() if k in _DEFAULTS})
     options.update({k: v for k, v in given.items() if v is not None})
+    if "mode" not in preset and mode is None and "x_follower" in (options["columns"] or {}):
+        options["mode"] = "pairs"
     return _read(Path(path), **options)
 
 
