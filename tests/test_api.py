@@ -57,7 +57,8 @@ def test_import_is_cheap_and_every_name_resolves():
 @pytest.mark.realdata
 def test_a_dataframe_reads_as_the_same_csv_does(data_dir):
     path = data_dir / "ngsim_i80_chains" / CHAIN
-    from_file = read_columns(path, PAIR_COLUMNS, mode="pairs", units="m")
+    # No mode given: a map naming x_follower is read as pairs.
+    from_file = read_columns(path, PAIR_COLUMNS, units="m")
     from_frame = bd.from_dataframe(pd.read_csv(path), PAIR_COLUMNS, units="m")
     assert from_frame.vehicle_ids == from_file.vehicle_ids == ["1", "11"]
     pd.testing.assert_frame_equal(from_frame.tracks, from_file.tracks)
