@@ -150,7 +150,7 @@ def _fitted_scenarios(
             f"{where}: the posterior has draws for {len(fitted)} vehicle(s), and every one of the "
             f"{len(scenarios.scenarios)} scenario(s) simulates a vehicle it lacks "
             f"({len(unfitted)} such vehicle(s), e.g. {unfitted[:5]}); fit those vehicles, or "
-            "evaluate one vehicle per scenario"
+            "evaluate one vehicle per scenario (--vehicles-per-scenario 1)"
         )
     skipped = {
         "scenarios": len(scenarios.scenarios) - len(kept),
