@@ -1,7 +1,10 @@
 """`bayesdrive data ...` through typer's CliRunner."""
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -12,6 +15,7 @@ from bayesdrive.cli.main import app
 from bayesdrive.data.registry import DATASETS, HOLDOUT
 
 runner = CliRunner()
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def one_line(text: str) -> str:
@@ -229,3 +233,22 @@ def test_info_rejects_a_malformed_column_map(tmp_path):
     result = runner.invoke(app, ["data", "info", str(table), "--columns", "vehicle_id"])
     assert result.exit_code == 2
     assert "is not SCHEMA=FILE_COLUMN" in one_line(result.stderr)
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("verbose", [False, True])
+def test_flagged_sample_notes_are_logged_at_verbose_only(data_dir, verbose):
+    """The chain file holds negative bumper gaps: the reader's note about flagging them is a log
+    line for -v, not a warning on every run (the counts stay in the command's own output)."""
+    chain = data_dir / "ngsim_i80_chains" / "124_136_140_146_162_164.csv"
+    args = [*(["-v"] if verbose else []), "data", "info", str(chain)]
+    done = subprocess.run(
+        [sys.executable, "-m", "bayesdrive.cli.main", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert done.returncode == 0, done.stderr
+    assert ("sample(s) flagged (negative_gap)" in done.stderr) == verbose
+    assert "flagged (negative_gap)" in " ".join(done.stdout.split())

@@ -10,7 +10,11 @@ import typer
 from typer.testing import CliRunner
 
 from bayesdrive.cli.criticize_cmd import criticize_command
+from bayesdrive.criticism.criticize import POWERED_VEHICLES, criticized_series, power_warning
 from bayesdrive.criticism.generator import generate
+from bayesdrive.data.readers import read
+from bayesdrive.data.views import follower_arrays
+from bayesdrive.inference.fit import first_vehicles
 
 app = typer.Typer()
 app.command()(criticize_command)
@@ -88,3 +92,26 @@ def test_bad_input_is_a_one_line_error_with_exit_code_2(tmp_path, small_file):
     )
     assert tolerance.exit_code == 2
     assert "--unmoved-tolerance" in tolerance.output
+
+
+def test_vehicles_are_counted_as_fit_counts_them_and_few_of_them_draw_a_warning(small_file):
+    """--vehicles 2 criticizes the 2 vehicles `fit --vehicles 2` fits, and says the checks lack
+    power with so few (the detection study's vehicle count draws no such warning)."""
+    result = CliRunner().invoke(
+        app,
+        [
+            str(small_file),
+            *("--format", "ngsim_raw", "--seed", "3", "--particles", "32"),
+            *("--rollouts", "0", "--causes", "reaction_delay", "--vehicles", "2"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.stdout.split())
+    assert "Low power: only 2 vehicle(s) criticized" in text
+    assert f"shown with {POWERED_VEHICLES} vehicles" in text
+
+    traj = read(small_file, format="ngsim_raw")
+    fitted = first_vehicles(follower_arrays(traj, window="fit"), 2).vehicle_ids
+    assert criticized_series(traj, 2).vehicle_ids == fitted
+    assert power_warning(POWERED_VEHICLES) is None
+    assert "undefined with one vehicle" in power_warning(1)

@@ -66,6 +66,12 @@ def test_fit_runs_the_paper_filter_with_epochs(data_dir, tmp_path):
         (["--engine", "gibbs"], "unknown engine 'gibbs'"),
         (["--params", "v_des,speed"], "has no parameter(s) ['speed']"),
         (["--model", "krauss"], "unknown driver model 'krauss'"),
+        (["--columns", "t"], "--columns: 't' is not SCHEMA=FILE_COLUMN"),
+        (["--units", "ft", "--format", "openacc"], "options of --format columns, not of openacc"),
+        (
+            ["--columns", "t=t1,x_follower=Y2", "--units", "m"],
+            "column map for mode 'pairs': missing v_follower, x_leader, v_leader",
+        ),
     ],
 )
 def test_bad_options_end_with_a_clear_error(data_dir, tmp_path, extra, message):

@@ -3,16 +3,17 @@
 import json
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from bayesdrive.cli import evaluate_cmd
 from bayesdrive.cli.main import app
 from bayesdrive.data import registry
 from bayesdrive.data.views import SPLIT_RULE, follower_arrays
 from bayesdrive.inference.output import build_tree, save_result
+from bayesdrive.simulation import evaluation
 
 runner = CliRunner()
 
@@ -114,7 +115,7 @@ def results(monkeypatch, tmp_path):
         trees[path] = tree
         return path
 
-    monkeypatch.setattr(evaluate_cmd, "load_result", lambda path: trees[path])
+    monkeypatch.setattr(evaluation, "load_result", lambda path: trees[Path(path)])
     return save
 
 
@@ -160,15 +161,32 @@ def test_a_posterior_read_from_its_netcdf_file(scene_dir, tmp_path):
 
 
 @pytest.mark.realdata
-def test_a_posterior_missing_a_simulated_vehicle_is_an_error_naming_it(scene_dir, results):
+def test_a_partial_posterior_scores_the_fitted_vehicles_and_names_the_skipped(scene_dir, results):
     traj = registry.load(scene_dir)
-    scenes = evaluate_cmd._scenarios(traj, 2.0, 3)
-    dropped = scenes.simulated_ids[0]
+    scenes = evaluation.evaluation_scenarios(traj, 2.0, 3)
+    assert len(scenes.scenarios) > 1
+    dropped = scenes.scenarios[-1].simulated_ids[-1]
+    lacking = [s for s in scenes.scenarios if dropped in s.simulated_ids]
+    assert len(lacking) < len(scenes.scenarios)
     kept = [v for v in traj.vehicle_ids if v != dropped]
     path = results(posterior_file(traj, vehicles=kept), "partial.nc")
-    result = evaluate(scene_dir, "--model", "idm", "--posterior", path, *SMALL)
-    assert result.exit_code == 2
-    assert f"no draws for simulated vehicle(s) ['{dropped}']" in one_line(result.stderr)
+    result = evaluate(scene_dir, "--model", "idm", "--posterior", path, *SMALL, "--json", "-")
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    assert out["skipped"]["vehicles"] == [dropped]
+    assert out["skipped"]["scenarios"] == len(lacking)
+    assert out["scenarios"] == len(scenes.scenarios) - len(lacking)
+    scored = {s.scenario_id for s in scenes.scenarios if s not in lacking}
+    assert {s["scenario"] for s in out["by_scenario"]} == scored
+    printed = evaluate(scene_dir, "--model", "idm", "--posterior", path, *SMALL)
+    assert f"skipped {len(lacking)} scenario(s)" in one_line(printed.stdout)
+    assert dropped in printed.stdout
+
+    # One fitted vehicle completes no 3-vehicle scenario: an error, not an empty score.
+    nothing = results(posterior_file(traj, vehicles=scenes.simulated_ids[:1]), "none.nc")
+    refused = evaluate(scene_dir, "--model", "idm", "--posterior", nothing, *SMALL)
+    assert refused.exit_code == 2
+    assert "every one of the" in one_line(refused.stderr)
 
 
 @pytest.mark.realdata
@@ -182,7 +200,7 @@ def test_bad_requests_end_with_one_error_line(scene_dir, monkeypatch):
     assert merge_only.exit_code == 2 and "no merge episodes" in one_line(merge_only.stderr)
     # Data loaded as held out: nothing may be fitted on it (held-out files themselves are not
     # read in tests, so the loader's verdict is stubbed on this fitting data).
-    real_load = evaluate_cmd._load
-    monkeypatch.setattr(evaluate_cmd, "_load", lambda *a: (real_load(*a)[0], True))
+    real_load = evaluation.evaluation_data
+    monkeypatch.setattr(evaluation, "evaluation_data", lambda *a: (real_load(*a)[0], True))
     held_out = evaluate(scene_dir, "--model", "blackbox", *SMALL)
     assert held_out.exit_code == 2 and "held out for evaluation only" in one_line(held_out.stderr)

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from bayesdrive.cli.common import console, emit_json, err_console, fail
@@ -39,7 +40,11 @@ def criticize_command(
         typer.Option("--driver", help="Only vehicles with this driver (human, acc, unknown)."),
     ] = None,
     vehicles: Annotated[
-        int | None, typer.Option("--vehicles", help="Use only the first N vehicles.")
+        int | None,
+        typer.Option(
+            "--vehicles",
+            help="Only the first N vehicles with scored steps, counted as `fit --vehicles` does.",
+        ),
     ] = None,
     rollouts: Annotated[
         int, typer.Option("--rollouts", help="Rollouts per held-out window (0: skip them).")
@@ -86,8 +91,6 @@ def criticize_command(
         leaders = set(tracks.loc[tracks["vehicle_id"].isin(chosen_ids), "leader_id"].dropna())
         second = set(tracks.loc[tracks["vehicle_id"].isin(leaders), "leader_id"].dropna())
         traj = traj.subset(chosen_ids | leaders | second)
-    if vehicles is not None:
-        traj = traj.subset(traj.vehicle_ids[:vehicles])
     config = CriticizeConfig(num_rollouts=rollouts, causes=chosen)
     if particles is not None:
         config = config._replace(num_particles=particles)
@@ -115,9 +118,10 @@ def criticize_command(
                 seed=seed,
                 model=base,
                 config=config,
+                max_vehicles=vehicles,
                 progress=lambda message: bar.update(task, description=message),
             )
-        except DataError as error:
+        except (DataError, ValueError) as error:
             raise fail(str(error)) from None
     if out is not None:
         from bayesdrive.reports.criticism_plots import plot_criticism
@@ -186,6 +190,8 @@ def print_report(report: dict[str, Any]) -> None:
     console.print(f"[dim]{report['settings']['significance']}[/dim]")
     verdict = report["verdict"]
     console.print(f"[bold]Verdict:[/bold] {verdict}")
+    if report.get("power_warning"):
+        console.print(f"[yellow]Low power:[/yellow] {escape(report['power_warning'])}")
     if report.get("verdict_is_possible_processing_artefact"):
         console.print(
             f"[yellow]Caution:[/yellow] {report['verdict_is_possible_processing_artefact']}"

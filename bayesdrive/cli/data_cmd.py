@@ -14,7 +14,15 @@ from rich.markup import escape
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from bayesdrive.cli.common import console, emit_json, err_console, fail
+from bayesdrive.cli.common import (
+    COLUMNS_HELP,
+    UNITS_HELP,
+    column_map_options,
+    console,
+    emit_json,
+    err_console,
+    fail,
+)
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.fetch import fetch as fetch_dataset
@@ -31,7 +39,6 @@ DATA_DIR_HELP = (
     "Folder holding the data sets (default: $BAYESDRIVE_DATA_DIR, else ../shared/data beside the "
     "repository); for a held-out data set, the holdout folder ($BAYESDRIVE_HOLDOUT_DIR)."
 )
-COLUMN_MAP_FORMAT = "columns"
 JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
 
 
@@ -97,28 +104,6 @@ def list_datasets(
     )
 
 
-def _parse_columns(text: str | None) -> dict[str, str] | None:
-    """``vehicle_id=ID,t=time`` -> {"vehicle_id": "ID", "t": "time"}."""
-    if text is None:
-        return None
-    mapping = {}
-    for item in text.split(","):
-        schema_name, equals, file_name = item.partition("=")
-        if not equals or not schema_name.strip() or not file_name.strip():
-            raise DataError(
-                f"--columns: {item!r} is not SCHEMA=FILE_COLUMN "
-                "(e.g. --columns vehicle_id=ID,t=time,x=pos,v=speed)"
-            )
-        mapping[schema_name.strip()] = file_name.strip()
-    return mapping
-
-
-def _reader_options(columns: str | None, units: str | None, headway: str | None) -> dict[str, Any]:
-    """Options for the column-map reader; only those given, so other readers see none."""
-    given = {"columns": _parse_columns(columns), "units": units, "headway": headway}
-    return {key: value for key, value in given.items() if value is not None}
-
-
 def _flatten(result: dict[str, Any], prefix: str = "") -> list[tuple[str, str]]:
     rows = []
     for key, value in result.items():
@@ -146,14 +131,9 @@ def info(
     columns: str | None = typer.Option(
         None,
         "--columns",
-        help=(
-            "Column map for an arbitrary CSV: SCHEMA=FILE_COLUMN,... (e.g. vehicle_id=ID,t=time); "
-            "--columns, --units and --headway imply --format columns."
-        ),
+        help=COLUMNS_HELP,
     ),
-    units: str | None = typer.Option(
-        None, "--units", help="Length unit of an arbitrary CSV: m, ft, or a factor to metres."
-    ),
+    units: str | None = typer.Option(None, "--units", help=UNITS_HELP),
     headway: str | None = typer.Option(
         None, "--headway", help="What the CSV's gap column measures: front (to front) or bumper."
     ),
@@ -161,15 +141,7 @@ def info(
 ) -> None:
     """Figures of a data set: scenes, vehicles, time, speeds, gaps, flags and notes."""
     try:
-        options = _reader_options(columns, units, headway)
-        if options:
-            # These options belong to the column-map reader; other readers know their units.
-            if format not in (None, COLUMN_MAP_FORMAT):
-                raise DataError(
-                    f"--columns, --units and --headway are options of --format "
-                    f"{COLUMN_MAP_FORMAT}, not of {format}"
-                )
-            format = COLUMN_MAP_FORMAT
+        format, options = column_map_options(format, columns, units, headway)
         if path_or_name in registry.HOLDOUT and not Path(path_or_name).exists():
             traj = registry.load_holdout(
                 path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options

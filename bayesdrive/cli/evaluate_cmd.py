@@ -1,16 +1,12 @@
 """``bayesdrive evaluate``: closed-loop rollouts of a model on held-out windows, scored.
 
-DATA is a file, a folder or a data set name (held-out names too: evaluation is what they are
-for). Merge-episode data gives merge scenes (the cooperating main-lane driver simulated), any
-other data platoon scenes (see :mod:`bayesdrive.simulation.scenarios`). The model is a baseline
-name, or the driver model of a fitted posterior given with ``--posterior RESULT``; a posterior
-fitted on another split, window or data source is refused, and so is one without draws for a
-simulated vehicle. Bad input ends with a one-line ``error: ...`` on standard error and exit code 2.
+What runs is :func:`bayesdrive.simulation.evaluation.evaluate` (its docstring says which data,
+scenarios and posteriors it takes); this module parses the options, shows progress and prints the
+metric table. Bad input ends with a one-line ``error: ...`` on standard error and exit code 2.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -20,162 +16,13 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from bayesdrive.cli.common import console, emit_json, err_console, fail
-from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
-from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.drivers.cidm import CIDM
-from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.output import load_result, metadata
-from bayesdrive.simulation.baselines import (
-    BASELINES,
-    CAR_FOLLOWING_ONLY,
-    MERGE_ONLY,
-    Policy,
-    baseline_policy,
-)
-from bayesdrive.simulation.metrics import evaluate_policy
-from bayesdrive.simulation.posterior import posterior_policy
-from bayesdrive.simulation.scenarios import (
-    ScenarioSet,
-    merge_scenarios,
-    platoon_scenarios,
-    scenario_capacity,
-)
+from bayesdrive.simulation import evaluation
+from bayesdrive.simulation.baselines import BASELINES
 
-__all__ = ["check_posterior_split", "evaluate"]
+__all__ = ["evaluate"]
 
-MERGE_FORMAT = "merge_episodes"
 JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
-
-
-def _load(data: str, data_dir: str | None) -> tuple[Trajectories, bool]:
-    """The trajectories, and whether they are a held-out data set."""
-    if data in registry.HOLDOUT and not Path(data).exists():
-        return registry.load_holdout(data, holdout_dir=data_dir), True
-    return registry.load(data, data_dir=data_dir), False
-
-
-def _scenarios(traj: Trajectories, horizon: float, vehicles_per_scenario: int) -> ScenarioSet:
-    if traj.format == MERGE_FORMAT:
-        found = merge_scenarios(traj, horizon_s=horizon)
-    else:
-        found = platoon_scenarios(
-            traj, vehicles_per_scenario=vehicles_per_scenario, horizon_s=horizon
-        )
-    if found.scenarios:
-        return found
-    if found.kind == "platoon":
-        allowed = scenario_capacity(traj, horizon_s=horizon)
-        sizes = (
-            ", ".join(f"{r['vehicles_per_scenario']}: {r['scenarios']}" for r in allowed)
-            or "none at any size"
-        )
-        raise DataError(
-            f"{traj.source}: no {vehicles_per_scenario}-vehicle platoon scenario of {horizon} s "
-            f"lies in the held-out windows; scenarios per size the data allows: {sizes}"
-        )
-    raise DataError(f"{traj.source}: no merge scenario of at least 1 s in the held-out episodes")
-
-
-def _location(source: Any, data_dir: str | None) -> Path | None:
-    """Where a recorded data source lives: an existing path, or a registered data set's folder."""
-    if not isinstance(source, str):
-        return None
-    if Path(source).exists():
-        return Path(source).resolve()
-    if source in registry.DATASETS:
-        try:
-            return registry.resolve(source, data_dir).resolve()
-        except DataError:
-            return None
-    return None
-
-
-def _same_source(recorded: Any, source: str, data_dir: str | None) -> bool:
-    """The same string, or a name and a path (or two paths) for the same files."""
-    if recorded == source:
-        return True
-    where = _location(recorded, data_dir)
-    return where is not None and where == _location(source, data_dir)
-
-
-def check_posterior_split(
-    meta: dict[str, Any],
-    traj: Trajectories,
-    scenarios: ScenarioSet,
-    data_dir: str | None = None,
-) -> None:
-    """Raise :class:`DataError` unless the posterior was fitted on the fitting side of the same
-    split of the same data the evaluation scores (rule, window and data source; a data set's name
-    and its folder count as the same source)."""
-    problems = []
-    if meta.get("split_rule") != scenarios.split_rule:
-        problems.append(
-            f"its split rule {meta.get('split_rule')!r} is not the evaluation's "
-            f"{scenarios.split_rule!r}"
-        )
-    if meta.get("window") != "fit":
-        problems.append(f"it was fitted on the {meta.get('window')!r} window, not 'fit'")
-    if not _same_source(meta.get("data_source"), traj.source, data_dir):
-        problems.append(
-            f"it was fitted on {meta.get('data_source')!r}, the evaluation reads {traj.source!r}"
-        )
-    if problems:
-        raise DataError("refusing the posterior: " + "; ".join(problems))
-
-
-def _posterior_policy(
-    path: Path, model_name: str, traj: Trajectories, scenarios: ScenarioSet, data_dir: str | None
-) -> Policy:
-    tree = load_result(path)
-    meta = metadata(tree)
-    if meta.get("model") != model_name:
-        raise DataError(
-            f"{path}: the posterior is of model {meta.get('model')!r}, not --model {model_name!r}"
-        )
-    check_posterior_split(meta, traj, scenarios, data_dir)
-    model = get_model(model_name)
-    if model.name == CIDM.name and scenarios.kind != "merge":
-        raise DataError(f"{path}: a Cooperative-IDM posterior needs merge scenes, not platoons")
-    vehicles = {str(v) for v in tree["posterior"]["vehicle"].values}
-    missing = [v for v in scenarios.simulated_ids if v not in vehicles]
-    if missing:
-        raise DataError(f"{path}: the posterior has no draws for simulated vehicle(s) {missing}")
-    policy = posterior_policy(model_name, model, tree, meta)
-    details = {
-        **policy.details,
-        "result": str(path),
-        "engine": meta.get("engine"),
-        "fit_seed": meta.get("seed"),
-        "fixed": meta.get("fixed"),
-    }
-    return policy._replace(details=details)
-
-
-def _baseline(
-    name: str, key, traj: Trajectories, scenarios: ScenarioSet, heldout_data: bool
-) -> Policy:
-    if name in MERGE_ONLY and scenarios.kind != "merge":
-        raise DataError(f"{name} simulates merges; {traj.source} has no merge episodes")
-    if name in CAR_FOLLOWING_ONLY and scenarios.kind == "merge":
-        raise DataError(
-            f"{name} needs fitting windows of the evaluated vehicles; merge episodes are split "
-            "by episode, so held-out cooperating drivers have none"
-        )
-    if name in CAR_FOLLOWING_ONLY and heldout_data:
-        raise DataError(
-            f"{name} fits on the data it evaluates; {traj.source} is held out for evaluation "
-            "only: nothing may be fitted on it"
-        )
-    with _progress() as bar:
-        task = bar.add_task(f"fitting {name}", total=None)
-        return baseline_policy(
-            name,
-            key,
-            traj,
-            scenarios.simulated_ids,
-            progress=lambda done, total: bar.update(task, completed=done, total=total),
-        )
 
 
 def _progress() -> Progress:
@@ -233,6 +80,14 @@ def _print(result: dict[str, Any]) -> None:
             f"{distance['wasserstein']:.3f} / {distance['ks']:.3f}",
         )
     console.print(table)
+    skipped = result["skipped"]
+    if skipped:
+        console.print(
+            escape(
+                f"skipped {skipped['scenarios']} scenario(s): {skipped['reason']}: "
+                f"{', '.join(skipped['vehicles'])}"
+            )
+        )
     console.print(escape(f"scenarios: {scenes['selection_rule']}"))
     console.print(escape(f"split: {result['split_rule']}"))
     console.print(f"seed {result['seed']}")
@@ -264,41 +119,29 @@ def evaluate(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """Roll a model out closed loop on the held-out windows and print the metric table."""
-    key_policy, key_rollouts = jax.random.split(jax.random.key(seed))
-    try:
-        traj, heldout_data = _load(data, data_dir)
-        scenarios = _scenarios(traj, horizon, vehicles_per_scenario)
-        if posterior is not None:
-            policy = _posterior_policy(Path(posterior), model, traj, scenarios, data_dir)
-        elif model in BASELINES:
-            policy = _baseline(model, key_policy, traj, scenarios, heldout_data)
-        else:
-            raise DataError(
-                f"unknown model {model!r}: use a baseline ({', '.join(BASELINES)}) or give the "
-                "fitted posterior with --posterior RESULT"
-            )
-        with _progress() as bar:
-            task = bar.add_task(f"rolling out {model}", total=len(scenarios.scenarios))
-            summary = evaluate_policy(
-                key_rollouts,
-                policy,
-                scenarios,
+    with _progress() as bar:
+        tasks: dict[str, Any] = {}
+
+        def progress(stage: str, done: int, total: int | None) -> None:
+            if stage not in tasks:
+                label = f"fitting {model}" if stage == "fit" else f"rolling out {model}"
+                tasks[stage] = bar.add_task(label, total=total)
+            bar.update(tasks[stage], completed=done, total=total)
+
+        try:
+            result = evaluation.evaluate(
+                jax.random.key(seed),
+                data,
+                model=model,
+                posterior=posterior,
+                horizon_s=horizon,
                 num_rollouts=rollouts,
-                on_scenario=lambda _: bar.advance(task),
+                vehicles_per_scenario=vehicles_per_scenario,
+                seed=seed,
+                data_dir=data_dir,
+                progress=progress,
             )
-    except (DataError, OSError, KeyError, ValueError) as error:
-        raise fail(escape(str(error))) from None
-    result = {
-        "model": model,
-        "policy": policy.description,
-        "policy_details": policy.details,
-        "data_source": traj.source,
-        "seed": seed,
-        "horizon_s": horizon,
-        "vehicles_per_scenario": scenarios.vehicles_per_scenario,
-        "split_rule": scenarios.split_rule,
-        "scenario_set": scenarios.summary(),
-        **summary,
-    }
+        except (DataError, OSError, KeyError, ValueError) as error:
+            raise fail(escape(str(error))) from None
     if not emit_json(result, json_out):
         _print(result)

@@ -19,22 +19,24 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from bayesdrive.cli.common import console, emit_json, err_console, fail
+from bayesdrive.cli.common import (
+    COLUMNS_HELP,
+    UNITS_HELP,
+    column_map_options,
+    console,
+    emit_json,
+    err_console,
+    fail,
+)
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
-from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.registry import MODELS, get_model
 from bayesdrive.inference.fit import ENGINES, get_engine, summary
 from bayesdrive.inference.fit import fit as fit_model
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import save_result
 from bayesdrive.reports.filter_plots import write_filter_plots
-from bayesdrive.simulation.scenarios import (
-    MERGE_FIT_STAY_S,
-    merge_follower_arrays,
-    merge_scenarios,
-)
+from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
 
 __all__ = ["fit"]
 
@@ -53,15 +55,6 @@ def _progress() -> Progress:
         console=err_console,
         transient=True,
     )
-
-
-def merge_arrays(traj: Trajectories, window: str) -> FollowerArrays:
-    """Merge episodes are fitted per stay of a cooperating car behind the merging car, with the
-    merge scene beside each step; ``fit`` uses the fitting episodes only (split by episode)."""
-    scenarios = merge_scenarios(
-        traj, horizon_s=MERGE_FIT_STAY_S, episodes="fit" if window == "fit" else "all"
-    )
-    return merge_follower_arrays(scenarios)
 
 
 def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
@@ -114,6 +107,8 @@ def fit(
     ),
     epochs: int | None = typer.Option(None, "--epochs", help="pf only: epochs (default 1)."),
     data_dir: str | None = typer.Option(None, "--data-dir", help="Folder holding data sets."),
+    columns: str | None = typer.Option(None, "--columns", help=COLUMNS_HELP),
+    units: str | None = typer.Option(None, "--units", help=UNITS_HELP),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """Fit per-vehicle parameter distributions and write result.nc, summary.json and plots."""
@@ -132,7 +127,8 @@ def fit(
         names = (
             None if params is None else param_names(driver, [p.strip() for p in params.split(",")])
         )
-        traj = registry.load(data, format=format, data_dir=data_dir)
+        format, reader_options = column_map_options(format, columns, units)
+        traj = registry.load(data, format=format, data_dir=data_dir, **reader_options)
         fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
         with _progress() as bar:
             task = bar.add_task(f"{engine}: compiling, then fitting vehicles", total=None)

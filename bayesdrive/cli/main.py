@@ -1,36 +1,130 @@
-"""The ``bayesdrive`` command: one typer app, one sub-module per command group."""
+"""The ``bayesdrive`` command: one typer app, one sub-module per command (group).
 
+A command's module is imported only when that command runs (or shows its own help): the modules
+import JAX, pandas and ArviZ, which take seconds, and ``bayesdrive --help`` or ``--version`` should
+answer at once. :data:`COMMANDS` names where each command lives and the one-line summary the
+top-level help lists (``tests/test_cli_startup.py`` checks that each equals the first line of
+the command's own help).
+"""
+
+from __future__ import annotations
+
+import importlib
 import logging
+from typing import NamedTuple
 
 import typer
+from typer.core import TyperCommand, TyperGroup
 
-from bayesdrive.cli import (
-    criticize_cmd,
-    data_cmd,
-    diagnose_cmd,
-    evaluate_cmd,
-    fit_cmd,
-    reproduce_cmd,
-    sbc_cmd,
-    simulate_cmd,
-)
+from bayesdrive import __version__
+
+
+class LazyCommand(NamedTuple):
+    module: str
+    attribute: str  # a command function, or a typer app for a command group
+    summary: str
+
+
+COMMANDS: dict[str, LazyCommand] = {
+    "data": LazyCommand(
+        "bayesdrive.cli.data_cmd", "app", "List, inspect, verify and fetch trajectory data sets."
+    ),
+    "fit": LazyCommand(
+        "bayesdrive.cli.fit_cmd",
+        "fit",
+        "Fit per-vehicle parameter distributions and write result.nc, summary.json and plots.",
+    ),
+    "evaluate": LazyCommand(
+        "bayesdrive.cli.evaluate_cmd",
+        "evaluate",
+        "Roll a model out closed loop on the held-out windows and print the metric table.",
+    ),
+    "simulate": LazyCommand(
+        "bayesdrive.cli.simulate_cmd",
+        "simulate",
+        "Generate scenes of VEHICLES cars for DURATION seconds; write trajectories, figures, "
+        "summary.",
+    ),
+    "reproduce": LazyCommand(
+        "bayesdrive.cli.reproduce_cmd",
+        "reproduce",
+        "Run every experiment of the paper on the real data and write out/report.html.",
+    ),
+    "report": LazyCommand(
+        "bayesdrive.cli.reproduce_cmd",
+        "report",
+        "Rebuild the HTML report from saved results (steps not yet run are run).",
+    ),
+    "diagnose": LazyCommand(
+        "bayesdrive.cli.diagnose_cmd",
+        "diagnose",
+        "Convergence of each result and, for several results on the same data, their agreement.",
+    ),
+    "sbc": LazyCommand(
+        "bayesdrive.cli.sbc_cmd",
+        "sbc",
+        "Simulation-based calibration: are the engine's posteriors calibrated on the IDM?",
+    ),
+    "criticize": LazyCommand(
+        "bayesdrive.cli.criticize_cmd",
+        "criticize_command",
+        "Fit the base model, run the checks, fit the extensions they point to, name the cause.",
+    ),
+}
+
+
+def load_command(name: str) -> TyperCommand:
+    """The click command ``name``, its module imported now."""
+    entry = COMMANDS[name]
+    target = getattr(importlib.import_module(entry.module), entry.attribute)
+    if isinstance(target, typer.Typer):
+        return typer.main.get_command(target)
+    single = typer.Typer()
+    single.command(name)(target)
+    return typer.main.get_command(single)
+
+
+class LazyGroup(TyperGroup):
+    """Lists every command from :data:`COMMANDS`; imports one only to run it or show its help."""
+
+    def list_commands(self, ctx: typer.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: typer.Context, cmd_name: str) -> TyperCommand | None:
+        if cmd_name in self.commands or cmd_name not in COMMANDS:
+            return self.commands.get(cmd_name)
+        # Enough for the top-level help's list; resolve_command swaps in the real command.
+        return TyperCommand(cmd_name, help=COMMANDS[cmd_name].summary)
+
+    def resolve_command(self, ctx: typer.Context, args: list[str]):
+        if args and args[0] in COMMANDS and args[0] not in self.commands:
+            self.commands[args[0]] = load_command(args[0])
+        return super().resolve_command(ctx, args)
+
 
 app = typer.Typer(
+    cls=LazyGroup,
     help="Learn distributions over rule-based driver-model parameters from real trajectories.",
     no_args_is_help=True,
     pretty_exceptions_show_locals=False,
 )
-app.add_typer(data_cmd.app, name="data")
-app.command("fit")(fit_cmd.fit)
-app.command("evaluate")(evaluate_cmd.evaluate)
-app.command("simulate")(simulate_cmd.simulate)
-app.command("reproduce")(reproduce_cmd.reproduce)
-app.command("report")(reproduce_cmd.report)
-app.command("diagnose")(diagnose_cmd.diagnose)
-app.command("sbc")(sbc_cmd.sbc)
-app.command("criticize")(criticize_cmd.criticize_command)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        typer.echo(f"bayesdrive {__version__}")
+        raise typer.Exit()
 
 
 @app.callback()
-def main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log repairs and flags.")):
+def main(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Log repairs and flags."),
+    version: bool = typer.Option(
+        False, "--version", callback=_print_version, is_eager=True, help="Print the version."
+    ),
+):
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
+
+
+if __name__ == "__main__":
+    app()

@@ -44,6 +44,7 @@ import numpy as np
 
 from bayesdrive.criticism.checks import Check, Residuals, multistep_check, run_checks
 from bayesdrive.criticism.gain import ALPHA, Gain, elpd_gain, holm, rmse_change
+from bayesdrive.criticism.generator import DETECTION_SCENARIO
 from bayesdrive.criticism.rollout import Rollouts, heldout_windows, rollout
 from bayesdrive.criticism.tempering import (
     DEFAULT_CONFIG,
@@ -52,8 +53,9 @@ from bayesdrive.criticism.tempering import (
     fit_model,
     vehicle_steps,
 )
+from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.views import SPLIT_RULE
+from bayesdrive.data.views import SPLIT_RULE, follower_arrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, as_extended, extend
 from bayesdrive.drivers.extensions.inputs import ExtendedSeries, extended_series
@@ -66,10 +68,15 @@ __all__ = [
     "CriticismResult",
     "CriticizeConfig",
     "criticize",
+    "criticized_series",
     "named_key",
+    "power_warning",
 ]
 
 SCREEN_P = 0.2
+# The detection study (reports/criticism/detection.md) showed the checks' and the gain test's power
+# with this many vehicles; fewer is untested ground.
+POWERED_VEHICLES = DETECTION_SCENARIO["num_platoons"] * DETECTION_SCENARIO["followers"]
 SMOOTHING = (
     "the trajectories were smoothed, which alone makes residuals autocorrelated and lags the "
     "apparent response"
@@ -180,15 +187,59 @@ def _finite_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
+def criticized_series(traj: Trajectories, max_vehicles: int | None = None) -> ExtendedSeries:
+    """The per-step arrays criticism scores: every follower with scored steps in both windows;
+    with ``max_vehicles``, the first N of them in the order ``fit`` takes vehicles (its
+    fitting-window followers), their leaders read from all of ``traj``."""
+    if max_vehicles is None:
+        return extended_series(traj)
+    if max_vehicles < 1:
+        raise ValueError(f"the number of vehicles must be positive, got {max_vehicles}")
+    candidates = list(follower_arrays(traj, window="fit").vehicle_ids)
+    taken = max_vehicles
+    while True:
+        # Some candidates lack held-out steps; take more until N are scored or none are left.
+        try:
+            series = extended_series(traj, vehicle_ids=candidates[:taken])
+            found = len(series.vehicle_ids)
+        except DataError:
+            if taken >= len(candidates):
+                raise
+            found = 0
+        if found >= max_vehicles or taken >= len(candidates):
+            return series
+        taken = min(len(candidates), taken + max_vehicles - found)
+
+
+def power_warning(num_vehicles: int) -> str | None:
+    """Why the checks and the gain test say little with ``num_vehicles`` vehicles, or None."""
+    if num_vehicles >= POWERED_VEHICLES:
+        return None
+    test = (
+        "the gain test (a t-test across vehicles) is undefined with one vehicle"
+        if num_vehicles < 2
+        else f"the gain test is a t-test across vehicles with {num_vehicles - 1} degree(s) of "
+        "freedom"
+    )
+    return (
+        f"only {num_vehicles} vehicle(s) criticized: {test}, and the checks are calibrated "
+        f"across vehicles; their power was shown with {POWERED_VEHICLES} vehicles "
+        "(reports/criticism/detection.md), so with fewer a verdict of 'none' means little: use "
+        f"at least {POWERED_VEHICLES} vehicles"
+    )
+
+
 def criticize(
     traj: Trajectories,
     *,
     seed: int,
     model: DriverModel = IDM,
     config: CriticizeConfig = CriticizeConfig(),  # noqa: B008 - an immutable NamedTuple
+    max_vehicles: int | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> CriticismResult:
-    """Name the cause of the base model's misfit on ``traj`` (module docstring)."""
+    """Name the cause of the base model's misfit on ``traj`` (module docstring); with
+    ``max_vehicles``, on its first N scored vehicles (:func:`criticized_series`)."""
     unknown = [c for c in config.causes if c not in CAUSES]
     if unknown:
         raise KeyError(f"unknown cause(s) {unknown}; known: {list(CAUSES)}")
@@ -201,7 +252,7 @@ def criticize(
     )
     started = time.perf_counter()
 
-    series = extended_series(traj)
+    series = criticized_series(traj, max_vehicles)
     steps = vehicle_steps(series)
     windows = heldout_windows(series, config.horizon_s)
     if config.num_rollouts == 0:
@@ -290,6 +341,7 @@ def criticize(
     report = {
         "verdict": verdict,
         "verdict_is_possible_processing_artefact": artefacts.get(verdict),
+        "power_warning": power_warning(len(series.vehicle_ids)),
         "seed": seed,
         "model": model.name,
         "data": {

@@ -12,6 +12,7 @@ threshold, how the threshold was set and what no check can catch.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Mapping
 
 import numpy as np
@@ -19,6 +20,8 @@ import pandas as pd
 
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import DRIVERS, FLAG_COLUMNS, TRACK_COLUMNS
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "Checked",
@@ -442,6 +445,8 @@ def _flag_gap_mismatch(tracks: pd.DataFrame, dt: float) -> pd.DataFrame:
 def _flags(flagged: pd.DataFrame, kind: str, messages: list[str]) -> pd.DataFrame:
     if flagged.empty:
         return empty_flags()
+    # A note, not a warning: the flags travel with the data and every summary counts them.
+    log.info("%d sample(s) flagged (%s)", len(flagged), kind)
     return pd.DataFrame(
         {
             "vehicle_id": flagged["vehicle_id"].to_numpy(),

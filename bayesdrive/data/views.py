@@ -157,7 +157,7 @@ def follower_arrays(
             (vid, t[:-1], v[:-1], v[1:], np.diff(x), gap[:-1], lead_v[:-1], has_leader[:-1], usable)
         )
     if dropped_flagged:
-        log.warning(
+        log.info(
             "%d step(s) touching flagged samples left out of the %s window", dropped_flagged, window
         )
     kept = [p for p in per_vehicle if p[-1].any()]

@@ -61,6 +61,7 @@ __all__ = [
     "ScenarioSet",
     "fitting_episodes",
     "heldout_episodes",
+    "merge_fit_arrays",
     "merge_follower_arrays",
     "merge_scenarios",
     "platoon_scenarios",
@@ -620,3 +621,13 @@ def merge_follower_arrays(scenarios: ScenarioSet) -> FollowerArrays:
             merge_present=rows(lambda s: s.merge_present[:, :-1].T),
         ),
     )
+
+
+def merge_fit_arrays(traj: Trajectories, window: str) -> FollowerArrays:
+    """What a merging model is fitted on: every stay (up to :data:`MERGE_FIT_STAY_S`) of a
+    cooperating car behind the merging car, with the merge scene beside each step; the fitting
+    episodes for ``window="fit"`` (the split is by episode), every episode otherwise."""
+    scenarios = merge_scenarios(
+        traj, horizon_s=MERGE_FIT_STAY_S, episodes="fit" if window == "fit" else "all"
+    )
+    return merge_follower_arrays(scenarios)

@@ -486,10 +486,13 @@ def finish(
     measured_gap: bool = False,
     extra_flags: pd.DataFrame | None = None,
     extra_inputs: Iterable[Path] = (),
+    table_digests: Mapping[str, str] | None = None,
 ) -> Trajectories:
     """Check ``tracks`` (:func:`bayesdrive.data.validate.check_tracks`), record what the checks
     found and the sha256 of every input (the rows' ``_file`` plus ``extra_inputs``: maps, metadata
-    files), and wrap everything in a :class:`Trajectories`."""
+    files), and wrap everything in a :class:`Trajectories`. ``table_digests`` gives the digests of
+    inputs that are tables in memory rather than files (their rows' ``_file`` is the table's name)."""
+    digests = dict(table_digests or {})
     files = (
         sorted({*map(str, pd.unique(tracks["_file"])), *map(str, extra_inputs)})
         if ("_file" in tracks.columns)
@@ -515,7 +518,8 @@ def finish(
         message = "flagged (kept, left out of fitting): " + ", ".join(
             f"{n} {kind} sample(s)" for kind, n in kinds.items()
         )
-        notes.assume(message, warn=True)
+        # Flags travel with the data and every summary counts them: a note for -v, not a warning.
+        notes.assume(message)
     scenes = scenes.drop_duplicates(["scene_id", "vehicle_id"]).reset_index(drop=True)
     scenes["vehicle_id"] = scenes["vehicle_id"].astype(str)
     return Trajectories(
@@ -526,7 +530,7 @@ def finish(
         source=str(source),
         flags=flags.reset_index(drop=True),
         notes=tuple(notes.items),
-        inputs={f: _sha256(Path(f)) for f in files},
+        inputs={f: digests[f] if f in digests else _sha256(Path(f)) for f in files},
     )
 
 

@@ -5,7 +5,8 @@ Units: whatever the caller declares. ``units`` is ``"m"``, ``"ft"`` or a factor 
 speeds, accelerations, gaps, lengths). The reader never guesses units; feet passed as metres are
 refused by the schema checks (lengths > 8 m, jam spacings > 15 m).
 
-Three layouts (``mode``):
+Three layouts (``mode``; when not given, ``"pairs"`` for a column map naming ``x_follower``,
+else ``"vehicles"``):
 
 - ``"vehicles"``: one row per vehicle and time. Map ``vehicle_id``, ``t``, ``x``, ``v`` and
   optionally ``a``, ``lane_id``, ``leader_id``, ``gap``, ``length``, ``scene_id``. Leader ids
@@ -35,6 +36,7 @@ from their PROVENANCE files, not tuned numbers); ``read_columns(folder, layout=n
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 from collections.abc import Mapping, Sequence
@@ -66,7 +68,7 @@ from bayesdrive.data.readers._common import (
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.units import FOOT_M, to_metres_factor
 
-__all__ = ["HOLDOUT_LAYOUTS", "MODES", "UNITS", "read_columns"]
+__all__ = ["HOLDOUT_LAYOUTS", "MODES", "UNITS", "read_columns", "read_dataframe"]
 
 log = logging.getLogger(__name__)
 
@@ -272,12 +274,42 @@ def read_columns(
     options = {**_DEFAULTS}
     options.update({k: v for k, v in preset.items() if k in _DEFAULTS})
     options.update({k: v for k, v in given.items() if v is not None})
+    if "mode" not in preset and mode is None and "x_follower" in (options["columns"] or {}):
+        options["mode"] = "pairs"
     return _read(Path(path), **options)
+
+
+def read_dataframe(
+    frame: pd.DataFrame,
+    columns: Mapping[str, str],
+    *,
+    mode: str = "vehicles",
+    units: str | float = "m",
+    name: str = "dataframe",
+    **options: Any,
+) -> Trajectories:
+    """A pandas DataFrame in layout ``mode`` ("vehicles" or "pairs") through the column map
+    ``columns``, exactly as :func:`read_columns` reads a file of the same columns (same options,
+    same checks, same repairs). Messages name the frame ``name`` and a row by its position
+    (``frame.iloc[row]``); the result's ``source`` is ``name``."""
+    if mode not in ("vehicles", "pairs"):
+        raise DataError(f"{name}: a DataFrame is read in mode 'vehicles' or 'pairs', not {mode!r}")
+    known = sorted(set(_DEFAULTS) - {"columns", "mode", "units", "patterns", "files"})
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise DataError(f"{name}: unknown DataFrame option(s) {unknown}; known: {', '.join(known)}")
+    table = frame.reset_index(drop=True).assign(_row=np.arange(len(frame)), _file=name)
+    settings = {**_DEFAULTS, **options, "columns": columns, "mode": mode, "units": units}
+    # sha256 of the frame's values and index, so a result records which table it was fitted on.
+    digest = hashlib.sha256(pd.util.hash_pandas_object(frame, index=True).to_numpy().tobytes())
+    return _read(Path(name), tables=[table], table_digests={name: digest.hexdigest()}, **settings)
 
 
 def _read(
     path: Path,
     *,
+    tables: list[pd.DataFrame] | None = None,
+    table_digests: Mapping[str, str] | None = None,
     columns,
     units,
     headway,
@@ -322,8 +354,18 @@ def _read(
                 + f"expected {', '.join(keys['required'])} (optional: "
                 + f"{', '.join(keys['optional'])})"
             )
-        sources = input_files(path, patterns, what="trajectory")
-        frames = [_load(f, columns, time_factor, notes) for f in sources]
+        ids = ("vehicle_id", "leader_id", "follower_id", "scene_id")
+        text = [name for key, name in columns.items() if key in ids]
+        if tables is None:
+            sources = input_files(path, patterns, what="trajectory")
+            tables = [
+                read_table(f, fmt="trajectory", notes=notes, text_columns=text) for f in sources
+            ]
+        else:
+            sources = [path] * len(tables)
+            # Ids are kept as exact text, as the file reader keeps them.
+            tables = [_ids_as_text(table, text) for table in tables]
+        frames = [_with_time(table, columns, time_factor) for table in tables]
         if dt is None:
             dt = _infer_dt(frames, columns, mode, notes)
         maker = _vehicles if mode == "vehicles" else _pairs
@@ -370,14 +412,32 @@ def _read(
         column_names=names,
         file_units=dict.fromkeys(("x", "v", "a", "gap", "length"), factor),
         measured_gap=mode != "wide" and "gap" in columns,
+        table_digests=table_digests,
     )
 
 
-def _load(path: Path, columns: Mapping[str, str], time_factor: float, notes: Notes) -> pd.DataFrame:
-    ids = ("vehicle_id", "leader_id", "follower_id", "scene_id")
-    text = [name for key, name in columns.items() if key in ids]
-    frame = read_table(path, fmt="trajectory", notes=notes, text_columns=text)
-    require_columns(frame, list(dict.fromkeys(columns.values())), source=path, fmt="mapped")
+def _ids_as_text(frame: pd.DataFrame, id_columns: list[str]) -> pd.DataFrame:
+    """``frame`` with its id columns as strings; float ids are refused (they may have lost digits)."""
+    frame = frame.copy()
+    for column in id_columns:
+        if column not in frame.columns:
+            continue
+        values = frame[column]
+        if pd.api.types.is_float_dtype(values):
+            raise DataError(
+                f"{frame['_file'].iloc[0]}, column {column!r}: ids are floats, which may have "
+                "lost digits; pass them as integers or strings"
+            )
+        frame[column] = values.where(values.isna(), values.astype(str))
+    return frame
+
+
+def _with_time(frame: pd.DataFrame, columns: Mapping[str, str], time_factor: float) -> pd.DataFrame:
+    """``frame`` (with ``_row`` and ``_file``) checked for the mapped columns, time in ``_t``."""
+    source = frame["_file"].iloc[0] if len(frame) else "table"
+    if frame.empty:
+        raise DataError(f"{source}: no data rows")
+    require_columns(frame, list(dict.fromkeys(columns.values())), source=source, fmt="mapped")
     time_column = columns["t"]
     numeric_columns(frame, [time_column])
     frame["_t"] = frame[time_column] * float(time_factor)

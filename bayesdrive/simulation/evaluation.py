@@ -1,0 +1,290 @@
+"""Evaluate a model closed loop on the held-out windows of a data set: what ``bayesdrive evaluate``
+and ``bayesdrive.evaluate`` run.
+
+The data is a file, a folder or a data set name (held-out names too: evaluation is what they are
+for). Merge-episode data gives merge scenes (the cooperating main-lane driver simulated), any
+other data platoon scenes (see :mod:`bayesdrive.simulation.scenarios`). The model is a baseline
+name, or the driver model of a fitted posterior (a result tree or its netCDF file); a posterior
+fitted on another split, window or data source is refused. A posterior fitted on some vehicles
+only (``fit --vehicles N``) scores the scenarios whose simulated vehicles it has draws for; the
+others are skipped, and the result names them (``skipped``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import xarray as xr
+from jax import Array
+
+from bayesdrive.data import registry
+from bayesdrive.data.errors import DataError
+from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.drivers.cidm import CIDM
+from bayesdrive.drivers.registry import get_model
+from bayesdrive.inference.output import load_result, metadata
+from bayesdrive.simulation.baselines import (
+    BASELINES,
+    CAR_FOLLOWING_ONLY,
+    MERGE_ONLY,
+    Policy,
+    baseline_policy,
+)
+from bayesdrive.simulation.metrics import evaluate_policy
+from bayesdrive.simulation.posterior import posterior_policy
+from bayesdrive.simulation.scenarios import (
+    ScenarioSet,
+    merge_scenarios,
+    platoon_scenarios,
+    scenario_capacity,
+)
+
+__all__ = ["check_posterior_split", "evaluate", "evaluation_data", "evaluation_scenarios"]
+
+log = logging.getLogger(__name__)
+
+MERGE_FORMAT = "merge_episodes"
+# progress(stage, done, total): stage "fit" (a baseline's per-vehicle fits) or "rollouts"
+# (scenarios rolled out); total is None while unknown.
+Progress = Callable[[str, int, int | None], None]
+
+
+def evaluation_data(
+    data: str | Path | Trajectories, data_dir: str | None = None
+) -> tuple[Trajectories, bool]:
+    """The trajectories, and whether they are a held-out data set."""
+    if isinstance(data, Trajectories):
+        return data, False
+    if data in registry.HOLDOUT and not Path(data).exists():
+        return registry.load_holdout(str(data), holdout_dir=data_dir), True
+    return registry.load(data, data_dir=data_dir), False
+
+
+def evaluation_scenarios(
+    traj: Trajectories, horizon: float, vehicles_per_scenario: int
+) -> ScenarioSet:
+    """The held-out scenarios of ``traj``; a :class:`DataError` says which sizes exist if none."""
+    if traj.format == MERGE_FORMAT:
+        found = merge_scenarios(traj, horizon_s=horizon)
+    else:
+        found = platoon_scenarios(
+            traj, vehicles_per_scenario=vehicles_per_scenario, horizon_s=horizon
+        )
+    if found.scenarios:
+        return found
+    if found.kind == "platoon":
+        allowed = scenario_capacity(traj, horizon_s=horizon)
+        sizes = (
+            ", ".join(f"{r['vehicles_per_scenario']}: {r['scenarios']}" for r in allowed)
+            or "none at any size"
+        )
+        raise DataError(
+            f"{traj.source}: no {vehicles_per_scenario}-vehicle platoon scenario of {horizon} s "
+            f"lies in the held-out windows; scenarios per size the data allows: {sizes}"
+        )
+    raise DataError(f"{traj.source}: no merge scenario of at least 1 s in the held-out episodes")
+
+
+def _location(source: Any, data_dir: str | None) -> Path | None:
+    """Where a recorded data source lives: an existing path, or a registered data set's folder."""
+    if not isinstance(source, str):
+        return None
+    if Path(source).exists():
+        return Path(source).resolve()
+    if source in registry.DATASETS:
+        try:
+            return registry.resolve(source, data_dir).resolve()
+        except DataError:
+            return None
+    return None
+
+
+def _same_source(recorded: Any, source: str, data_dir: str | None) -> bool:
+    """The same string, or a name and a path (or two paths) for the same files."""
+    if recorded == source:
+        return True
+    where = _location(recorded, data_dir)
+    return where is not None and where == _location(source, data_dir)
+
+
+def check_posterior_split(
+    meta: dict[str, Any],
+    traj: Trajectories,
+    scenarios: ScenarioSet,
+    data_dir: str | None = None,
+) -> None:
+    """Raise :class:`DataError` unless the posterior was fitted on the fitting side of the same
+    split of the same data the evaluation scores (rule, window and data source; a data set's name
+    and its folder count as the same source)."""
+    problems = []
+    if meta.get("split_rule") != scenarios.split_rule:
+        problems.append(
+            f"its split rule {meta.get('split_rule')!r} is not the evaluation's "
+            f"{scenarios.split_rule!r}"
+        )
+    if meta.get("window") != "fit":
+        problems.append(f"it was fitted on the {meta.get('window')!r} window, not 'fit'")
+    if not _same_source(meta.get("data_source"), traj.source, data_dir):
+        problems.append(
+            f"it was fitted on {meta.get('data_source')!r}, the evaluation reads {traj.source!r}"
+        )
+    if problems:
+        raise DataError("refusing the posterior: " + "; ".join(problems))
+
+
+def _fitted_scenarios(
+    where: str, tree: xr.DataTree, scenarios: ScenarioSet
+) -> tuple[ScenarioSet, dict[str, Any] | None]:
+    """The scenarios whose every simulated vehicle has posterior draws, and what was skipped."""
+    fitted = {str(v) for v in tree["posterior"]["vehicle"].values}
+    kept = [s for s in scenarios.scenarios if set(s.simulated_ids) <= fitted]
+    unfitted = [v for v in scenarios.simulated_ids if v not in fitted]
+    if not unfitted:
+        return scenarios, None
+    if not kept:
+        raise DataError(
+            f"{where}: the posterior has draws for {len(fitted)} vehicle(s), and every one of the "
+            f"{len(scenarios.scenarios)} scenario(s) simulates a vehicle it lacks "
+            f"({len(unfitted)} such vehicle(s), e.g. {unfitted[:5]}); fit those vehicles, or "
+            "evaluate one vehicle per scenario (--vehicles-per-scenario 1)"
+        )
+    skipped = {
+        "scenarios": len(scenarios.scenarios) - len(kept),
+        "vehicles": unfitted,
+        "reason": "simulated vehicles without posterior draws (not fitted)",
+    }
+    log.warning(
+        "%s: the posterior lacks %d simulated vehicle(s); scoring the %d of %d scenario(s) whose "
+        "vehicles it has, skipping %s",
+        where,
+        len(unfitted),
+        len(kept),
+        len(scenarios.scenarios),
+        unfitted,
+    )
+    return scenarios._replace(scenarios=kept), skipped
+
+
+def _posterior_policy(
+    posterior: str | Path | xr.DataTree,
+    model_name: str,
+    traj: Trajectories,
+    scenarios: ScenarioSet,
+    data_dir: str | None,
+) -> tuple[Policy, ScenarioSet, dict[str, Any] | None]:
+    where = "the posterior" if isinstance(posterior, xr.DataTree) else str(posterior)
+    tree = posterior if isinstance(posterior, xr.DataTree) else load_result(posterior)
+    meta = metadata(tree)
+    if meta.get("model") != model_name:
+        raise DataError(
+            f"{where}: the posterior is of model {meta.get('model')!r}, not --model {model_name!r}"
+        )
+    check_posterior_split(meta, traj, scenarios, data_dir)
+    model = get_model(model_name)
+    if model.name == CIDM.name and scenarios.kind != "merge":
+        raise DataError(f"{where}: a Cooperative-IDM posterior needs merge scenes, not platoons")
+    scenarios, skipped = _fitted_scenarios(where, tree, scenarios)
+    policy = posterior_policy(model_name, model, tree, meta)
+    details = {
+        **policy.details,
+        "result": where,
+        "engine": meta.get("engine"),
+        "fit_seed": meta.get("seed"),
+        "fixed": meta.get("fixed"),
+    }
+    return policy._replace(details=details), scenarios, skipped
+
+
+def _baseline(
+    name: str,
+    key: Array,
+    traj: Trajectories,
+    scenarios: ScenarioSet,
+    heldout_data: bool,
+    progress: Progress,
+) -> Policy:
+    if name in MERGE_ONLY and scenarios.kind != "merge":
+        raise DataError(f"{name} simulates merges; {traj.source} has no merge episodes")
+    if name in CAR_FOLLOWING_ONLY and scenarios.kind == "merge":
+        raise DataError(
+            f"{name} needs fitting windows of the evaluated vehicles; merge episodes are split "
+            "by episode, so held-out cooperating drivers have none"
+        )
+    if name in CAR_FOLLOWING_ONLY and heldout_data:
+        raise DataError(
+            f"{name} fits on the data it evaluates; {traj.source} is held out for evaluation "
+            "only: nothing may be fitted on it"
+        )
+    return baseline_policy(
+        name,
+        key,
+        traj,
+        scenarios.simulated_ids,
+        progress=lambda done, total: progress("fit", done, total),
+    )
+
+
+def evaluate(
+    key: Array,
+    data: str | Path | Trajectories,
+    *,
+    model: str,
+    posterior: str | Path | xr.DataTree | None = None,
+    horizon_s: float = 5.0,
+    num_rollouts: int = 100,
+    vehicles_per_scenario: int = 4,
+    seed: int | None = None,
+    data_dir: str | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Roll ``model`` out closed loop on the held-out windows of ``data`` and score it.
+
+    ``model`` is a baseline (:data:`~bayesdrive.simulation.baselines.BASELINES`) or, with
+    ``posterior`` (a result tree or its file), the posterior's driver model. ``key`` splits into
+    a key for the policy (what a baseline fits or draws) and one for the rollouts; ``seed`` is
+    recorded beside the key's data. Returns the JSON-ready result: the metrics of
+    :func:`~bayesdrive.simulation.metrics.summarize`, the scenario set and the rules that chose
+    it, and ``skipped`` (scenarios left out for want of posterior draws; None if none were).
+    """
+    say = progress or (lambda stage, done, total: None)
+    key_policy, key_rollouts = jax.random.split(key)
+    traj, heldout_data = evaluation_data(data, data_dir)
+    scenarios = evaluation_scenarios(traj, horizon_s, vehicles_per_scenario)
+    skipped = None
+    if posterior is not None:
+        policy, scenarios, skipped = _posterior_policy(posterior, model, traj, scenarios, data_dir)
+    elif model in BASELINES:
+        policy = _baseline(model, key_policy, traj, scenarios, heldout_data, say)
+    else:
+        raise DataError(
+            f"unknown model {model!r}: use a baseline ({', '.join(BASELINES)}) or give the "
+            "fitted posterior (--posterior RESULT)"
+        )
+    total = len(scenarios.scenarios)
+    say("rollouts", 0, total)
+    done = iter(range(1, total + 1))
+    summary = evaluate_policy(
+        key_rollouts,
+        policy,
+        scenarios,
+        num_rollouts=num_rollouts,
+        on_scenario=lambda _: say("rollouts", next(done), total),
+    )
+    return {
+        "model": model,
+        "policy": policy.description,
+        "policy_details": policy.details,
+        "data_source": traj.source,
+        "seed": seed,
+        "key_data": jax.random.key_data(key).ravel().tolist(),
+        "horizon_s": horizon_s,
+        "vehicles_per_scenario": scenarios.vehicles_per_scenario,
+        "split_rule": scenarios.split_rule,
+        "scenario_set": scenarios.summary(),
+        "skipped": skipped,
+        **summary,
+    }
