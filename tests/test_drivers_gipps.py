@@ -19,6 +19,7 @@ from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.gipps import GIPPS, gipps_acceleration
 from bayesdrive.inference import fit, nuts, population, smc
 from bayesdrive.inference.output import load_result, metadata
+from bayesdrive.simulation.generate import equilibrium_gap
 
 DT = 0.1
 # Gipps' own simulation values: a 1.7, b 3.4, b-hat 3.2 m/s^2, V 20 m/s; margin 2 m.
@@ -142,6 +143,15 @@ def test_a_leader_braking_as_estimated_never_makes_the_follower_brake_beyond_b_m
     assert hardest_braking(1.2 * HAND.b_lead) > HAND.b_max + 0.3
 
 
+def test_scene_generation_starts_platoons_at_the_gipps_equilibrium_gap():
+    # v_safe = v with v_l = v, solved by hand from eq. (3):
+    #   g = d_min + 1.5 v tau + v^2 (1/b_max - 1/b_lead) / 2;  v 12, tau 0.1, b 3, b-hat 5:
+    #   g = 2 + 1.8 + 72 (1/3 - 1/5) = 2 + 1.8 + 9.6 = 13.4
+    params = jax.tree.map(lambda x: jnp.full(3, x), HAND._replace(b_max=3.0, b_lead=5.0, sigma=0.0))
+    gaps = np.asarray(equilibrium_gap(GIPPS, params, jnp.asarray(12.0), DT))
+    np.testing.assert_allclose(gaps, 13.4, atol=1e-3)
+
+
 # --- recovery: data from a simulator written here from the paper, not the model's sampler ---
 
 TRUTH = {"v_des": 16.0, "a_max": 1.5, "b_max": 3.0, "b_lead": 3.0, "d_min": 2.5, "sigma": 0.2}
@@ -246,7 +256,8 @@ def test_fit_model_gipps_runs_with_every_engine(data_dir, tmp_path, engine, monk
     if engine in QUICK:
         monkeypatch.setitem(fit.ENGINES, engine, QUICK[engine])
     args = ["fit", str(data_dir / CHAIN), "--model", "gipps", "--engine", engine]
-    args += ["--vehicles", "2", "--particles", "64", "--params", "v_des,b_max,sigma"]
+    vehicles = 2 if engine == "hierarchical" else 1  # a population needs two
+    args += ["--vehicles", str(vehicles), "--particles", "64", "--params", "v_des,b_max,sigma"]
     result = runner.invoke(app, [*args, "--seed", "4", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     tree = load_result(tmp_path / "result.nc")
@@ -256,7 +267,7 @@ def test_fit_model_gipps_runs_with_every_engine(data_dir, tmp_path, engine, monk
     for name in ("v_des", "b_max", "sigma"):
         draws = tree["posterior"][name].values
         spec = GIPPS.spec(name)
-        assert draws.shape[-1] == 2 and np.all((spec.lower <= draws) & (draws <= spec.upper))
+        assert draws.shape[-1] == vehicles and np.all((spec.lower <= draws) & (draws <= spec.upper))
 
 
 @pytest.mark.realdata
