@@ -5,6 +5,7 @@ run through every engine of the CLI (pmmh refused)."""
 from __future__ import annotations
 
 import functools
+import json
 
 import jax
 import jax.numpy as jnp
@@ -279,3 +280,53 @@ def test_pmmh_with_gipps_is_refused_in_one_line(data_dir, tmp_path):
     message = " ".join(result.stderr.split())
     assert message.count("error:") == 1 and "'pmmh'" in message and "'gipps'" in message
     assert not any(tmp_path.iterdir())
+
+
+# --- criticize --model gipps: the extensions that fit the base model, the others refused ---
+
+
+@pytest.fixture(scope="module")
+def delayed_platoon(tmp_path_factory):
+    """A small platoon from the criticism's own generator (an IDM with a reaction delay)."""
+    from bayesdrive.criticism.generator import generate
+
+    path = tmp_path_factory.mktemp("gipps") / "delay.csv"
+    generate(
+        jax.random.key(5),
+        path,
+        "reaction_delay",
+        effect_range=(0.4, 0.7),
+        num_platoons=1,
+        followers=3,
+        duration_s=30.0,
+        cut_ins=0,
+    )
+    return path
+
+
+def criticize(path, *extra):
+    args = ["criticize", str(path), "--format", "ngsim_raw", "--seed", "6", *extra]
+    return runner.invoke(app, args)
+
+
+@pytest.mark.parametrize(
+    ("model", "causes", "message"),
+    [
+        ("gipps", "drifting_parameters", "model 'gipps' has no parameter 'tau'"),
+        ("cidm", "reaction_delay", "the Cooperative IDM needs MergeInputs"),
+        ("idm+obs_noise", "reaction_delay", "has its own observation model"),
+    ],
+)
+def test_criticize_refuses_what_cannot_work_before_any_fit(delayed_platoon, model, causes, message):
+    result = criticize(delayed_platoon, "--model", model, "--causes", causes)
+    assert result.exit_code == 2
+    assert message in " ".join(result.stderr.split())
+
+
+def test_criticize_runs_on_the_gipps_model(delayed_platoon):
+    extra = ["--model", "gipps", "--causes", "reaction_delay", "--particles", "32"]
+    result = criticize(delayed_platoon, *extra, "--rollouts", "2", "--json", "-")
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["verdict"] in ("reaction_delay", "none")
+    assert set(report["base"]["posterior"]) == set(GIPPS.param_names)
