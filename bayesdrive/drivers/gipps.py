@@ -8,9 +8,11 @@ b 3.4, b-hat 3.2 m/s^2, V 20 m/s, effective size 6.5 m = a car of 4.5 m + 2 m ma
 **For NUTS.** The mean acceleration is continuous in every parameter, but min() makes its
 gradient piecewise: on a step where the free branch wins, the safe-branch parameters (b_max,
 b_lead, d_min) get no gradient from it, and the other way round, so the log density has kinks
-where a step changes branch. Leapfrog steps across a kink carry an energy error of the order of
-the jump in gradient times the step size; measured on NGSIM I-80 vehicles the kinks cost no
-divergences (``docs/architecture.md``, "How to add a driver model").
+where a step changes branch. Measured (``reports/gipps_nuts.md``, first six NGSIM I-80 followers,
+engine defaults, 1000 draws): no divergence on three vehicles, 72-101 on the other three, where
+the IDM had 0-1. The kink does not explain them all: vehicle 11 (101) has one step of 174 whose
+branch differs between posterior draws, its divergent draws sit among the others, far from the
+safe-speed floor, and its safe-branch parameters fill their prior boxes. Prefer ``smc`` for Gipps.
 """
 
 from __future__ import annotations
