@@ -111,7 +111,7 @@ def main() -> None:
             "Exact posteriors cover at the nominal 90% when truths are drawn from the prior; a "
             "95% interval excluding 0.90 is evidence of miscalibration. pf (the paper's filter, "
             "1 epoch, grid steps "
-            f"{', '.join(f'{p} {pf.GRID_STEPS[p]}' for p in PARAMS)}) is measured, not required "
+            f"{', '.join(f'{p} {IDM.spec(p).grid_step}' for p in PARAMS)}) is measured, not required "
             "to be calibrated: dithering is an artificial random walk on the parameters.",
             "",
             "Inference time (compilation excluded): "

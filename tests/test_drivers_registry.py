@@ -17,7 +17,7 @@ def test_models_are_found_by_their_own_name():
 
 
 def test_unknown_model_names_the_known_ones():
-    with pytest.raises(KeyError, match=r"'mobil'.*\['cidm', 'idm', 'idm\+obs_noise'\]"):
+    with pytest.raises(KeyError, match=r"'mobil'.*\['cidm', 'gipps', 'idm', 'idm\+obs_noise'\]"):
         get_model("mobil")
 
 
@@ -28,6 +28,10 @@ def test_parameter_layout_and_priors_are_consistent(name):
     for spec in model.specs:
         assert spec.lower < spec.upper, spec
         assert spec.lower <= spec.default <= spec.upper, spec
+        # pf builds its grid from these: at least two points inside the bounds.
+        assert spec.grid_step is not None and spec.grid_step <= (spec.upper - spec.lower) / 2, spec
+    # lm and the SBC control find the execution-noise sd by this mark, never by its name.
+    assert model.execution_noise_param == "sigma"
     prior = model.prior()
     defaults = np.array([float(getattr(model.defaults(), n)) for n in prior.names])
     assert np.isfinite(float(prior.logpdf(defaults)))

@@ -10,9 +10,11 @@ from typer.testing import CliRunner
 from bayesdrive.cli.main import app
 from bayesdrive.cli.simulate_cmd import PRESET_DIR
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.drivers.idm import equilibrium_gap as idm_equilibrium_gap
 from bayesdrive.simulation.generate import (
     Preset,
     draw_preset,
+    equilibrium_gap,
     generate_scenes,
     load_preset,
     pair_sweep,
@@ -43,6 +45,14 @@ def test_noise_free_followers_start_in_equilibrium():
     assert first_step_change[0] > 0.05  # 3 m/s^2 x (1 - 0.8^4) x 0.1 s = 0.18 m/s
     np.testing.assert_allclose(first_step_change[1:], 0.0, atol=1e-4)
     assert not np.asarray(result.collision).any()
+
+
+def test_the_searched_equilibrium_gap_is_the_idms_closed_form():
+    # The generator bisects on the model's rule; the IDM's closed form checks it (v 24, 10, 0).
+    params = jax.tree.map(lambda leaf: np.full(3, float(leaf), np.float32), IDM.defaults())
+    for v in (24.0, 10.0, 0.0):
+        searched = np.asarray(equilibrium_gap(IDM, params, np.float32(v), 0.1))
+        np.testing.assert_allclose(searched, idm_equilibrium_gap(params, v), rtol=1e-5)
 
 
 def test_slower_desired_speed_opens_the_gap():

@@ -65,8 +65,9 @@ def criticize_command(
 
     from bayesdrive.criticism.criticize import CriticizeConfig, criticize
     from bayesdrive.data.errors import DataError
-    from bayesdrive.drivers.extensions import CAUSES
+    from bayesdrive.drivers.extensions import CAUSES, extend
     from bayesdrive.drivers.registry import get_model
+    from bayesdrive.inference.likelihood import check_model
 
     try:
         traj = _load(data, format)
@@ -76,12 +77,29 @@ def criticize_command(
         base = get_model(model)
     except KeyError as error:
         raise fail(str(error.args[0])) from None
-    if base.name != "idm":
-        raise fail(f"criticize supports car-following base models: 'idm' (got {model!r})")
+    try:
+        check_model(base)  # the criticism's samplers score exactly observed states
+        reads_car_following(base)
+    except (NotImplementedError, TypeError) as error:
+        raise fail(f"criticize fits car-following data; model {model!r}: {error}") from None
     chosen = tuple(c.strip() for c in causes.split(",")) if causes else CAUSES
     unknown = [c for c in chosen if c not in CAUSES]
     if unknown:
         raise fail(f"unknown cause(s) {unknown}; known: {', '.join(CAUSES)}")
+    # Built before any work: an extension may need a parameter the base lacks (a drifting time
+    # gap needs the IDM's tau). Named causes must all fit; of the default list, those that
+    # cannot are left out and said so.
+    misfits = {}
+    for cause in chosen:
+        try:
+            extend(cause, base)
+        except KeyError as error:
+            misfits[cause] = error.args[0]
+    if misfits and causes:
+        raise fail(f"cause(s) that cannot extend model {model!r}: {misfits}")
+    if misfits:
+        err_console.print(f"causes left out, they cannot extend {model!r}: {misfits}")
+        chosen = tuple(c for c in chosen if c not in misfits)
     if driver is not None:
         # Followers of that driver type, and every vehicle ahead of them (their inputs).
         tracks = traj.tracks
@@ -131,6 +149,22 @@ def criticize_command(
     if emit_json(result.report, json_out):
         return
     print_report(result.report)
+
+
+def reads_car_following(model) -> None:
+    """Trace ``model``'s rule on car-following inputs; a TypeError if it needs others (a merge)."""
+    import jax
+    import jax.numpy as jnp
+
+    from bayesdrive.drivers.base import CarFollowingInputs, EgoState
+
+    zero = jnp.zeros(())
+    jax.eval_shape(
+        model.mean_acceleration,
+        model.defaults(),
+        EgoState(zero, zero),
+        CarFollowingInputs(zero, zero, zero, zero),
+    )
 
 
 def _load(data: str, format: str | None):

@@ -61,7 +61,13 @@ class CarFollowingInputs(NamedTuple):
 
 
 class ParamSpec(NamedTuple):
-    """One parameter: name, unit, default, prior bounds (uniform prior), and what it means."""
+    """One parameter: name, unit, default, prior bounds (uniform prior), and what it means.
+
+    What engines need to know about a parameter is said here, so no engine names one:
+    ``grid_step`` is the step of the ``pf`` engine's grid (in the parameter's unit; None: the
+    caller must pass one), and ``execution_noise`` marks the sd of the Gaussian execution noise
+    (``lm`` estimates it from its residuals instead of fitting it).
+    """
 
     name: str
     unit: str
@@ -69,6 +75,8 @@ class ParamSpec(NamedTuple):
     lower: float
     upper: float
     doc: str
+    grid_step: float | None = None
+    execution_noise: bool = False
 
 
 class PriorBox(NamedTuple):
@@ -103,6 +111,14 @@ class DriverModel(NamedTuple):
     @property
     def param_names(self) -> tuple[str, ...]:
         return tuple(s.name for s in self.specs)
+
+    @property
+    def execution_noise_param(self) -> str | None:
+        """The name of the execution-noise sd parameter (None if the model marks none)."""
+        marked = [s.name for s in self.specs if s.execution_noise]
+        if len(marked) > 1:
+            raise ValueError(f"model {self.name!r} marks several execution-noise sds: {marked}")
+        return marked[0] if marked else None
 
     def spec(self, name: str) -> ParamSpec:
         for s in self.specs:

@@ -80,7 +80,9 @@ __all__ = [
 
 CIDM_SPECS = (
     *IDM.specs,
-    ParamSpec("c", "--", 0.5, 0.0, 1.0, "cooperation: yield when TTM_other < c * TTM_ego"),
+    ParamSpec(
+        "c", "--", 0.5, 0.0, 1.0, "cooperation: yield when TTM_other < c * TTM_ego", grid_step=0.1
+    ),
 )
 
 

@@ -83,13 +83,17 @@ STOP_SPEED = 1e-3
 # The interaction term diverges at zero gap; the simulator counts a collision long before.
 MIN_GAP = 0.1
 
+# pf grid steps: v_des and sigma are the paper's; the others are about 1-5% of the prior width,
+# fine against what one 20 s trajectory can resolve.
 IDM_SPECS = (
-    ParamSpec("v_des", "m/s", 30.0, 5.0, 45.0, "desired speed"),
-    ParamSpec("d_min", "m", 2.0, 0.5, 10.0, "jam distance"),
-    ParamSpec("tau", "s", 1.0, 0.1, 4.0, "safe time headway"),
-    ParamSpec("a_max", "m/s^2", 3.0, 0.2, 5.0, "maximum acceleration"),
-    ParamSpec("b_pref", "m/s^2", 2.0, 0.5, 10.0, "comfortable deceleration"),
-    ParamSpec("sigma", "m/s^2", 0.3, 0.02, 2.0, "execution-noise sd"),
+    ParamSpec("v_des", "m/s", 30.0, 5.0, 45.0, "desired speed", grid_step=0.5),
+    ParamSpec("d_min", "m", 2.0, 0.5, 10.0, "jam distance", grid_step=0.5),
+    ParamSpec("tau", "s", 1.0, 0.1, 4.0, "safe time headway", grid_step=0.1),
+    ParamSpec("a_max", "m/s^2", 3.0, 0.2, 5.0, "maximum acceleration", grid_step=0.1),
+    ParamSpec("b_pref", "m/s^2", 2.0, 0.5, 10.0, "comfortable deceleration", grid_step=0.5),
+    ParamSpec(
+        "sigma", "m/s^2", 0.3, 0.02, 2.0, "execution-noise sd", grid_step=0.1, execution_noise=True
+    ),
 )
 
 

@@ -53,7 +53,9 @@ from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
 
 __all__ = ["EGO_DISTANCE_FIELDS", "SIGMA_OBS", "shift_ego", "with_measurement_noise"]
 
-SIGMA_OBS = ParamSpec("sigma_obs", "m", 0.05, 0.005, 1.0, "position-measurement noise sd")
+SIGMA_OBS = ParamSpec(
+    "sigma_obs", "m", 0.05, 0.005, 1.0, "position-measurement noise sd", grid_step=0.05
+)
 
 # Input fields measured from the ego's front bumper forward (CarFollowingInputs, MergeInputs).
 EGO_DISTANCE_FIELDS = ("gap", "ego_to_merge")

@@ -23,7 +23,8 @@ box. Residuals and their Jacobian (``jax.jacfwd``) are compiled once per padded 
 Each vehicle is fitted from two starts, the model defaults and the prior centre (z = 0), and the
 fit with the lower cost is kept (the first on a tie); no randomness is involved.
 
-**Noise sd.** :math:`\sigma` does not enter the residuals. When it is inferred it is estimated as
+**Noise sd.** :math:`\sigma` (the parameter whose spec is marked ``execution_noise``) does not
+enter the residuals. When it is inferred it is estimated as
 the residual RMS with :math:`n - p` degrees of freedom, :math:`s^2 = \sum_t r_t^2/(n - p)`
 (``sample_stats.sigma_hat``); otherwise the fixed value is used below in place of :math:`s`.
 
@@ -87,7 +88,6 @@ __all__ = ["ResidualSeries", "residual_series", "run"]
 
 log = logging.getLogger(__name__)
 
-NOISE = "sigma"
 # Relative eigenvalue floor of J^T J below which a direction counts as not identified.
 IDENTIFIED_RTOL = 1e-10
 # An estimate within this fraction of its box width from a bound counts as at the bound.
@@ -229,8 +229,9 @@ def run(
 ) -> EngineResult:
     """Levenberg-Marquardt per vehicle of ``arrays`` and Laplace draws (module docstring).
 
-    ``params`` are the inferred parameters (all of the model's by default); ``sigma`` among them is
-    estimated from the residuals, the others are fitted. ``num_particles`` is the number of
+    ``params`` are the inferred parameters (all of the model's by default); the execution-noise sd
+    among them (the spec marked ``execution_noise``) is estimated from the residuals, the others
+    are fitted. ``num_particles`` is the number of
     posterior draws. Only the model's uniform prior box is supported (``prior`` must be None): it
     defines the transformed space, and the fit maximises the likelihood inside it.
     ``max_nfev`` caps scipy's evaluations per start. ``sample_stats`` holds per vehicle
@@ -244,10 +245,16 @@ def run(
     posterior draws only).
     """
     check_model(model)
+    noise = model.execution_noise_param
+    if noise is None:
+        raise ValueError(
+            f"lm needs Gaussian execution noise, but model {model.name!r} marks no execution-noise "
+            "sd parameter (ParamSpec.execution_noise)"
+        )
     names = param_names(model, params)
-    fitted = tuple(n for n in names if n != NOISE)
+    fitted = tuple(n for n in names if n != noise)
     if not fitted:
-        raise ValueError(f"lm fits parameters other than {NOISE!r}; got only {list(names)}")
+        raise ValueError(f"lm fits parameters other than {noise!r}; got only {list(names)}")
     if num_particles < 1:
         raise ValueError(f"num_particles (posterior draws) must be >= 1, got {num_particles}")
     if prior is not None:
@@ -333,16 +340,16 @@ def run(
     estimate = np.empty((num_vehicles, len(names)))
     for n, (fit, covariance) in enumerate(zip(fits, covariances, strict=True)):
         rng = np.random.default_rng(seeds[n])
-        if NOISE in names:
+        if noise in names:
             sigma_draws = np.sqrt(sum_squares[n] / rng.chisquare(dof[n], num_particles))
         else:
-            sigma_draws = np.full(num_particles, float(fixed_values.sigma))
+            sigma_draws = np.full(num_particles, float(getattr(fixed_values, noise)))
         normals = rng.standard_normal((num_particles, len(fitted)))
         z = fit.z + sigma_draws[:, None] * (normals @ np.linalg.cholesky(covariance).T)
         theta = _box(z, lower, width)
         theta_hat = _box(fit.z, lower, width)
         for column, name in enumerate(names):
-            if name == NOISE:
+            if name == noise:
                 draws[n, :, column] = sigma_draws
                 estimate[n, column] = sigma_hat[n]
             else:
@@ -393,6 +400,6 @@ def run(
             "max_nfev": max_nfev,
             "starts": list(START_NAMES),
             "transform": "logit of the prior box",
-            "sigma": "residual RMS, n - p dof" if NOISE in names else "fixed",
+            "sigma": "residual RMS, n - p dof" if noise in names else "fixed",
         },
     )

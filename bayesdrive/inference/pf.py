@@ -1,8 +1,8 @@
 r"""``pf``: the paper's particle filter (Bhattacharyya et al., Algorithm 1), done as described.
 
 Per vehicle, a set of N particles over the chosen parameters, every particle on a grid: each
-parameter has a documented step (:data:`GRID_STEPS`: the paper used 0.5 m/s for v_des and 0.1 for
-sigma) and the grid holds the multiples of the step inside the parameter's prior bounds. At
+parameter has a documented step (its spec's ``grid_step``: the paper used 0.5 m/s for the IDM's
+v_des and 0.1 for sigma) and the grid holds the multiples of the step inside the parameter's prior bounds. At
 every usable step t:
 
 1. weight every particle by the exact one-step density of the observed transition
@@ -66,20 +66,7 @@ from bayesdrive.inference.weights import (
     log_mean_weight,
 )
 
-__all__ = ["GRID_STEPS", "MAX_DITHERED", "Grid", "dither_steps", "make_grid", "run"]
-
-# Grid steps per parameter (in the parameter's unit). v_des and sigma are the paper's; the others
-# are about 1-5% of the prior width, fine against what one 20 s trajectory can resolve.
-GRID_STEPS: dict[str, float] = {
-    "v_des": 0.5,
-    "d_min": 0.5,
-    "tau": 0.1,
-    "a_max": 0.1,
-    "b_pref": 0.5,
-    "sigma": 0.1,
-    "c": 0.1,  # the Cooperative IDM's cooperation, on [0, 1]
-}
-
+__all__ = ["MAX_DITHERED", "Grid", "dither_steps", "make_grid", "run"]
 
 # One 32-bit word holds this many base-3 dithering digits (3^20 < 2^32).
 MAX_DITHERED = 20
@@ -101,9 +88,10 @@ class Grid(NamedTuple):
 def make_grid(
     model: DriverModel, names: Sequence[str], steps: Mapping[str, float] | None = None
 ) -> Grid:
-    """The multiples of each parameter's step inside its prior bounds (``steps`` overrides
-    :data:`GRID_STEPS`)."""
-    steps = {**GRID_STEPS, **(steps or {})}
+    """The multiples of each parameter's step inside its prior bounds (``steps`` overrides the
+    specs' ``grid_step``)."""
+    declared = {s.name: s.grid_step for s in model.specs if s.grid_step is not None}
+    steps = {**declared, **(steps or {})}
     missing = [n for n in names if n not in steps]
     if missing:
         raise ValueError(f"no grid step for parameter(s) {missing}: pass grid_steps={{name: step}}")

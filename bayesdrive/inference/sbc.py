@@ -119,15 +119,18 @@ class SBCOutcome(NamedTuple):
 
 
 def sd_doubled(model: DriverModel) -> DriverModel:
-    """A deliberately wrong model: its likelihood uses 2 sigma, its simulator the true sigma.
+    """A deliberately wrong model: its likelihood uses twice the execution-noise sd (the spec
+    marked ``execution_noise``), its simulator the true one.
 
     Used to show that SBC has power: an engine fitting this model must fail calibration.
     """
+    noise = model.execution_noise_param
+    if noise is None:
+        raise ValueError(f"model {model.name!r} marks no execution-noise sd to double")
 
     def transition_logpdf(params, state, next_state, inputs):
-        return model.transition_logpdf(
-            params._replace(sigma=2.0 * params.sigma), state, next_state, inputs
-        )
+        doubled = params._replace(**{noise: 2.0 * getattr(params, noise)})
+        return model.transition_logpdf(doubled, state, next_state, inputs)
 
     return model._replace(name=f"{model.name}-sd-doubled", transition_logpdf=transition_logpdf)
 

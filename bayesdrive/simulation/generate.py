@@ -7,8 +7,9 @@ simulator (:func:`bayesdrive.simulation.rollout.rollout`), each with its own par
 
 Initial conditions follow one documented rule, chosen before any result was seen: every car starts
 at the common speed ``START_SPEED_FRACTION`` x the smallest desired speed in its platoon (so nobody
-starts above its own desired speed) and at the IDM equilibrium gap for that speed under its own
-parameters, so a scene starts in a steady state and what follows is the drivers' own dynamics.
+starts above its own desired speed) and at the model's equilibrium gap for that speed under its own
+parameters (:func:`equilibrium_gap`), so a scene starts in a steady state and what follows is the
+drivers' own dynamics. Any car-following model works whose desired speed is called ``v_des``.
 """
 
 from __future__ import annotations
@@ -23,8 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.drivers.base import DriverModel, fill_params
-from bayesdrive.drivers.idm import equilibrium_gap
+from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
 from bayesdrive.simulation.rollout import Rollout, SceneArrays, broadcast_params, rollout
 
 __all__ = [
@@ -34,6 +34,7 @@ __all__ = [
     "Preset",
     "draw_pooled",
     "draw_preset",
+    "equilibrium_gap",
     "generate_scenes",
     "load_preset",
     "median_sweep",
@@ -44,6 +45,9 @@ START_SPEED_FRACTION = 0.8
 # Desired-speed differences (follower - leader, m/s) of the leader-follower sweep.
 SWEEP_DIFFERENCES = np.arange(-8.0, 8.1, 2.0)
 CAR_LENGTH_M = 4.5
+# The equilibrium gap is searched in [0, 1 km]; 40 halvings reach float32 precision there.
+EQUILIBRIUM_SEARCH_M = 1000.0
+BISECTIONS = 40
 
 
 class Preset(NamedTuple):
@@ -111,10 +115,36 @@ def draw_pooled(
     return fill_params(model, names, pool[index], base)
 
 
-def _steady_platoon(params: Any, num_steps: int, dt: float) -> SceneArrays:
+def equilibrium_gap(model: DriverModel, params: Any, v: Array, dt: float) -> Array:
+    """The bumper gap at which ``model``'s mean acceleration is zero at speed ``v`` behind a leader
+    at the same speed, for every driver of ``params`` (leaves (N,)).
+
+    Found by bisection on the model's own rule, so no model needs a formula of its own: a
+    car-following rule brakes harder the shorter the gap, and below its desired speed it
+    accelerates on an open road, so the acceleration changes sign once in the gap.
+    """
+    speed = jnp.broadcast_to(v, jnp.shape(jax.tree.leaves(params)[0]))
+    state = EgoState(jnp.zeros_like(speed), speed)
+
+    def mean_acceleration(gap):
+        inputs = CarFollowingInputs(gap, speed, jnp.ones_like(speed), jnp.full_like(speed, dt))
+        return model.mean_acceleration(params, state, inputs)
+
+    def halve(_, bracket):
+        low, high = bracket
+        middle = 0.5 * (low + high)
+        too_close = mean_acceleration(middle) < 0
+        return jnp.where(too_close, middle, low), jnp.where(too_close, high, middle)
+
+    start = (jnp.zeros_like(speed), jnp.full_like(speed, EQUILIBRIUM_SEARCH_M))
+    low, high = jax.lax.fori_loop(0, BISECTIONS, halve, start)
+    return 0.5 * (low + high)
+
+
+def _steady_platoon(model: DriverModel, params: Any, num_steps: int, dt: float) -> SceneArrays:
     """Initial state of one platoon (module docstring); the first car has no leader."""
     start_speed = START_SPEED_FRACTION * jnp.min(params.v_des)
-    gaps = equilibrium_gap(params, start_speed)
+    gaps = equilibrium_gap(model, params, start_speed, dt)
     # Car k starts behind car k-1 by its own equilibrium gap plus one car length.
     spacing = gaps[1:] + CAR_LENGTH_M
     x0 = -jnp.concatenate([jnp.zeros(1), jnp.cumsum(spacing)])
@@ -149,7 +179,7 @@ def generate_scenes(
     scene_keys = jax.random.split(key, jax.tree.leaves(params)[0].shape[0])
 
     def one(scene_key, scene_params):
-        scene = _steady_platoon(scene_params, num_steps, dt)
+        scene = _steady_platoon(model, scene_params, num_steps, dt)
         single = jax.tree.map(lambda leaf: leaf[None], scene_params)
         result = rollout(scene_key, model, single, scene, num_rollouts=1)
         return jax.tree.map(lambda leaf: leaf[0], result)

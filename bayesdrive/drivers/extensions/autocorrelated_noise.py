@@ -58,7 +58,15 @@ __all__ = [
 
 CAUSE = "autocorrelated_noise"
 AR_SPECS = (
-    ParamSpec("rho", "--", 0.0, 0.0, 0.99, "lag-one correlation of the acceleration error"),
+    ParamSpec(
+        "rho",
+        "--",
+        0.0,
+        0.0,
+        0.99,
+        "lag-one correlation of the acceleration error",
+        grid_step=0.03,
+    ),
 )
 
 

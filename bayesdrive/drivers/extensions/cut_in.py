@@ -50,7 +50,7 @@ from bayesdrive.drivers.idm import MIN_GAP
 __all__ = ["CAH_SPECS", "CAUSE", "cah_acceleration", "with_cut_in_heuristic"]
 
 CAUSE = "cut_in_overreaction"
-CAH_SPECS = (ParamSpec("coolness", "--", 0.0, 0.0, 1.0, "weight of the CAH"),)
+CAH_SPECS = (ParamSpec("coolness", "--", 0.0, 0.0, 1.0, "weight of the CAH", grid_step=0.05),)
 
 
 def cah_acceleration(v: Array, gap: Array, lead_v: Array, lead_acc: Array, a_max: Array) -> Array:

@@ -51,7 +51,15 @@ __all__ = ["CAUSE", "DRIFT_SPECS", "DriftState", "with_drifting_time_gap"]
 
 CAUSE = "drifting_parameters"
 DRIFT_SPECS = (
-    ParamSpec("tau_drift", "s/s^0.5", 0.0, 0.0, 0.2, "random-walk sd of the time gap per sqrt(s)"),
+    ParamSpec(
+        "tau_drift",
+        "s/s^0.5",
+        0.0,
+        0.0,
+        0.2,
+        "random-walk sd of the time gap per sqrt(s)",
+        grid_step=0.01,
+    ),
 )
 
 

@@ -60,7 +60,15 @@ __all__ = ["CAUSE", "POSITION_NOISE_SPECS", "with_position_noise"]
 
 CAUSE = "measurement_noise"
 POSITION_NOISE_SPECS = (
-    ParamSpec("position_noise", "m", 0.0, 0.0, 0.5, "sd of white noise on recorded positions"),
+    ParamSpec(
+        "position_noise",
+        "m",
+        0.0,
+        0.0,
+        0.5,
+        "sd of white noise on recorded positions",
+        grid_step=0.025,
+    ),
 )
 
 

@@ -39,7 +39,13 @@ __all__ = ["CAUSE", "DELAY_SPECS", "delayed", "with_reaction_delay"]
 CAUSE = "reaction_delay"
 DELAY_SPECS = (
     ParamSpec(
-        "reaction_time", "s", 0.0, 0.0, HISTORY_SECONDS, "delay of the response to the situation"
+        "reaction_time",
+        "s",
+        0.0,
+        0.0,
+        HISTORY_SECONDS,
+        "delay of the response to the situation",
+        grid_step=0.1,
     ),
 )
 

@@ -37,7 +37,9 @@ __all__ = ["ANTICIPATION_SPECS", "CAUSE", "with_second_leader_anticipation"]
 
 CAUSE = "second_leader_anticipation"
 ANTICIPATION_SPECS = (
-    ParamSpec("anticipation", "--", 0.0, 0.0, 1.0, "weight of the second vehicle ahead"),
+    ParamSpec(
+        "anticipation", "--", 0.0, 0.0, 1.0, "weight of the second vehicle ahead", grid_step=0.05
+    ),
 )
 
 

@@ -28,7 +28,15 @@ __all__ = ["CAUSE", "SPEED_NOISE_SPECS", "noise_sd", "with_speed_dependent_noise
 
 CAUSE = "speed_dependent_noise"
 SPEED_NOISE_SPECS = (
-    ParamSpec("noise_speed_slope", "s/m", 0.0, 0.0, 0.5, "relative noise increase per m/s"),
+    ParamSpec(
+        "noise_speed_slope",
+        "s/m",
+        0.0,
+        0.0,
+        0.5,
+        "relative noise increase per m/s",
+        grid_step=0.025,
+    ),
 )
 
 
