@@ -57,7 +57,6 @@ from bayesdrive.inference.output import (
     EngineResult,
     particle_log_likelihood,
     particle_posterior,
-    thinned_draws,
 )
 from bayesdrive.inference.resampling import count_distinct_sorted, systematic
 from bayesdrive.inference.weights import (
@@ -227,7 +226,6 @@ def run(
     progress: Callable[[int, int], None] | None = None,
     epochs: int = 1,
     grid_steps: Mapping[str, float] | None = None,
-    log_likelihood_draws: int = 200,
     vehicle_chunk: int = 64,
 ) -> EngineResult:
     """The paper's filter (module docstring) over every vehicle of ``arrays``.
@@ -304,13 +302,12 @@ def run(
         start = pool[jax.random.randint(key_pool, start.shape[:2], 0, pool.shape[0])]
 
     particles = grid.values(out.index)
-    scored = thinned_draws(num_particles, log_likelihood_draws)
-    log_lik = score_draws(model, names, fixed_values, particles[:, scored], series)
+    log_lik = score_draws(model, names, fixed_values, particles, series)
     vehicle_step = ("vehicle", "step")
     return EngineResult(
         posterior=particle_posterior(names, particles),
         sample_stats={
-            "ess": (vehicle_step, out.ess),
+            "particle_ess": (vehicle_step, out.ess),
             "resampled": (vehicle_step, np.asarray(arrays.mask) > 0),
             "unique_particles": (vehicle_step, out.unique),
             "particle_mean": (("vehicle", "step", "param"), out.mean),
@@ -320,7 +317,6 @@ def run(
             "epoch_pooled_mean": (("epoch", "param"), np.stack(pooled_means)),
         },
         log_likelihood=particle_log_likelihood(log_lik),
-        log_likelihood_draws=scored,
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
@@ -329,7 +325,6 @@ def run(
             "grid_steps": dict(zip(names, grid.step.tolist(), strict=True)),
             "resampler": "systematic",
             "dither": "uniform {-1, 0, +1} grid steps per parameter, clipped to the grid",
-            "log_likelihood_draws": len(scored),
             "vehicle_chunk": vehicle_chunk,
         },
     )
