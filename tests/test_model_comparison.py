@@ -4,7 +4,7 @@ compared by PSIS-LOO with ArviZ as a user would (``arviz.loo``, ``arviz.compare`
 The pair is the IDM with ``v_des`` and ``sigma`` inferred (the rest at their defaults) against
 the IDM with all six: the same model family scores the same observed steps, so the comparison is
 like for like and the expected observation count is known in advance (the unmasked steps).
-``emcee`` fits them on two vehicles with tiny settings (600 steps, 300 kept draws; seeds 11
+``emcee`` fits them on two vehicles with tiny settings (400 steps, 200 kept draws; seeds 11
 and 12): its jitted pieces compile in seconds where smc's and nuts' whole-run programs take half a
 minute each on a loaded CI core. (``lm`` is faster still, but its Laplace draws on these short
 NGSIM fits pile up at the prior bounds and PSIS's Pareto k come out NaN for the six-parameter
@@ -27,8 +27,8 @@ from bayesdrive.inference.output import load_result, save_result
 
 CHAIN = "ngsim_i80_chains/124_136_140_146_162_164.csv"
 VEHICLES = 2
-DRAWS = 300
-STEPS = 600
+DRAWS = 200
+STEPS = 400
 MODELS = {"idm_v_des_sigma": ("v_des", "sigma"), "idm_all_six": None}
 
 
