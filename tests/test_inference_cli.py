@@ -58,8 +58,14 @@ def test_fit_runs_the_paper_filter_with_epochs(data_dir, tmp_path):
     args += ["--vehicles", "2", "--particles", "64", "--params", "v_des,sigma"]
     result = runner.invoke(app, [*args, "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
-    meta = metadata(load_result(tmp_path / "result.nc"))
+    tree = load_result(tmp_path / "result.nc")
+    meta = metadata(tree)
     assert meta["engine"] == "pf" and meta["engine_options"]["epochs"] == 2
+    # Epoch 0's prior draws are kept as ArviZ's prior group, inside the prior box.
+    prior = tree["prior"]["v_des"]
+    assert prior.shape == (1, 64, 2) and prior.attrs["units"] == "m/s"
+    assert float(prior.min()) >= 5.0 and float(prior.max()) <= 45.0
+    assert float(prior.std()) > 5.0  # spread over the box, not the posterior
     printed = one_line(result.stdout)
     assert "pf on idm" in printed and "64 particles" in printed
     assert "v_des [m/s]" in printed and "sigma [m/s^2]" in printed  # units in the headers

@@ -233,7 +233,8 @@ def run(
     Vehicles are sorted by the length of their series and run ``vehicle_chunk`` at a time,
     vectorised; steps where no vehicle of a chunk has data are skipped. Every vehicle keeps its
     own random stream, so results do not depend on the order or the chunk size. ``prior``
-    (default the model's uniform box) gives epoch 0's particles, snapped to the grid.
+    (default the model's uniform box) gives epoch 0's particles, snapped to the grid; those draws,
+    before snapping, are the result's ``prior`` group.
     """
     check_model(model)
     names = param_names(model, params)
@@ -317,6 +318,7 @@ def run(
             "epoch_pooled_mean": (("epoch", "param"), np.stack(pooled_means)),
         },
         log_likelihood=particle_log_likelihood(log_lik),
+        prior=particle_posterior(names, np.asarray(draws)),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
