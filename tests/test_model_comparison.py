@@ -1,5 +1,6 @@
 """Done-when of issue 15 (item 1): two models fitted on real data, saved, reloaded from netCDF,
-compared by PSIS-LOO with ArviZ as a user would (``arviz.loo``, ``arviz.compare``).
+compared by PSIS-LOO with ArviZ as a user would (``arviz.loo``, ``arviz.compare``, and the
+``plot_compare`` and ``plot_khat`` figures).
 
 The pair is the IDM with ``v_des`` and ``sigma`` inferred (the rest at their defaults) against
 the IDM with all six: the same model family scores the same observed steps, so the comparison is
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import arviz
 import jax
+import matplotlib.pyplot
 import numpy as np
 import pytest
 
@@ -71,3 +73,13 @@ def test_two_models_on_real_data_compare_by_psis_loo_from_the_saved_files(data_d
     assert set(table.index) == set(MODELS)
     assert np.isfinite(table["elpd"]).all() and np.isfinite(table["elpd_diff"]).all()
     assert table["elpd_diff"].iloc[0] == 0.0 and table["rank"].iloc[0] == 0  # the best first
+
+    # ArviZ's comparison plots draw from these objects as they are (they raise on a bad layout).
+    pytest.importorskip("arviz_plots")
+    for collection in (
+        arviz.plot_compare(table, backend="matplotlib"),
+        arviz.plot_khat(arviz.loo(reloaded["idm_all_six"], pointwise=True), backend="matplotlib"),
+    ):
+        figure = collection.viz["figure"].item()
+        assert figure.axes, "an empty figure"
+        matplotlib.pyplot.close(figure)
