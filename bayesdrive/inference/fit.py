@@ -131,8 +131,8 @@ def fit(
     that have usable steps (quick runs); ``vehicle_ids`` fits only those vehicles of a
     :class:`Trajectories` (their leaders are still read). ``progress(done, total)`` is called as vehicles finish.
     ``num_particles`` (smc, pf; default 1000) or ``draws`` (the other engines: posterior draws in
-    all, default 1000), ``chains`` and ``warmup`` (MCMC engines, :data:`MCMC_OPTIONS`) size the
-    run. ``engine_options`` go to the engine (e.g.
+    all, default 1000; ``num_particles`` is taken as ``draws`` there, as before), ``chains`` and
+    ``warmup`` (MCMC engines, :data:`MCMC_OPTIONS`) size the run. ``engine_options`` go to the engine (e.g.
     ``ess_threshold`` for smc, ``epochs`` for pf). Returns the result tree
     (:mod:`bayesdrive.inference.output`); its metadata ``convergence`` holds the checks of
     :func:`~bayesdrive.inference.convergence.check_convergence`, whose problems are also logged

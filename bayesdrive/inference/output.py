@@ -54,6 +54,7 @@ __all__ = [
     "particle_log_likelihood",
     "particle_posterior",
     "save_result",
+    "set_metadata",
     "thinned_draws",
 ]
 
