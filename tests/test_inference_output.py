@@ -228,6 +228,12 @@ def test_results_of_the_older_layout_are_converted_on_loading(tree, tmp_path, ca
     assert "particle_ess" in loaded["sample_stats"] and "ess" not in loaded["sample_stats"]
     assert np.isfinite(arviz.loo(loaded).elpd)
 
+    # A slim posterior-only file (the committed model cards) loads as it was written.
+    slim = save_result(
+        xr.DataTree.from_dict({"posterior": tree["posterior"].to_dataset()}), tmp_path / "slim.nc"
+    )
+    assert list(load_result(slim).children) == ["posterior"]
+
 
 def test_filter_plots_are_written(tree, tmp_path):
     paths = write_filter_plots(tree, tmp_path)

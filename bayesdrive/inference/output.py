@@ -272,14 +272,18 @@ def load_result(path: str | Path) -> xr.DataTree:
 
 
 def _upgrade(tree: xr.DataTree, path: Path) -> xr.DataTree:
-    """Older results: log-likelihood padded to (vehicle, step) and thinned, filters' ``ess``."""
-    if "log_likelihood" not in tree.children or "posterior" not in tree.children:
-        raise ValueError(f"{path}: not a bayesdrive result (no posterior or log_likelihood group)")
+    """Older results: log-likelihood padded to (vehicle, step) and thinned, filters' ``ess``.
+    Slim files without a log-likelihood (the posterior-only model cards) are returned as read."""
+    if "log_likelihood" not in tree.children:
+        return tree
     log_lik = tree["log_likelihood"].to_dataset()
     if "obs" in log_lik.dims:
         return tree
     if "step" not in log_lik.dims or "observed_data" not in tree.children:
-        raise ValueError(f"{path}: unknown log_likelihood layout {dict(log_lik.sizes)}")
+        raise ValueError(
+            f"{path}: unknown log_likelihood layout {dict(log_lik.sizes)} (expected dims chain, "
+            "draw, obs, or the older chain, draw, vehicle, step beside observed_data)"
+        )
     mask = tree["observed_data"]["mask"].values > 0
     vehicle, step = np.nonzero(mask)
     observed = tree["observed_data"].to_dataset()
