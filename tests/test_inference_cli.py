@@ -102,16 +102,28 @@ def test_held_out_data_is_never_fitted(tmp_path):
 
 @pytest.mark.realdata
 @pytest.mark.parametrize(
-    ("engine", "sizes", "exit_code", "printed_size"),
+    ("engine", "sizes", "exit_code", "printed_size", "options"),
     [
         # 200 draws cannot reach a bulk and tail ESS of 400: the fit is written and exits 3.
-        ("nuts", ["--draws", "200", "--chains", "2", "--warmup", "100"], 3, "200 draws in 2"),
-        ("emcee", ["--draws", "200", "--steps", "400", "--warmup", "100"], 3, "draws in 1"),
-        ("lm", ["--draws", "200"], 0, "200 draws in 1"),
+        (
+            "nuts",
+            ["--draws", "200", "--chains", "2", "--warmup", "100"],
+            3,
+            "200 draws in 2",
+            {"num_chains": 2, "num_warmup": 100, "num_samples": 100},
+        ),
+        (
+            "emcee",
+            ["--draws", "200", "--steps", "400", "--warmup", "100", "--chains", "12"],
+            3,
+            "draws in 1 chain(s) of 12 walkers",
+            {"num_walkers": 12, "num_burn": 100, "num_steps": 400},
+        ),
+        ("lm", ["--draws", "200"], 0, "200 draws in 1", {}),
     ],
 )
 def test_fit_runs_the_cross_check_engines(
-    data_dir, tmp_path, engine, sizes, exit_code, printed_size
+    data_dir, tmp_path, engine, sizes, exit_code, printed_size, options
 ):
     """Every engine behind --engine writes its result and summary, sized in draws and chains,
     that ArviZ's PSIS-LOO reads as it is; the per-step filter pictures exist only for the
@@ -125,6 +137,8 @@ def test_fit_runs_the_cross_check_engines(
     tree = load_result(tmp_path / "result.nc")
     meta = metadata(tree)
     assert meta["engine"] == engine and "num_particles" not in meta
+    assert meta["num_draws"] == tree["posterior"].sizes["chain"] * tree["posterior"].sizes["draw"]
+    assert options.items() <= meta["engine_options"].items()  # the CLI's sizes reached the engine
     printed = one_line(result.stdout)
     assert "wrote result.nc, summary.json to" in printed
     assert printed_size in printed and "particles" not in printed

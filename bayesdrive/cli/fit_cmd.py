@@ -70,7 +70,10 @@ def merge_arrays(traj: Trajectories, window: str) -> FollowerArrays:
 def _size(result: dict[str, Any]) -> str:
     if result["engine"] in PARTICLE_ENGINES:
         return f"{result['num_particles']} particles"
-    return f"{result['num_draws']} draws in {result['num_chains']} chain(s)"
+    walkers = result["engine_options"].get("num_walkers")
+    # emcee's --chains are the walkers of one ensemble, stored as one chain.
+    of_walkers = f" of {walkers} walkers" if walkers else ""
+    return f"{result['num_draws']} draws in {result['num_chains']} chain(s){of_walkers}"
 
 
 def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
