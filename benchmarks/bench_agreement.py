@@ -75,12 +75,16 @@ def markdown(frame: pd.DataFrame) -> str:
 
 
 def mean_log_likelihood(trees) -> pd.DataFrame:
-    """Per vehicle (rows) and engine (columns): the mean over scored draws of the summed
+    """Per vehicle (rows) and engine (columns): the mean over posterior draws of the summed
     log-likelihood. Where engines disagree, the one far below the others sits in a poorer region
     (under a flat prior the posterior mass follows the likelihood)."""
     return pd.DataFrame(
         {
-            engine: tree["log_likelihood"]["dx"].sum("step").mean(("chain", "draw")).to_series()
+            engine: tree["log_likelihood"]["dx"]
+            .groupby("vehicle")
+            .sum()
+            .mean(("chain", "draw"))
+            .to_series()
             for engine, tree in trees.items()
         }
     )

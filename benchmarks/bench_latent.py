@@ -150,7 +150,6 @@ def fitted_tree(key, arrays, names, fixed, seed, **options):
         posterior=result.posterior,
         sample_stats=result.sample_stats,
         log_likelihood=result.log_likelihood,
-        log_likelihood_draws=result.log_likelihood_draws,
         arrays=arrays,
         metadata={
             "engine": "pmmh",
@@ -259,7 +258,6 @@ def main() -> None:
         "num_warmup": args.warmup,
         "num_state_particles": args.state_particles,
         "init": "prior",
-        "log_likelihood_draws": 20,
     }
     started = time.perf_counter()
     sim_result, sim_tree = fitted_tree(

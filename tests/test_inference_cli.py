@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import arviz
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -45,6 +47,9 @@ def test_fit_writes_result_summary_and_plots(data_dir, tmp_path):
     assert meta["flagged_samples"] > 0 and printed["flagged_samples"] == meta["flagged_samples"]
     assert tree["posterior"]["sigma"].shape == (1, 100, 2)
     assert list(printed["vehicles"]) == [str(v) for v in tree["posterior"]["vehicle"].values]
+    # One smc run has no second chain or replicate to check against, and says so.
+    assert printed["convergence"]["checks"] == [] and printed["convergence"]["unchecked"]
+    assert printed["num_particles"] == 100 and printed["units"]["v_des"] == "m/s"
 
 
 @pytest.mark.realdata
@@ -53,9 +58,17 @@ def test_fit_runs_the_paper_filter_with_epochs(data_dir, tmp_path):
     args += ["--vehicles", "2", "--particles", "64", "--params", "v_des,sigma"]
     result = runner.invoke(app, [*args, "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
-    meta = metadata(load_result(tmp_path / "result.nc"))
+    tree = load_result(tmp_path / "result.nc")
+    meta = metadata(tree)
     assert meta["engine"] == "pf" and meta["engine_options"]["epochs"] == 2
-    assert "pf on idm" in one_line(result.stdout)
+    # Epoch 0's prior draws are kept as ArviZ's prior group, inside the prior box.
+    prior = tree["prior"]["v_des"]
+    assert prior.shape == (1, 64, 2) and prior.attrs["units"] == "m/s"
+    assert float(prior.min()) >= 5.0 and float(prior.max()) <= 45.0
+    assert float(prior.std()) > 5.0  # spread over the box, not the posterior
+    printed = one_line(result.stdout)
+    assert "pf on idm" in printed and "64 particles" in printed
+    assert "v_des [m/s]" in printed and "sigma [m/s^2]" in printed  # units in the headers
 
 
 @pytest.mark.parametrize(
@@ -63,6 +76,10 @@ def test_fit_runs_the_paper_filter_with_epochs(data_dir, tmp_path):
     [
         (["--window", "heldout"], "held-out steps are never fitted"),
         (["--epochs", "3"], "--epochs applies to --engine pf only"),
+        (["--steps", "300"], "--steps applies to --engine emcee only"),
+        (["--engine", "nuts", "--particles", "50"], "--particles applies to smc and pf; nuts"),
+        (["--draws", "50"], "engine 'smc' is sized by its particles"),
+        (["--engine", "lm", "--chains", "2"], "engine 'lm' has no chains option"),
         (["--engine", "gibbs"], "unknown engine 'gibbs'"),
         (["--params", "v_des,speed"], "has no parameter(s) ['speed']"),
         (["--model", "krauss"], "unknown driver model 'krauss'"),
@@ -90,15 +107,55 @@ def test_held_out_data_is_never_fitted(tmp_path):
 
 
 @pytest.mark.realdata
-@pytest.mark.parametrize("engine", ["nuts", "emcee", "lm"])
-def test_fit_runs_the_cross_check_engines(data_dir, tmp_path, engine):
-    """Every engine behind --engine writes its result and summary; the per-step filter pictures
-    exist only for the filters, so the others must not fail on them."""
-    args = ["fit", str(data_dir / CHAIN), "--engine", engine, "--vehicles", "1"]
-    args += ["--particles", "200", "--params", "v_des,sigma", "--seed", "2", "--out", str(tmp_path)]
+@pytest.mark.parametrize(
+    ("engine", "sizes", "exit_code", "printed_size", "options"),
+    [
+        # 200 draws cannot reach a bulk and tail ESS of 400: the fit is written and exits 3.
+        (
+            "nuts",
+            ["--draws", "200", "--chains", "2", "--warmup", "100"],
+            3,
+            "200 draws in 2",
+            {"num_chains": 2, "num_warmup": 100, "num_samples": 100},
+        ),
+        (
+            "emcee",
+            ["--draws", "200", "--steps", "400", "--warmup", "100", "--chains", "12"],
+            3,
+            "draws in 1 chain(s) of 12 walkers",
+            {"num_walkers": 12, "num_burn": 100, "num_steps": 400},
+        ),
+        ("lm", ["--draws", "200"], 0, "200 draws in 1", {}),
+    ],
+)
+def test_fit_runs_the_cross_check_engines(
+    data_dir, tmp_path, engine, sizes, exit_code, printed_size, options
+):
+    """Every engine behind --engine writes its result and summary, sized in draws and chains,
+    that ArviZ's PSIS-LOO reads as it is; the per-step filter pictures exist only for the
+    filters, so the others must not fail on them. A fit that fails a convergence check exits 3
+    and names each vehicle and parameter in summary.json."""
+    args = ["fit", str(data_dir / CHAIN), "--engine", engine, "--vehicles", "1", *sizes]
+    args += ["--params", "v_des,sigma", "--seed", "2", "--out", str(tmp_path)]
     result = runner.invoke(app, args)
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == exit_code, result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.nc", "summary.json"]
     tree = load_result(tmp_path / "result.nc")
-    assert metadata(tree)["engine"] == engine
-    assert "wrote result.nc, summary.json to" in one_line(result.stdout)
+    meta = metadata(tree)
+    assert meta["engine"] == engine and "num_particles" not in meta
+    assert meta["num_draws"] == tree["posterior"].sizes["chain"] * tree["posterior"].sizes["draw"]
+    assert options.items() <= meta["engine_options"].items()  # the CLI's sizes reached the engine
+    printed = one_line(result.stdout)
+    assert "wrote result.nc, summary.json to" in printed
+    assert printed_size in printed and "particles" not in printed
+    loo = arviz.loo(tree)
+    assert np.isfinite(loo.elpd) and loo.n_data_points == meta["usable_steps"]
+    problems = json.loads((tmp_path / "summary.json").read_text())["convergence"]["problems"]
+    if exit_code == 3:
+        vehicle = str(tree["posterior"]["vehicle"].values[0])
+        assert {(p["vehicle"], p["check"]) for p in problems} >= {(vehicle, "ess_tail")}
+        assert "convergence problem(s)" in one_line(result.stderr) and "exit code 3" in one_line(
+            result.stderr
+        )
+    else:
+        assert problems == []

@@ -55,14 +55,49 @@ def test_tree_has_the_shared_layout(tree, arrays):
     for name in PARAMS:
         assert tree["posterior"][name].dims == ("chain", "draw", "vehicle")
         assert tree["posterior"][name].shape == (1, PARTICLES, VEHICLES)
-    assert tree["log_likelihood"]["dx"].dims == ("chain", "draw", "vehicle", "step")
-    assert tree["log_likelihood"]["dx"].shape == (1, 200, VEHICLES, STEPS)
-    # The scored draws are named by their posterior draw indices.
-    assert set(tree["log_likelihood"]["draw"].values) <= set(tree["posterior"]["draw"].values)
-    assert tree["sample_stats"]["ess"].dims == ("vehicle", "step")
+        assert tree["posterior"][name].attrs["units"] == IDM.spec(name).unit
+        assert tree["posterior"][name].attrs["long_name"] == IDM.spec(name).doc
+    for group in ("posterior", "sample_stats"):
+        assert tree[group].attrs["inference_library"] == "bayesdrive"
+    assert tree["sample_stats"]["particle_ess"].dims == ("vehicle", "step")
+    assert "ess" not in tree["sample_stats"]  # ArviZ's name, not the filters' statistic
     assert tree["sample_stats"]["log_evidence"].dims == ("vehicle",)
     np.testing.assert_array_equal(tree["observed_data"]["dx"].values, arrays.dx)
     assert list(tree["posterior"]["vehicle"].values) == list(arrays.vehicle_ids)
+
+
+def test_log_likelihood_holds_the_real_observations_and_every_draw(arrays):
+    """Masked steps are left out (not scored as 0) and every posterior draw is scored: the obs
+    coordinates name each kept (vehicle, step), and its value is the padded score there."""
+    mask = np.ones((2, 6))
+    mask[0, 4:] = 0  # vehicle a: steps 0-3; vehicle b: steps 1, 2 and 5
+    mask[1, [0, 3, 4]] = 0
+    small = arrays._replace(
+        vehicle_ids=("a", "b"),
+        mask=mask,
+        **{n: getattr(arrays, n)[:2, :6] for n in ("v", "next_v", "dx", "gap", "lead_v", "t")},
+        has_leader=arrays.has_leader[:2, :6],
+    )
+    scores = np.random.default_rng(3).normal(size=(2, 5, 2, 6))
+    meta = {k: 0 for k in REQUIRED_METADATA} | {"params": ["v_des"]}
+    built = build_tree(
+        posterior={"v_des": np.zeros((2, 5, 2))},
+        sample_stats={},
+        log_likelihood=scores,
+        arrays=small,
+        metadata=meta,
+    )
+    log_lik = built["log_likelihood"]["dx"]
+    assert log_lik.dims == ("chain", "draw", "obs") and log_lik.dtype == np.float32
+    assert log_lik.shape == (2, 5, 7)  # 4 + 3 real steps, all 2 x 5 draws
+    assert list(log_lik["vehicle"].values) == ["a"] * 4 + ["b"] * 3
+    assert list(log_lik["step"].values) == [0, 1, 2, 3, 1, 2, 5]
+    np.testing.assert_array_equal(
+        log_lik["t"].values, small.t[[0, 0, 0, 0, 1, 1, 1], [0, 1, 2, 3, 1, 2, 5]]
+    )
+    np.testing.assert_allclose(log_lik.values[:, :, 5], scores[:, :, 1, 2], rtol=1e-6)
+    np.testing.assert_allclose(log_lik.values[:, :, 3], scores[:, :, 0, 3], rtol=1e-6)
+    assert metadata(built)["num_draws"] == 10 and metadata(built)["num_chains"] == 2
 
 
 def test_metadata_is_complete_and_decodes(tree):
@@ -93,10 +128,11 @@ def test_summary_reports_each_vehicle_and_parameter(tree):
     )
 
 
-def test_arviz_loo_reads_the_log_likelihood_group(tree):
-    loo = arviz.loo(tree)
+def test_arviz_loo_reads_the_log_likelihood_group(tree, arrays):
+    loo = arviz.loo(tree, pointwise=True)
     assert np.isfinite(loo.elpd)
-    assert loo.n_data_points == VEHICLES * STEPS
+    assert loo.n_data_points == int(arrays.mask.sum())
+    assert np.isfinite(loo.pareto_k.values).all()
 
 
 def test_build_tree_refuses_bad_shapes_and_missing_metadata(tree, arrays):
@@ -104,6 +140,7 @@ def test_build_tree_refuses_bad_shapes_and_missing_metadata(tree, arrays):
         "posterior": {"v_des": np.zeros((1, 4, VEHICLES))},
         "sample_stats": {},
         "log_likelihood": np.zeros((1, 4, VEHICLES, STEPS)),
+        "specs": IDM.specs,
         "arrays": arrays,
         "metadata": {k: 0 for k in REQUIRED_METADATA} | {"params": ["v_des"]},
     }
@@ -112,6 +149,8 @@ def test_build_tree_refuses_bad_shapes_and_missing_metadata(tree, arrays):
         build_tree(**(good | {"posterior": {"v_des": np.zeros((1, 4, 2))}}))
     with pytest.raises(ValueError, match="log_likelihood has shape"):
         build_tree(**(good | {"log_likelihood": np.zeros((1, 4, VEHICLES, 63))}))
+    with pytest.raises(ValueError, match="every posterior draw"):  # a thinned set is refused
+        build_tree(**(good | {"log_likelihood": np.zeros((1, 2, VEHICLES, STEPS))}))
     with pytest.raises(ValueError, match=r"lacks \['seed'\]"):
         meta = dict(good["metadata"])
         del meta["seed"]
@@ -125,6 +164,10 @@ def test_unknown_engine_and_conflicting_parameters_are_refused(arrays):
         fit(jax.random.key(0), arrays, params=PARAMS, fixed={"sigma": 0.3})
     with pytest.raises(ValueError, match="no parameter"):
         fit(jax.random.key(0), arrays, params=("v_max",))
+    with pytest.raises(ValueError, match="'smc' is sized by its particles"):
+        fit(jax.random.key(0), arrays, draws=100)
+    with pytest.raises(ValueError, match="'lm' has no chains option"):
+        fit(jax.random.key(0), arrays, engine="lm", chains=4)
     assert {"smc", "pf"} <= set(ENGINES)
 
 
@@ -154,6 +197,42 @@ def test_round_trip_through_netcdf(tree, tmp_path):
             xr.testing.assert_identical(opened[group].to_dataset(), tree[group].to_dataset())
         assert dict(opened.attrs) == dict(tree.attrs)
     assert metadata(load_result(path)) == metadata(tree)
+
+
+def test_results_of_the_older_layout_are_converted_on_loading(tree, tmp_path, caplog):
+    """Before: log_likelihood padded to (vehicle, step) with zeros, thinned draws, ``ess``."""
+    pytest.importorskip("h5py", reason="h5netcdf needs h5py to read or write netCDF4 files")
+    mask = tree["observed_data"]["mask"].values > 0
+    draws = np.arange(0, PARTICLES, 4)
+    padded = np.zeros((1, len(draws), VEHICLES, STEPS))
+    padded[:, :, mask] = tree["log_likelihood"]["dx"].values[:, draws]
+    old = tree.copy()
+    old["log_likelihood"] = xr.DataTree(
+        xr.Dataset(
+            {"dx": (("chain", "draw", "vehicle", "step"), padded)},
+            coords={"chain": [0], "draw": draws},
+        )
+    )
+    old["sample_stats"] = xr.DataTree(
+        tree["sample_stats"].to_dataset().rename({"particle_ess": "ess"})
+    )
+    path = save_result(old, tmp_path / "old.nc")
+    with caplog.at_level("WARNING"):
+        loaded = load_result(path)
+    assert (
+        "older result layout" in caplog.text and "scores 100 of the posterior's 400" in caplog.text
+    )
+    np.testing.assert_array_equal(
+        loaded["log_likelihood"]["dx"].values, tree["log_likelihood"]["dx"].values[:, draws]
+    )
+    assert "particle_ess" in loaded["sample_stats"] and "ess" not in loaded["sample_stats"]
+    assert np.isfinite(arviz.loo(loaded).elpd)
+
+    # A slim posterior-only file (the committed model cards) loads as it was written.
+    slim = save_result(
+        xr.DataTree.from_dict({"posterior": tree["posterior"].to_dataset()}), tmp_path / "slim.nc"
+    )
+    assert list(load_result(slim).children) == ["posterior"]
 
 
 def test_filter_plots_are_written(tree, tmp_path):

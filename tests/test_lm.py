@@ -235,14 +235,13 @@ def test_lm_runs_through_fit(short_data):
         jax.random.key(6),
         short_data,
         engine="lm",
-        num_particles=30,
+        draws=30,
         seed=6,
         window="all",
-        log_likelihood_draws=10,
     )
     assert tree["posterior"]["tau"].shape == (1, 30, 2)
-    assert tree["log_likelihood"]["dx"].shape == (1, 10, 2, 512)
-    # The scored draws' log-likelihood is the model's: finite on every step here.
+    assert tree["log_likelihood"]["dx"].shape == (1, 30, int(short_data.mask.sum()))
+    # Every draw's log-likelihood is the model's: finite on every real step here.
     assert np.isfinite(tree["log_likelihood"]["dx"].values).all()
     assert metadata(tree)["engine"] == "lm"
     assert tree["sample_stats"]["converged"].dims == ("vehicle",)

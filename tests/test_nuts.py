@@ -22,7 +22,7 @@ from bayesdrive.inference.likelihood import series_loglik, step_inputs
 from bayesdrive.inference.synthetic import simulate_following
 
 SEED = 3
-OPTIONS = {"num_chains": 4, "num_warmup": 200, "num_particles": 1000, "log_likelihood_draws": 50}
+OPTIONS = {"num_chains": 4, "num_warmup": 200, "num_particles": 1000}
 
 
 @pytest.fixture(scope="module")
@@ -68,11 +68,10 @@ def test_result_layout_and_divergences_reported(vehicle, result):
     assert result.options["dense_mass"] is False
 
 
-def test_pointwise_log_likelihood_scores_the_stored_draws(vehicle, result):
-    scored = result.log_likelihood_draws
-    assert result.log_likelihood.shape == (4, len(scored), 1, vehicle.mask.shape[1])
+def test_pointwise_log_likelihood_scores_every_stored_draw(vehicle, result):
+    assert result.log_likelihood.shape == (4, 250, 1, vehicle.mask.shape[1])
     series = jax.tree.map(lambda a: a[0], step_inputs(vehicle))
-    theta = result.posterior["sigma"][2, scored[7], 0]
+    theta = result.posterior["sigma"][2, 7, 0]
     expected = series_loglik(IDM, ("sigma",), IDM.defaults(), jnp.array([theta]), series)
     np.testing.assert_allclose(result.log_likelihood[2, 7, 0], expected, rtol=1e-5, atol=1e-4)
 

@@ -3,9 +3,11 @@
 DATA is a file, a folder or a data set name (held-out names are refused: nothing is fitted on
 them). Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
 merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
-(:func:`bayesdrive.inference.fit.summary`) and the filter diagnostics ess.png,
+(:func:`bayesdrive.inference.fit.summary`) and, for the filters, the diagnostics ess.png,
 unique_particles.png and convergence.png. Bad input ends with a one-line ``error: ...`` on
-standard error and exit code 2.
+standard error and exit code 2; a fit that fails a convergence check
+(:mod:`bayesdrive.inference.convergence`) is still written, warns naming each vehicle and
+parameter, and exits with code 3.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from bayesdrive.cli.common import (
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.drivers.registry import MODELS, get_model
-from bayesdrive.inference.fit import ENGINES, get_engine, summary
+from bayesdrive.inference.fit import ENGINES, PARTICLE_ENGINES, get_engine, summary
 from bayesdrive.inference.fit import fit as fit_model
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import save_result
@@ -43,6 +45,7 @@ __all__ = ["fit"]
 JSON_HELP = "Write summary.json's content to OUT too ('-' for standard output, then nothing else)."
 # Vehicles listed in the printed table; summary.json has all of them.
 SHOWN_VEHICLES = 10
+NOT_CONVERGED = 3
 
 
 def _progress() -> Progress:
@@ -57,18 +60,27 @@ def _progress() -> Progress:
     )
 
 
+def _size(result: dict[str, Any]) -> str:
+    if result["engine"] in PARTICLE_ENGINES:
+        return f"{result['num_particles']} particles"
+    walkers = result["engine_options"].get("num_walkers")
+    # emcee's --chains are the walkers of one ensemble, stored as one chain.
+    of_walkers = f" of {walkers} walkers" if walkers else ""
+    return f"{result['num_draws']} draws in {result['num_chains']} chain(s){of_walkers}"
+
+
 def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
     params = result["params"]
     table = Table(
         title=escape(
             f"{result['engine']} on {result['model']}: {len(result['vehicles'])} vehicle(s) of "
-            f"{result['data_source']} ({result['window']} window), {result['num_particles']} "
-            "particles; posterior mean ± sd"
+            f"{result['data_source']} ({result['window']} window), {_size(result)}; "
+            "posterior mean ± sd"
         )
     )
     table.add_column("vehicle")
     for name in params:
-        table.add_column(name, justify="right")
+        table.add_column(escape(f"{name} [{result['units'][name]}]"), justify="right")
     for vehicle, entry in list(result["vehicles"].items())[:SHOWN_VEHICLES]:
         table.add_row(
             escape(vehicle), *(f"{entry[n]['mean']:.3g} ± {entry[n]['sd']:.2g}" for n in params)
@@ -85,6 +97,11 @@ def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
         f"inference {result['wall_time_s']:.2f} s, compilation {result['compile_time_s']:.2f} s; "
         f"seed {result['seed']}"
     )
+    checked = result["convergence"]
+    if checked["unchecked"]:
+        console.print(escape(f"convergence not checked: {checked['unchecked']}"))
+    else:
+        console.print(escape(f"convergence checks: {', '.join(checked['checks'])}"))
     console.print(escape(f"wrote {', '.join(written)} to {out}"))
 
 
@@ -96,7 +113,23 @@ def fit(
     params: str | None = typer.Option(
         None, "--params", help="Comma-separated parameters to infer (default: all)."
     ),
-    particles: int = typer.Option(1000, "--particles", help="Particles per vehicle."),
+    particles: int | None = typer.Option(
+        None, "--particles", help="smc, pf: particles per vehicle (default 1000)."
+    ),
+    draws: int | None = typer.Option(
+        None,
+        "--draws",
+        help="Other engines: posterior draws per vehicle, all chains (default 1000).",
+    ),
+    chains: int | None = typer.Option(
+        None, "--chains", help="nuts, hierarchical, pmmh: chains; emcee: walkers of its ensemble."
+    ),
+    warmup: int | None = typer.Option(
+        None, "--warmup", help="nuts, hierarchical, pmmh: warm-up iterations; emcee: burn-in steps."
+    ),
+    steps: int | None = typer.Option(
+        None, "--steps", help="emcee only: steps per walker, burn-in included (default 4000)."
+    ),
     seed: int = typer.Option(0, "--seed", help="Seed of the engine's random key."),
     format: str | None = typer.Option(
         None, "--format", help="Reader format (default: detected or the data set's)."
@@ -119,7 +152,17 @@ def fit(
         )
     if epochs is not None and engine != "pf":
         raise fail("--epochs applies to --engine pf only")
-    options = {} if epochs is None else {"epochs": epochs}
+    if steps is not None and engine != "emcee":
+        raise fail("--steps applies to --engine emcee only")
+    if particles is not None and engine not in PARTICLE_ENGINES:
+        raise fail(
+            f"--particles applies to {' and '.join(PARTICLE_ENGINES)}; {engine} takes --draws"
+        )
+    options = {
+        name: value
+        for name, value in (("epochs", epochs), ("num_steps", steps))
+        if value is not None
+    }
     try:
         # Checked before reading any data, so a typo fails at once.
         get_engine(engine)
@@ -140,6 +183,9 @@ def fit(
                 engine=engine,
                 params=names,
                 num_particles=particles,
+                draws=draws,
+                chains=chains,
+                warmup=warmup,
                 window=window,
                 seed=seed,
                 max_vehicles=vehicles,
@@ -160,3 +206,11 @@ def fit(
         raise fail(f"cannot write {folder / 'result.nc'}: {error}") from None
     if not emit_json(result, json_out):
         _print(result, folder, ["result.nc", "summary.json", *(p.name for p in plots)])
+    problems = result["convergence"]["problems"]
+    if problems:
+        err_console.print(
+            f"[yellow]warning:[/yellow] {len(problems)} convergence problem(s) (listed in "
+            "summary.json under convergence; run longer or with more draws); exit code 3",
+            soft_wrap=True,
+        )
+        raise typer.Exit(NOT_CONVERGED)

@@ -52,7 +52,7 @@ from bayesdrive.inference.likelihood import (
     series_loglik,
     step_inputs,
 )
-from bayesdrive.inference.output import EngineResult, thinned_draws
+from bayesdrive.inference.output import EngineResult
 
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",
@@ -88,7 +88,6 @@ def run(
     num_steps: int = 4000,
     num_burn: int | None = None,
     num_walkers: int | None = None,
-    log_likelihood_draws: int = 200,
 ) -> EngineResult:
     """emcee for every vehicle of ``arrays`` (module docstring).
 
@@ -195,12 +194,9 @@ def run(
     started = time.perf_counter()
     common = min(*kept, num_particles)
     theta = np.stack([draws[-common:] for draws in chains])  # (vehicle, draw, d)
-    scored = thinned_draws(common, log_likelihood_draws)
     log_lik = np.stack(
         [
-            np.asarray(
-                pointwise(jnp.asarray(theta[i, scored], dtype=box.lower.dtype), vehicle_series(i))
-            )
+            np.asarray(pointwise(jnp.asarray(theta[i], dtype=box.lower.dtype), vehicle_series(i)))
             for i in range(num_vehicles)
         ]
     )  # (vehicle, draw, step)
@@ -220,7 +216,6 @@ def run(
             "seed": (("vehicle",), seeds),
         },
         log_likelihood=log_lik.transpose(1, 0, 2)[None],
-        log_likelihood_draws=scored,
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
@@ -228,7 +223,6 @@ def run(
             "num_burn": burn,
             "num_walkers": walkers,
             "move": "stretch (a = 2)",
-            "log_likelihood_draws": len(scored),
         },
     )
 

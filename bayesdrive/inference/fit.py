@@ -2,8 +2,13 @@
 
 Engines live in :data:`ENGINES` (name -> function). Every engine has the signature of
 :class:`Engine` and returns an :class:`~bayesdrive.inference.output.EngineResult`; ``fit`` adds
-the metadata and builds the one result layout of :mod:`bayesdrive.inference.output`, so another
-engine (nuts, emcee, lm) joins by adding itself to :data:`ENGINES`.
+the metadata, builds the one result layout of :mod:`bayesdrive.inference.output` and checks
+convergence (:mod:`bayesdrive.inference.convergence`), so another engine joins by adding itself
+to :data:`ENGINES` and :data:`INFERENCE_LIBRARY`.
+
+Sizes: the filters (:data:`PARTICLE_ENGINES`) take ``num_particles``; every other engine takes
+``draws`` (posterior draws in all), and the MCMC engines ``chains`` and ``warmup`` too
+(:data:`MCMC_OPTIONS` names them as each engine does).
 """
 
 from __future__ import annotations
@@ -21,10 +26,21 @@ from bayesdrive.data.views import FollowerArrays, MergeArrays, Window, follower_
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import ensemble, latent, lm, nuts, pf, population, smc
+from bayesdrive.inference.convergence import check_convergence, log_problems
 from bayesdrive.inference.likelihood import param_names
-from bayesdrive.inference.output import EngineResult, build_tree, metadata
+from bayesdrive.inference.output import EngineResult, build_tree, metadata, set_metadata
 
-__all__ = ["ENGINES", "Engine", "first_vehicles", "fit", "get_engine", "summary"]
+__all__ = [
+    "ENGINES",
+    "INFERENCE_LIBRARY",
+    "MCMC_OPTIONS",
+    "PARTICLE_ENGINES",
+    "Engine",
+    "first_vehicles",
+    "fit",
+    "get_engine",
+    "summary",
+]
 
 
 class Engine(Protocol):
@@ -54,6 +70,25 @@ ENGINES: dict[str, Engine] = {
     "hierarchical": population.run,
     "pmmh": latent.run,
 }
+# The package that draws each engine's samples (ArviZ's inference_library attribute).
+INFERENCE_LIBRARY = {
+    "smc": "bayesdrive",
+    "pf": "bayesdrive",
+    "nuts": "numpyro",
+    "emcee": "emcee",
+    "lm": "scipy",
+    "hierarchical": "numpyro",
+    "pmmh": "bayesdrive",
+}
+PARTICLE_ENGINES = ("smc", "pf")
+DEFAULT_SIZE = 1000
+# fit's chains and warmup as each MCMC engine calls them (emcee's chains are its walkers).
+MCMC_OPTIONS = {
+    "nuts": {"chains": "num_chains", "warmup": "num_warmup"},
+    "hierarchical": {"chains": "num_chains", "warmup": "num_warmup"},
+    "pmmh": {"chains": "num_chains", "warmup": "num_warmup"},
+    "emcee": {"chains": "num_walkers", "warmup": "num_burn"},
+}
 
 
 def get_engine(name: str) -> Engine:
@@ -70,7 +105,10 @@ def fit(
     model: DriverModel = IDM,
     engine: str = "smc",
     params: Sequence[str] | None = None,
-    num_particles: int = 1000,
+    num_particles: int | None = None,
+    draws: int | None = None,
+    chains: int | None = None,
+    warmup: int | None = None,
     window: Window = "fit",
     fixed: Mapping[str, float] | None = None,
     seed: int | None = None,
@@ -92,11 +130,16 @@ def fit(
     ``logpdf(theta)`` and ``sample(key, shape)``. ``max_vehicles`` keeps only the first vehicles
     that have usable steps (quick runs); ``vehicle_ids`` fits only those vehicles of a
     :class:`Trajectories` (their leaders are still read). ``progress(done, total)`` is called as vehicles finish.
-    ``engine_options`` go to the engine (e.g.
+    ``num_particles`` (smc, pf; default 1000) or ``draws`` (the other engines: posterior draws in
+    all, default 1000; ``num_particles`` is taken as ``draws`` there, as before), ``chains`` and
+    ``warmup`` (MCMC engines, :data:`MCMC_OPTIONS`) size the run. ``engine_options`` go to the engine (e.g.
     ``ess_threshold`` for smc, ``epochs`` for pf). Returns the result tree
-    (:mod:`bayesdrive.inference.output`).
+    (:mod:`bayesdrive.inference.output`); its metadata ``convergence`` holds the checks of
+    :func:`~bayesdrive.inference.convergence.check_convergence`, whose problems are also logged
+    as warnings.
     """
     run_engine = get_engine(engine)
+    size, sizes = _sizes(engine, num_particles, draws, chains, warmup)
     names = param_names(model, params)
     fixed = dict(fixed or {})
     both = sorted(set(fixed) & set(names))
@@ -119,18 +162,21 @@ def fit(
         model=model,
         params=names,
         fixed=fixed,
-        num_particles=num_particles,
+        num_particles=size,
         prior=prior,
         progress=progress,
+        **sizes,
         **engine_options,
     )
     defaults = {s.name: s.default for s in model.specs if s.name not in names}
-    return build_tree(
+    tree = build_tree(
         posterior=result.posterior,
         sample_stats=result.sample_stats,
         log_likelihood=result.log_likelihood,
-        log_likelihood_draws=result.log_likelihood_draws,
         arrays=arrays,
+        specs=model.specs,
+        prior=result.prior,
+        inference_library=INFERENCE_LIBRARY[engine],
         metadata={
             "engine": engine,
             "model": model.name,
@@ -142,7 +188,8 @@ def fit(
             "data_source": source,
             "data_format": data_format,
             "window": window,
-            "num_particles": num_particles,
+            **({"num_particles": size} if engine in PARTICLE_ENGINES else {}),
+            "units": {s.name: s.unit for s in model.specs},
             "num_vehicles": len(arrays.vehicle_ids),
             "usable_steps": int(np.asarray(arrays.mask).sum()),
             "flagged_samples": flagged,
@@ -154,6 +201,37 @@ def fit(
             "wall_time_s": result.wall_time_s,
         },
     )
+    report = check_convergence(tree)
+    log_problems(report)
+    set_metadata(tree, convergence=report.as_metadata())
+    return tree
+
+
+def _sizes(
+    engine: str,
+    num_particles: int | None,
+    draws: int | None,
+    chains: int | None,
+    warmup: int | None,
+) -> tuple[int, dict[str, int]]:
+    """The engine's ``num_particles`` argument (particles or draws) and its chain/warm-up options."""
+    if engine in PARTICLE_ENGINES:
+        if draws is not None or chains is not None or warmup is not None:
+            raise ValueError(
+                f"engine {engine!r} is sized by its particles (num_particles); draws apply to "
+                f"{', '.join(sorted(set(ENGINES) - set(PARTICLE_ENGINES)))}, chains and warmup "
+                f"to {', '.join(sorted(MCMC_OPTIONS))}"
+            )
+        return (DEFAULT_SIZE if num_particles is None else num_particles), {}
+    if num_particles is not None and draws is not None:
+        raise ValueError(f"engine {engine!r} takes draws, not both draws and num_particles")
+    size = next((n for n in (draws, num_particles) if n is not None), DEFAULT_SIZE)
+    given = {"chains": chains, "warmup": warmup}
+    names = MCMC_OPTIONS.get(engine, {})
+    unknown = [k for k, v in given.items() if v is not None and k not in names]
+    if unknown:
+        raise ValueError(f"engine {engine!r} has no {' or '.join(unknown)} option")
+    return size, {names[k]: v for k, v in given.items() if v is not None}
 
 
 def first_vehicles(arrays: FollowerArrays, count: int) -> FollowerArrays:
@@ -200,6 +278,9 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "params",
         "fixed",
         "num_particles",
+        "num_draws",
+        "num_chains",
+        "units",
         "data_source",
         "window",
         "flagged_samples",
@@ -210,9 +291,10 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "wall_time_s",
         "compile_time_s",
         "engine_options",
+        "convergence",
         "created_at",
     )
-    result = {**{k: meta.get(k) for k in keys}, "vehicles": vehicles}
+    result = {**{k: meta[k] for k in keys if k in meta}, "vehicles": vehicles}
     if "log_evidence" in stats:
         result["log_evidence"] = dict(
             zip(vehicle_ids, stats["log_evidence"].values.astype(float).tolist(), strict=True)

@@ -59,7 +59,7 @@ from bayesdrive.inference.likelihood import (
     static_key,
     step_inputs,
 )
-from bayesdrive.inference.output import EngineResult, thinned_draws
+from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.resampling import systematic
 from bayesdrive.inference.weights import effective_sample_size
 
@@ -477,7 +477,6 @@ def run(
     num_warmup: int = 1000,
     proposal_scale: float | Sequence[float] = 0.01,
     init: str | Array = "prior",
-    log_likelihood_draws: int = 100,
     vehicle_chunk: int = 16,
 ) -> EngineResult:
     """The ``pmmh`` engine of :func:`bayesdrive.inference.fit.fit`: :func:`pmmh` on ``arrays``.
@@ -489,11 +488,11 @@ def run(
     ``num_state_particles`` state particles. ``init`` is "prior" (independent prior draws),
     "defaults" (every chain at the model's defaults) or starting values broadcast to
     (chain, vehicle, param), e.g. from an exact-state fit. The ``log_likelihood`` group holds, for
-    ``log_likelihood_draws`` evenly spaced draws per chain, the filter's per-step log-increments
+    every draw, the filter's per-step log-increments
     log p(y[t+1] | earlier readings): Monte Carlo estimates, not exact densities. ``sample_stats``:
     ``acceptance_rate`` [chain, vehicle], ``log_likelihood_estimate`` [chain, draw, vehicle] (the
     estimate each draw carries) and ``filter_ess`` [vehicle, step] (the state filter's effective
-    sample size, averaged over the scored draws).
+    sample size, averaged over the draws).
     """
     if model.observation_logpdf is exact_observation_logpdf:
         raise ValueError(
@@ -526,10 +525,9 @@ def run(
         progress=progress,
     )
 
-    scored = thinned_draws(num_draws, log_likelihood_draws)
-    draws = np.moveaxis(result.samples[:, scored], 2, 0)  # (vehicle, chain, draw, d)
+    draws = np.moveaxis(result.samples, 2, 0)  # (vehicle, chain, draw, d)
     num_vehicles = draws.shape[0]
-    lanes = num_chains * len(scored)
+    lanes = num_chains * num_draws
     lane_keys = jax.vmap(lambda k: jax.random.split(k, lanes))(
         jax.random.split(score_key, num_vehicles)
     )
@@ -549,7 +547,7 @@ def run(
         if fixed_key is None
         else ("pmmh-score", model, names, fixed_key, num_state_particles),
     )
-    by_draw = (num_vehicles, num_chains, len(scored), -1)
+    by_draw = (num_vehicles, num_chains, num_draws, -1)
     increments, ess = increments.reshape(by_draw), ess.reshape(by_draw)
     return EngineResult(
         posterior={name: result.samples[..., i].astype(np.float64) for i, name in enumerate(names)},
@@ -560,7 +558,6 @@ def run(
         },
         # (vehicle, chain, draw, step) -> (chain, draw, vehicle, step)
         log_likelihood=np.moveaxis(increments, 0, 2),
-        log_likelihood_draws=scored,
         compile_time_s=result.compile_time_s + score_compile_time,
         wall_time_s=result.wall_time_s + score_run_time,
         options={
@@ -577,7 +574,6 @@ def run(
                 "offset": ADAPTATION_OFFSET,
                 "floor": ADAPTATION_FLOOR,
             },
-            "log_likelihood_draws": len(scored),
             "vehicle_chunk": vehicle_chunk,
         },
     )

@@ -159,8 +159,8 @@ def _score_draws(model, names, fixed, particles, series):
 def score_draws(
     model: DriverModel, names: tuple[str, ...], fixed: Any, particles: Array, series: StepInputs
 ) -> np.ndarray:
-    """Per-step log-likelihood (vehicle, draw, step) of draws (vehicle, draw, d): the result's
-    ``log_likelihood`` group (0 on masked steps)."""
+    """Per-step log-likelihood (vehicle, draw, step) of draws (vehicle, draw, d), on every padded
+    step (the result's ``log_likelihood`` group keeps the unmasked ones)."""
     return np.asarray(_score_draws(model, names, fixed, jnp.asarray(particles, float), series))
 
 

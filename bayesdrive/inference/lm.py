@@ -81,7 +81,6 @@ from bayesdrive.inference.output import (
     EngineResult,
     particle_log_likelihood,
     particle_posterior,
-    thinned_draws,
 )
 
 __all__ = ["ResidualSeries", "residual_series", "run"]
@@ -224,7 +223,6 @@ def run(
     num_particles: int = 1000,
     prior: Any = None,
     progress: Callable[[int, int], None] | None = None,
-    log_likelihood_draws: int = 200,
     max_nfev: int | None = None,
 ) -> EngineResult:
     """Levenberg-Marquardt per vehicle of ``arrays`` and Laplace draws (module docstring).
@@ -288,14 +286,13 @@ def run(
     # Compiled once per padded shape (and cached across runs with the same model and names).
     bounds = (jnp.asarray(lower, dtype=float), jnp.asarray(width, dtype=float))
     static = {"model": model, "names": fitted}
-    scored = thinned_draws(num_particles, log_likelihood_draws)
     steps = step_inputs(arrays)
     started = time.perf_counter()
     first = jax.tree.map(lambda a: a[0], series)
     z_example = jnp.zeros(len(fitted), dtype=first.v.dtype)
     for compiled in (_residuals, _jacobian):
         compiled.lower(z_example, first, fixed_values, *bounds, **static).compile()
-    draws_example = jnp.zeros((num_vehicles, len(scored), len(names)), dtype=first.v.dtype)
+    draws_example = jnp.zeros((num_vehicles, num_particles, len(names)), dtype=first.v.dtype)
     _score_draws.lower(draws_example, steps, fixed_values, model=model, names=names).compile()
     compile_time = time.perf_counter() - started
 
@@ -363,7 +360,7 @@ def run(
 
     log_likelihood = np.asarray(
         _score_draws(
-            jnp.asarray(draws[:, scored], dtype=float),
+            jnp.asarray(draws, dtype=float),
             steps,
             fixed_values,
             model=model,
@@ -391,12 +388,10 @@ def run(
             "seed": (vehicle, seeds),
         },
         log_likelihood=particle_log_likelihood(log_likelihood),
-        log_likelihood_draws=scored,
         compile_time_s=compile_time,
         wall_time_s=wall_time,
         options={
             "num_particles": num_particles,
-            "log_likelihood_draws": len(scored),
             "max_nfev": max_nfev,
             "starts": list(START_NAMES),
             "transform": "logit of the prior box",

@@ -62,7 +62,7 @@ from bayesdrive.inference.likelihood import (
     series_loglik,
     step_inputs,
 )
-from bayesdrive.inference.output import EngineResult, thinned_draws
+from bayesdrive.inference.output import EngineResult
 
 __all__ = ["INIT_RADIUS", "NUTSConfig", "NUTSDraws", "run", "sample_nuts"]
 
@@ -79,7 +79,6 @@ class NUTSConfig(NamedTuple):
     num_samples: int = 500
     target_accept_prob: float = 0.95
     max_tree_depth: int = 10
-    log_likelihood_draws: int = 200
     dense_mass: bool = False
 
 
@@ -165,7 +164,7 @@ def _box_model(
 
 class _VehicleOutput(NamedTuple):
     theta: Array  # (chain, draw, d)
-    log_likelihood: Array  # (chain, M, T) for M evenly spaced draws per chain
+    log_likelihood: Array  # (chain, draw, T)
     diverging: Array  # (chain, draw)
     tree_depth: Array
     num_steps: Array
@@ -204,13 +203,12 @@ def _nuts_vehicle(
     to_box = biject_to(dist.Uniform(box.lower, box.upper).support)
     theta = to_box(draws.z["theta"])
 
-    scored = jnp.asarray(thinned_draws(config.num_samples, config.log_likelihood_draws))
     per_draw = jax.vmap(jax.vmap(lambda th: series_loglik(model, names, fixed, th, series)))
     # NUTS builds trees of 2^k - 1 leapfrog steps: depth k = log2(steps + 1), rounded up.
     tree_depth = jnp.ceil(jnp.log2(draws.num_steps.astype(theta.dtype) + 1.0))
     return _VehicleOutput(
         theta=theta,
-        log_likelihood=per_draw(theta[:, scored]),
+        log_likelihood=per_draw(theta),
         diverging=draws.diverging,
         tree_depth=tree_depth,
         num_steps=draws.num_steps,
@@ -235,7 +233,6 @@ def run(
     num_warmup: int = 500,
     target_accept_prob: float = 0.95,
     max_tree_depth: int = 10,
-    log_likelihood_draws: int = 200,
     dense_mass: bool = False,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
@@ -264,7 +261,6 @@ def run(
         num_samples=num_samples,
         target_accept_prob=target_accept_prob,
         max_tree_depth=max_tree_depth,
-        log_likelihood_draws=min(log_likelihood_draws, num_samples),
         dense_mass=dense_mass,
     )
     per_vehicle = functools.partial(
@@ -301,7 +297,6 @@ def run(
             "step_size": (("vehicle", "chain"), out.step_size),
         },
         log_likelihood=out.log_likelihood.transpose(1, 2, 0, 3),
-        log_likelihood_draws=thinned_draws(num_samples, config.log_likelihood_draws),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={

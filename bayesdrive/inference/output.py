@@ -2,31 +2,39 @@
 
 Groups (dims in brackets):
 
-* ``posterior``: one variable per inferred parameter [chain, draw, vehicle]. Particle engines have
-  chain = 1 and draw = particle (equally weighted); MCMC engines fill real chains.
-* ``sample_stats``: engine diagnostics with explicit dims, e.g. ``ess`` [vehicle, step],
-  ``resampled`` [vehicle, step], ``log_evidence`` [vehicle], ``acceptance`` [vehicle, step].
-* ``log_likelihood``: variable ``dx`` [chain, draw, vehicle, step], the log-density of each observed
-  step (named after the observed position increment it scores) under each posterior draw, 0 on
-  masked steps, so ``arviz.loo`` and ``arviz.compare`` work on a result. Engines may score a thinned
-  set of draws; its ``draw`` coordinate then names the posterior draws scored.
+* ``posterior``: one variable per inferred parameter [chain, draw, vehicle], with ``units`` and
+  ``long_name`` attributes from the model's parameter specs. Particle engines have chain = 1 (or
+  one chain per independent replicate) and draw = particle (equally weighted); MCMC engines fill
+  real chains.
+* ``prior``: prior draws of the same variables [chain, draw, vehicle], where the engine has them.
+* ``sample_stats``: engine diagnostics with explicit dims, e.g. ``particle_ess`` [vehicle, step]
+  (the filters' effective particle count, not ArviZ's ``ess``), ``resampled`` [vehicle, step],
+  ``log_evidence`` [vehicle], ``acceptance`` [vehicle, step].
+* ``log_likelihood``: variable ``dx`` [chain, draw, obs] (float32), the log-density of each real
+  observed step (named after the observed position increment it scores) under every posterior
+  draw. ``obs`` runs over the unmasked (vehicle, step) pairs only and carries the non-dimension
+  coordinates ``vehicle``, ``step`` and ``t`` (s), so ``arviz.loo``, ``arviz.compare`` and
+  ArviZ's comparison plots work on a result as it is.
 * ``observed_data``: the :class:`~bayesdrive.data.views.FollowerArrays` the engine saw [vehicle, step].
 
-Root attributes hold the metadata (:data:`REQUIRED_METADATA` plus versions and creation time).
-A fit on read data also records ``input_sha256`` (file path -> sha256 of every input file) and
-``input_repairs`` (the changes the reader made to the input, ``Trajectories.repairs``).
-netCDF attributes take only strings and numbers, so lists, dicts, booleans and None are stored as
-JSON text; the attribute ``json_attrs`` names those, and :func:`metadata` decodes them. Opening a
-result needs nothing but xarray or ArviZ: ``xarray.open_datatree(path)`` or
-``arviz.from_netcdf(path)``.
+``posterior``, ``prior`` and ``sample_stats`` carry ArviZ's ``inference_library`` and
+``inference_library_version`` attributes. Root attributes hold the metadata
+(:data:`REQUIRED_METADATA`, plus ``num_chains`` and ``num_draws`` read off the posterior, versions
+and creation time). A fit on read data also records ``input_sha256`` (file path -> sha256 of every
+input file) and ``input_repairs`` (the changes the reader made to the input). netCDF attributes take only strings and numbers, so lists, dicts, booleans and
+None are stored as JSON text; the attribute ``json_attrs`` names those, and :func:`metadata`
+decodes them. Opening a result needs nothing but xarray or ArviZ: ``xarray.open_datatree(path)`` or
+``arviz.from_netcdf(path)``; :func:`load_result` also reads results saved in the older layout
+(padded, thinned log-likelihood; ``ess`` for ``particle_ess``) and says what it converted.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+import logging
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
-from importlib.metadata import version
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -35,6 +43,7 @@ import xarray as xr
 
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.data.views import SPLIT_RULE, FollowerArrays
+from bayesdrive.drivers.base import ParamSpec
 
 __all__ = [
     "OBSERVED_VARIABLE",
@@ -46,8 +55,11 @@ __all__ = [
     "particle_log_likelihood",
     "particle_posterior",
     "save_result",
+    "set_metadata",
     "thinned_draws",
 ]
+
+log = logging.getLogger(__name__)
 
 # The quantity the likelihood scores (see bayesdrive.drivers.idm); names the log_likelihood variable.
 OBSERVED_VARIABLE = "dx"
@@ -59,10 +71,11 @@ REQUIRED_METADATA = (
     "seed",
     "data_source",
     "window",
-    "num_particles",
     "flagged_samples",
 )
 _VERSIONED = ("bayesdrive", "jax", "numpyro", "arviz", "xarray")
+# Groups that describe draws, so ArviZ's provenance attributes belong on them.
+_DRAW_GROUPS = ("posterior", "prior", "sample_stats")
 
 
 class EngineResult(NamedTuple):
@@ -70,18 +83,20 @@ class EngineResult(NamedTuple):
 
     posterior: parameter name -> (chain, draw, vehicle).
     sample_stats: name -> (dims, values) with dims among vehicle, step, param, epoch, ...
-    log_likelihood: (chain, draw, vehicle, step) for the draws ``log_likelihood_draws`` (None: all).
+    log_likelihood: (chain, draw, vehicle, step), every posterior draw scored on every padded step
+    (values on masked steps are dropped by :func:`build_tree`).
     compile_time_s: time spent compiling; wall_time_s: the inference itself, compilation excluded.
     options: the engine's settings, recorded in the metadata.
+    prior: parameter name -> (chain, draw, vehicle) prior draws, where the engine makes them.
     """
 
     posterior: dict[str, np.ndarray]
     sample_stats: dict[str, tuple[tuple[str, ...], np.ndarray]]
     log_likelihood: np.ndarray
-    log_likelihood_draws: np.ndarray | None
     compile_time_s: float
     wall_time_s: float
     options: dict[str, Any]
+    prior: dict[str, np.ndarray] | None = None
 
 
 def thinned_draws(num_draws: int, num_scored: int) -> np.ndarray:
@@ -100,6 +115,51 @@ def particle_log_likelihood(log_lik: np.ndarray) -> np.ndarray:
     return np.asarray(log_lik).transpose(1, 0, 2)[None]
 
 
+def _draws_dataset(
+    draws: Mapping[str, np.ndarray], vehicles: list[str], specs: Sequence[ParamSpec], what: str
+) -> xr.Dataset:
+    """Parameter draws (chain, draw, vehicle) as a dataset, each with its spec's unit and name."""
+    first = np.shape(next(iter(draws.values())))
+    for name, values in draws.items():
+        if np.shape(values) != (*first[:2], len(vehicles)):
+            raise ValueError(
+                f"{what} {name!r} has shape {np.shape(values)}, expected "
+                f"(chain, draw, vehicle) = ({first[0]}, {first[1]}, {len(vehicles)})"
+            )
+    described = {s.name: {"units": s.unit, "long_name": s.doc} for s in specs}
+    return xr.Dataset(
+        {
+            name: xr.Variable(("chain", "draw", "vehicle"), np.asarray(v), described.get(name, {}))
+            for name, v in draws.items()
+        },
+        coords={"chain": np.arange(first[0]), "draw": np.arange(first[1]), "vehicle": vehicles},
+    )
+
+
+def _observations(log_likelihood: np.ndarray, arrays: FollowerArrays) -> xr.Dataset:
+    """The padded (chain, draw, vehicle, step) scores at the unmasked steps only: (chain, draw, obs)."""
+    vehicle, step = np.nonzero(np.asarray(arrays.mask) > 0)
+    values = np.asarray(log_likelihood)[:, :, vehicle, step].astype(np.float32)
+    return xr.Dataset(
+        {OBSERVED_VARIABLE: (("chain", "draw", "obs"), values)},
+        coords={
+            "chain": np.arange(values.shape[0]),
+            "draw": np.arange(values.shape[1]),
+            "obs": np.arange(len(vehicle)),
+            "vehicle": ("obs", np.asarray(arrays.vehicle_ids, dtype=str)[vehicle]),
+            "step": ("obs", step),
+            "t": ("obs", np.asarray(arrays.t)[vehicle, step], {"units": "s"}),
+        },
+    )
+
+
+def _version(name: str) -> str:
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_tree(
     *,
     posterior: Mapping[str, np.ndarray],
@@ -107,80 +167,68 @@ def build_tree(
     log_likelihood: np.ndarray,
     arrays: FollowerArrays,
     metadata: Mapping[str, Any],
-    log_likelihood_draws: np.ndarray | None = None,
+    specs: Sequence[ParamSpec] = (),
+    prior: Mapping[str, np.ndarray] | None = None,
+    inference_library: str = "bayesdrive",
 ) -> xr.DataTree:
     """Assemble the result tree; ``metadata`` needs :data:`REQUIRED_METADATA` (versions, creation
-    time and the split rule are added here)."""
+    time, the split rule and the chain and draw counts are added here). ``specs`` give the
+    posterior's units and long names; ``inference_library`` names the package that drew the
+    samples (a distribution name, for its version)."""
     missing = [k for k in REQUIRED_METADATA if k not in metadata]
     if missing:
         raise ValueError(f"result metadata lacks {missing}")
     num_vehicles, num_steps = arrays.mask.shape
-    coords = {
-        "vehicle": list(arrays.vehicle_ids),
-        "step": np.arange(num_steps),
-        "param": list(metadata["params"]),
-    }
-
-    first = next(iter(posterior.values()))
-    num_chains, num_draws, _ = np.shape(first)
-    for name, values in posterior.items():
-        if np.shape(values) != (num_chains, num_draws, num_vehicles):
-            raise ValueError(
-                f"posterior {name!r} has shape {np.shape(values)}, expected "
-                f"(chain, draw, vehicle) = ({num_chains}, {num_draws}, {num_vehicles})"
-            )
-    draw_coords = {"chain": np.arange(num_chains), "draw": np.arange(num_draws)}
-    posterior_ds = xr.Dataset(
-        {name: (("chain", "draw", "vehicle"), np.asarray(v)) for name, v in posterior.items()},
-        coords={**draw_coords, "vehicle": coords["vehicle"]},
-    )
-
-    scored = np.arange(num_draws) if log_likelihood_draws is None else log_likelihood_draws
-    expected = (num_chains, len(scored), num_vehicles, num_steps)
+    vehicles = list(arrays.vehicle_ids)
+    posterior_ds = _draws_dataset(posterior, vehicles, specs, "posterior")
+    num_chains, num_draws = posterior_ds.sizes["chain"], posterior_ds.sizes["draw"]
+    expected = (num_chains, num_draws, num_vehicles, num_steps)
     if np.shape(log_likelihood) != expected:
         raise ValueError(
-            f"log_likelihood has shape {np.shape(log_likelihood)}, expected "
-            f"(chain, draw, vehicle, step) = {expected}"
+            f"log_likelihood has shape {np.shape(log_likelihood)}, expected every posterior draw "
+            f"on every padded step: (chain, draw, vehicle, step) = {expected}"
         )
-    log_lik_ds = xr.Dataset(
-        {OBSERVED_VARIABLE: (("chain", "draw", "vehicle", "step"), np.asarray(log_likelihood))},
-        coords={
-            "chain": draw_coords["chain"],
-            "draw": np.asarray(scored),
-            "vehicle": coords["vehicle"],
-            "step": coords["step"],
-        },
-    )
 
     stats_ds = xr.Dataset(
         {name: (dims, np.asarray(values)) for name, (dims, values) in sample_stats.items()}
     )
-    used_dims = set(stats_ds.dims)
-    stats_ds = stats_ds.assign_coords({d: c for d, c in coords.items() if d in used_dims})
+    coords = {"vehicle": vehicles, "step": np.arange(num_steps), "param": list(metadata["params"])}
+    stats_ds = stats_ds.assign_coords({d: c for d, c in coords.items() if d in stats_ds.dims})
 
     observed_ds = xr.Dataset(
         {
             name: (("vehicle", "step"), np.asarray(getattr(arrays, name)))
             for name in ("t", "v", "next_v", "dx", "gap", "lead_v", "has_leader", "mask")
         },
-        coords={"vehicle": coords["vehicle"], "step": coords["step"]},
+        coords={"vehicle": vehicles, "step": coords["step"]},
         attrs={"dt": float(arrays.dt)},
     )
 
+    groups = {
+        "posterior": posterior_ds,
+        "sample_stats": stats_ds,
+        "log_likelihood": _observations(log_likelihood, arrays),
+        "observed_data": observed_ds,
+    }
+    if prior is not None:
+        groups["prior"] = _draws_dataset(prior, vehicles, specs, "prior")
+    provenance = {
+        "inference_library": inference_library,
+        "inference_library_version": _version(inference_library),
+    }
+    for name in _DRAW_GROUPS:
+        if name in groups:
+            groups[name].attrs.update(provenance)
+
     attrs = {
         **metadata,
+        "num_chains": num_chains,
+        "num_draws": num_chains * num_draws,
         "split_rule": SPLIT_RULE,
-        "versions": {name: version(name) for name in _VERSIONED},
+        "versions": {name: _version(name) for name in _VERSIONED},
         "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
     }
-    tree = xr.DataTree.from_dict(
-        {
-            "posterior": posterior_ds,
-            "sample_stats": stats_ds,
-            "log_likelihood": log_lik_ds,
-            "observed_data": observed_ds,
-        }
-    )
+    tree = xr.DataTree.from_dict(groups)
     tree.attrs = _encode_attrs(attrs)
     return tree
 
@@ -204,6 +252,11 @@ def metadata(tree: xr.DataTree) -> dict[str, Any]:
     return {k: json.loads(v) if k in as_json else v for k, v in attrs.items()}
 
 
+def set_metadata(tree: xr.DataTree, **values: Any) -> None:
+    """Add or replace root metadata entries (encoded as :func:`build_tree` encodes them)."""
+    tree.attrs = _encode_attrs({**metadata(tree), **values})
+
+
 def save_result(tree: xr.DataTree, path: str | Path) -> Path:
     """Write the tree as netCDF (h5netcdf) atomically: a crash leaves no partial file."""
     path = Path(path)
@@ -212,5 +265,51 @@ def save_result(tree: xr.DataTree, path: str | Path) -> Path:
 
 
 def load_result(path: str | Path) -> xr.DataTree:
-    """Read a saved result fully into memory (the file is closed again)."""
-    return xr.load_datatree(Path(path), engine="h5netcdf")
+    """Read a saved result fully into memory (the file is closed again); a result of the older
+    layout is converted to the current one, with a logged note of what changed."""
+    path = Path(path)
+    tree = xr.load_datatree(path, engine="h5netcdf")
+    return _upgrade(tree, path)
+
+
+def _upgrade(tree: xr.DataTree, path: Path) -> xr.DataTree:
+    """Older results: log-likelihood padded to (vehicle, step) and thinned, filters' ``ess``.
+    Slim files without a log-likelihood (the posterior-only model cards) are returned as read."""
+    if "log_likelihood" not in tree.children:
+        return tree
+    log_lik = tree["log_likelihood"].to_dataset()
+    if "obs" in log_lik.dims:
+        return tree
+    if "step" not in log_lik.dims or "observed_data" not in tree.children:
+        raise ValueError(
+            f"{path}: unknown log_likelihood layout {dict(log_lik.sizes)} (expected dims chain, "
+            "draw, obs, or the older chain, draw, vehicle, step beside observed_data)"
+        )
+    mask = tree["observed_data"]["mask"].values > 0
+    vehicle, step = np.nonzero(mask)
+    observed = tree["observed_data"].to_dataset()
+    flat = log_lik[OBSERVED_VARIABLE].values[:, :, vehicle, step].astype(np.float32)
+    upgraded = xr.Dataset(
+        {OBSERVED_VARIABLE: (("chain", "draw", "obs"), flat)},
+        coords={
+            "chain": log_lik["chain"].values,
+            "draw": log_lik["draw"].values,
+            "obs": np.arange(len(vehicle)),
+            "vehicle": ("obs", observed["vehicle"].values.astype(str)[vehicle]),
+            "step": ("obs", step),
+            "t": ("obs", observed["t"].values[vehicle, step], {"units": "s"}),
+        },
+    )
+    notes = [f"log_likelihood flattened to the {len(vehicle)} unmasked steps"]
+    if log_lik.sizes["draw"] != tree["posterior"].sizes["draw"]:
+        notes.append(
+            f"it scores {log_lik.sizes['draw']} of the posterior's "
+            f"{tree['posterior'].sizes['draw']} draws per chain (refit for PSIS-LOO on all)"
+        )
+    tree["log_likelihood"] = xr.DataTree(upgraded)
+    stats = tree["sample_stats"].to_dataset()
+    if "ess" in stats and "step" in stats["ess"].dims:
+        tree["sample_stats"] = xr.DataTree(stats.rename({"ess": "particle_ess"}))
+        notes.append("sample_stats.ess renamed particle_ess")
+    log.warning("%s has the older result layout; converted in memory: %s", path, "; ".join(notes))
+    return tree

@@ -57,7 +57,6 @@ from bayesdrive.inference.output import (
     EngineResult,
     particle_log_likelihood,
     particle_posterior,
-    thinned_draws,
 )
 from bayesdrive.inference.resampling import count_distinct_sorted, systematic
 from bayesdrive.inference.weights import (
@@ -215,7 +214,6 @@ def run(
     progress: Callable[[int, int], None] | None = None,
     epochs: int = 1,
     grid_steps: Mapping[str, float] | None = None,
-    log_likelihood_draws: int = 200,
     vehicle_chunk: int = 64,
 ) -> EngineResult:
     """The paper's filter (module docstring) over every vehicle of ``arrays``.
@@ -223,7 +221,8 @@ def run(
     Vehicles are sorted by the length of their series and run ``vehicle_chunk`` at a time,
     vectorised; steps where no vehicle of a chunk has data are skipped. Every vehicle keeps its
     own random stream, so results do not depend on the order or the chunk size. ``prior``
-    (default the model's uniform box) gives epoch 0's particles, snapped to the grid.
+    (default the model's uniform box) gives epoch 0's particles, snapped to the grid; those draws,
+    before snapping, are the result's ``prior`` group.
     """
     check_model(model)
     names = param_names(model, params)
@@ -292,13 +291,12 @@ def run(
         start = pool[jax.random.randint(key_pool, start.shape[:2], 0, pool.shape[0])]
 
     particles = grid.values(out.index)
-    scored = thinned_draws(num_particles, log_likelihood_draws)
-    log_lik = score_draws(model, names, fixed_values, particles[:, scored], series)
+    log_lik = score_draws(model, names, fixed_values, particles, series)
     vehicle_step = ("vehicle", "step")
     return EngineResult(
         posterior=particle_posterior(names, particles),
         sample_stats={
-            "ess": (vehicle_step, out.ess),
+            "particle_ess": (vehicle_step, out.ess),
             "resampled": (vehicle_step, np.asarray(arrays.mask) > 0),
             "unique_particles": (vehicle_step, out.unique),
             "particle_mean": (("vehicle", "step", "param"), out.mean),
@@ -308,7 +306,7 @@ def run(
             "epoch_pooled_mean": (("epoch", "param"), np.stack(pooled_means)),
         },
         log_likelihood=particle_log_likelihood(log_lik),
-        log_likelihood_draws=scored,
+        prior=particle_posterior(names, np.asarray(draws)),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
@@ -317,7 +315,6 @@ def run(
             "grid_steps": dict(zip(names, grid.step.tolist(), strict=True)),
             "resampler": "systematic",
             "dither": "uniform {-1, 0, +1} grid steps per parameter, clipped to the grid",
-            "log_likelihood_draws": len(scored),
             "vehicle_chunk": vehicle_chunk,
         },
     )

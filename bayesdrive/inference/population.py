@@ -63,7 +63,7 @@ from bayesdrive.inference.likelihood import (
     step_inputs,
 )
 from bayesdrive.inference.nuts import INIT_RADIUS, NUTSConfig, sample_nuts
-from bayesdrive.inference.output import EngineResult, thinned_draws
+from bayesdrive.inference.output import EngineResult
 
 __all__ = [
     "MU_PRIOR_SD",
@@ -138,7 +138,6 @@ def run(
     num_warmup: int = 500,
     target_accept_prob: float = 0.95,
     max_tree_depth: int = 10,
-    log_likelihood_draws: int = 200,
     centred: bool = False,
 ) -> EngineResult:
     """Fit the hierarchical population model (module docstring) jointly to all vehicles.
@@ -165,7 +164,6 @@ def run(
         num_samples=num_samples,
         target_accept_prob=target_accept_prob,
         max_tree_depth=max_tree_depth,
-        log_likelihood_draws=min(log_likelihood_draws, num_samples),
     )
 
     def log_lik(theta: Array, vehicle: Any) -> Array:
@@ -176,7 +174,6 @@ def run(
     def potential_fn_gen(series: Any):
         return lambda z: potential_energy(joint, (series,), {}, z)
 
-    scored = jnp.asarray(thinned_draws(num_samples, config.log_likelihood_draws))
     every_vehicle = jax.vmap(
         lambda th, vehicle: series_loglik(model, names, fixed_values, th, vehicle)
     )
@@ -200,7 +197,7 @@ def run(
         theta = values["theta"]  # (chain, draw, vehicle, K)
         mu, tau = values["mu"], values["tau_pop"]
         z_new = mu + tau * jax.random.normal(key_new, mu.shape, dtype=mu.dtype)
-        log_likelihood = jax.vmap(jax.vmap(lambda th: every_vehicle(th, series)))(theta[:, scored])
+        log_likelihood = jax.vmap(jax.vmap(lambda th: every_vehicle(th, series)))(theta)
         return draws, theta, mu, tau, z_new, log_likelihood
 
     started = time.perf_counter()
@@ -235,7 +232,6 @@ def run(
             "population_new_driver": (population_dims, natural(z_new)),
         },
         log_likelihood=np.asarray(log_likelihood),
-        log_likelihood_draws=np.asarray(scored),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={**config._asdict(), "population_priors": POPULATION_PRIORS},

@@ -82,7 +82,6 @@ from bayesdrive.inference.output import (
     EngineResult,
     particle_log_likelihood,
     particle_posterior,
-    thinned_draws,
 )
 from bayesdrive.inference.resampling import count_distinct_sorted, systematic
 from bayesdrive.inference.weights import (
@@ -425,7 +424,6 @@ def run(
     decorrelation: float = 0.1,
     target_acceptance: float = 0.234,
     replicates: int = 1,
-    log_likelihood_draws: int = 200,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
 ) -> EngineResult:
@@ -434,9 +432,7 @@ def run(
     ``prior`` is any object with ``logpdf(theta)`` and ``sample(key, shape)`` over the inferred
     parameters (default: the model's uniform prior box); if it has ``lower`` and ``upper`` the
     moves work on their logit scale. ``replicates`` independent runs of ``num_particles`` each
-    become the posterior's chains. The log-likelihood group scores
-    ``min(log_likelihood_draws, num_particles)`` evenly spaced draws of each replicate's equally
-    weighted final particles (a thinned but still exact posterior sample).
+    become the posterior's chains. The log-likelihood group scores every final particle.
     """
     check_model(model)
     names = param_names(model, params)
@@ -498,11 +494,8 @@ def run(
     theta = out.theta.reshape(replicates, num_vehicles, *out.theta.shape[1:])
     first = jax.tree.map(lambda a: a[:num_vehicles], out)  # the sequential pass of replicate 0
     replicate_log_evidence = out.log_evidence.reshape(replicates, num_vehicles)
-    scored = thinned_draws(num_particles, log_likelihood_draws)
     log_lik = [
-        particle_log_likelihood(
-            score_draws(model, names, fixed_values, theta[r][:, scored], series)
-        )
+        particle_log_likelihood(score_draws(model, names, fixed_values, theta[r], series))
         for r in range(replicates)
     ]
     posteriors = [particle_posterior(names, theta[r]) for r in range(replicates)]
@@ -510,7 +503,7 @@ def run(
     return EngineResult(
         posterior={name: np.concatenate([p[name] for p in posteriors]) for name in names},
         sample_stats={
-            "ess": (vehicle_step, first.ess),
+            "particle_ess": (vehicle_step, first.ess),
             "resampled": (vehicle_step, first.resampled),
             "acceptance": (vehicle_step, first.acceptance),
             "unique_particles": (vehicle_step, first.unique),
@@ -539,14 +532,12 @@ def run(
             ),
         },
         log_likelihood=np.concatenate(log_lik),
-        log_likelihood_draws=scored,
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
             **config._asdict(),
             "replicates": replicates,
             "resampler": "systematic",
-            "log_likelihood_draws": len(scored),
             "vehicle_chunk": vehicle_chunk,
             "vehicle_batch": vehicle_batch,
         },

@@ -68,7 +68,7 @@ def _title(tree: xr.DataTree, what: str) -> str:
 
 def plot_ess(tree: xr.DataTree, path: str | Path) -> Path:
     """Effective sample size / N before resampling at each step."""
-    values, seconds = _traces(tree, "ess")
+    values, seconds = _traces(tree, "particle_ess")
     particles = float(tree.attrs["num_particles"])
 
     def build(ax: Axes) -> None:
@@ -109,7 +109,7 @@ def write_filter_plots(tree: xr.DataTree, out_dir: str | Path) -> list[Path]:
     """All three pictures into ``out_dir``: ess.png, unique_particles.png, convergence.png; none
     for a result without per-step filter statistics (the MCMC engines and lm: ``diagnose`` is
     their picture)."""
-    if "sample_stats" not in tree.children or "ess" not in tree["sample_stats"].data_vars:
+    if "sample_stats" not in tree.children or "particle_ess" not in tree["sample_stats"].data_vars:
         return []
     out_dir = Path(out_dir)
     return [

@@ -222,7 +222,6 @@ def lm_policy(
         params=names,
         progress=progress,
         num_particles=1,
-        log_likelihood_draws=1,
     )
     estimate = fit.sample_stats["estimate"][1]
     by_vehicle = {

@@ -1,0 +1,133 @@
+"""Convergence checks that :func:`bayesdrive.inference.fit.fit` runs after every fit.
+
+Each check applies where it means something, per vehicle and parameter (numbers from
+:func:`~bayesdrive.inference.agreement.convergence_table`):
+
+* ``rhat``: rank-normalised split R-hat above :data:`RHAT_MAX`, with two or more chains (NUTS
+  chains, PMMH chains, hierarchical chains, SMC replicates);
+* ``ess_bulk`` / ``ess_tail``: bulk or tail effective sample size below :data:`ESS_MIN`, for
+  engines whose draws form Markov chains (:data:`MARKOV_ENGINES`); a filter's particles have no
+  order along which autocorrelation would mean anything;
+* ``autocorr``: an emcee run shorter than 50 integrated autocorrelation times of the parameter
+  after burn-in (:data:`~bayesdrive.inference.ensemble.AUTOCORR_RELIABLE_FACTOR`);
+* ``replicate_spread``: with several SMC replicates, the ESS that the spread of their means
+  implies (:func:`~bayesdrive.inference.agreement.mcse_mean`) below :data:`ESS_MIN`.
+
+One-replicate smc, pf and lm have nothing to check against: :func:`check_convergence` says so
+in its ``unchecked`` note rather than passing them silently.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any, NamedTuple
+
+import xarray as xr
+
+from bayesdrive.inference.agreement import convergence_table
+from bayesdrive.inference.ensemble import AUTOCORR_RELIABLE_FACTOR
+from bayesdrive.inference.output import metadata
+
+__all__ = [
+    "ESS_MIN",
+    "MARKOV_ENGINES",
+    "RHAT_MAX",
+    "ConvergenceProblem",
+    "ConvergenceReport",
+    "check_convergence",
+    "log_problems",
+]
+
+log = logging.getLogger(__name__)
+
+RHAT_MAX = 1.01
+ESS_MIN = 400.0
+MARKOV_ENGINES = ("nuts", "emcee", "hierarchical", "pmmh")
+# Problems logged one by one; the rest are counted (all of them are in the metadata).
+LOGGED_PROBLEMS = 10
+
+
+class ConvergenceProblem(NamedTuple):
+    """One failed check for one vehicle and parameter."""
+
+    vehicle: str
+    param: str
+    check: str
+    value: float
+    limit: float
+
+    def message(self) -> str:
+        relation = "above" if self.check == "rhat" else "below"
+        what = {
+            "rhat": "R-hat",
+            "ess_bulk": "bulk ESS",
+            "ess_tail": "tail ESS",
+            "autocorr": "run length in autocorrelation times",
+            "replicate_spread": "ESS implied by the spread of the SMC replicates",
+        }[self.check]
+        return (
+            f"vehicle {self.vehicle}, parameter {self.param}: {what} {self.value:.4g} is "
+            f"{relation} {self.limit:g}"
+        )
+
+
+class ConvergenceReport(NamedTuple):
+    """The checks that ran, what failed, and why some could not run (None: all applicable ran)."""
+
+    checks: list[str]
+    problems: list[ConvergenceProblem]
+    unchecked: str | None
+
+    def as_metadata(self) -> dict[str, Any]:
+        return {
+            "checks": self.checks,
+            "problems": [p._asdict() for p in self.problems],
+            "unchecked": self.unchecked,
+        }
+
+
+def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
+    """Run every check that applies to ``tree`` (module docstring); nothing is logged here."""
+    meta = metadata(tree)
+    engine = meta.get("engine")
+    replicates = (meta.get("engine_options") or {}).get("replicates", 1)
+    table = convergence_table(tree)
+    checks: list[str] = []
+    problems: list[ConvergenceProblem] = []
+
+    def flag(check: str, column: str, limit: float, above: bool) -> None:
+        checks.append(check)
+        for row in table.itertuples():
+            value = float(getattr(row, column))
+            if math.isnan(value) or (value > limit if above else value < limit):
+                problems.append(ConvergenceProblem(row.vehicle, row.param, check, value, limit))
+
+    if tree["posterior"].sizes["chain"] >= 2:
+        flag("rhat", "rhat", RHAT_MAX, above=True)
+    if engine in MARKOV_ENGINES:
+        flag("ess_bulk", "ess_bulk", ESS_MIN, above=False)
+        flag("ess_tail", "ess_tail", ESS_MIN, above=False)
+    if "autocorr_time" in table:
+        options = meta.get("engine_options") or {}
+        sampled = options["num_steps"] - options["num_burn"]
+        table["run_over_tau"] = sampled / table["autocorr_time"]
+        flag("autocorr", "run_over_tau", AUTOCORR_RELIABLE_FACTOR, above=False)
+    if engine == "smc" and replicates > 1:
+        flag("replicate_spread", "ess_mean", ESS_MIN, above=False)
+    unchecked = None
+    if not checks:
+        unchecked = (
+            f"{engine} with one chain of independent-looking draws: no R-hat, ESS or replicate "
+            "check applies (smc: use replicates > 1)"
+        )
+    return ConvergenceReport(checks, problems, unchecked)
+
+
+def log_problems(report: ConvergenceReport) -> None:
+    """One warning per problem (the first :data:`LOGGED_PROBLEMS`), then how many more."""
+    for problem in report.problems[:LOGGED_PROBLEMS]:
+        log.warning("not converged: %s", problem.message())
+    hidden = len(report.problems) - LOGGED_PROBLEMS
+    if hidden > 0:
+        log.warning("... and %d more convergence problem(s), listed in the metadata", hidden)
