@@ -33,6 +33,7 @@ def test_fit_writes_result_summary_and_plots(data_dir, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == [
         "convergence.png",
         "ess.png",
+        "manifest.json",
         "result.nc",
         "summary.json",
         "unique_particles.png",

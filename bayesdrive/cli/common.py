@@ -82,6 +82,14 @@ def _terminated(signum: int, frame: Any) -> None:
     raise SystemExit(128 + signum)
 
 
+def exit_cleanly_on_sigterm() -> None:
+    """Until the command ends, SIGTERM exits with code 143 after removing temporary files."""
+    stack, _ = _scope.get()
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminated)
+        stack.callback(signal.signal, signal.SIGTERM, previous)
+
+
 def results_folder(
     out: str | Path,
     command: str,
@@ -93,15 +101,13 @@ def results_folder(
 ) -> ResultsFolder:
     """Check OUT before any work and open its staging folder (:mod:`bayesdrive.data.outputs`).
 
-    The arguments recorded are the command's own (less where the result goes) unless given. Until
-    the command ends, SIGTERM exits with code 143 after removing temporary files.
+    The arguments recorded are the command's own (less where the result goes) unless given.
+    SIGTERM is handled as :func:`exit_cleanly_on_sigterm` says.
     """
     stack, kwargs = _scope.get()
     if arguments is None:
         arguments = {k: v for k, v in kwargs.items() if k not in NOT_IDENTITY}
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _terminated)
-        stack.callback(signal.signal, signal.SIGTERM, previous)
+    exit_cleanly_on_sigterm()
     try:
         folder = open_results(
             out, command, arguments, force=force, resumable=resumable, update=update
