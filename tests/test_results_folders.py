@@ -266,3 +266,14 @@ def test_simulate_refuses_a_complete_folder_without_force(tmp_path):
     assert json.loads((out / MANIFEST).read_text())["files"] == sorted(
         ["scenes.nc", "speed_gap_kde.png", "summary.json", "sweep.png"]
     )
+
+
+def test_a_second_run_into_the_same_folder_is_refused_while_the_first_is_alive(tmp_path):
+    out = tmp_path / "r"
+    with open_results(out, "sim", {"seed": 1}, force=False, resumable=True) as first:
+        with pytest.raises(OutputError, match="being written by another run now"):
+            open_results(out, "sim", {"seed": 1}, force=True)
+        assert (first.path / MANIFEST).exists()  # --force did not discard a live run's folder
+    # Once the first run is gone (here: left without a commit), its folder resumes.
+    with open_results(out, "sim", {"seed": 1}, force=False, resumable=True) as second:
+        assert second.resumed

@@ -14,11 +14,13 @@ A complete OUT is refused unless ``force``; with ``force`` the new folder replac
 (OUT is renamed to ``.OUT.replaced``, the staging folder to OUT, then the old one is removed; a
 kill between the two renames is repaired by the next run, which puts the old folder back). A
 folder holding files but no manifest was not written by a command here and is never replaced.
-Every file inside is written with :func:`bayesdrive.data.atomic.write_atomic`.
+Every file inside is written with :func:`bayesdrive.data.atomic.write_atomic`. A run holds a lock
+on its staging folder, so a second run into the same OUT is refused while the first is alive.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -125,6 +127,20 @@ def _recover(target: Path) -> None:
         os.rename(replaced, target)  # killed before the new one moved in: the old one is back
 
 
+def _lock(staging: Path) -> int:
+    """An exclusive lock on the staging folder, released when its descriptor closes (or the
+    process dies); refused while another run holds it."""
+    descriptor = os.open(staging, os.O_RDONLY)
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(descriptor)
+        raise OutputError(
+            f"{staging} is being written by another run now; wait for it, or choose another --out"
+        ) from None
+    return descriptor
+
+
 @contextmanager
 def _signals_held() -> Iterator[None]:
     """SIGTERM and SIGINT wait until the enclosed renames are done (main thread only)."""
@@ -152,6 +168,7 @@ class ResultsFolder:
         replaces: bool,
         resumed: bool,
         resumable: bool,
+        lock: int,
     ) -> None:
         self.target = target
         self.path = staging_path(target)
@@ -161,6 +178,7 @@ class ResultsFolder:
         self.resumed = resumed
         self.resumable = resumable
         self.committed = False
+        self._lock = lock
 
     def _manifest(self, complete: bool) -> dict[str, Any]:
         manifest = {
@@ -201,12 +219,19 @@ class ResultsFolder:
     def discard(self) -> None:
         shutil.rmtree(self.path, ignore_errors=True)
 
+    def close(self) -> None:
+        """Remove the staging folder unless committed or resumable; release the lock."""
+        if not self.committed and not self.resumable:
+            self.discard()
+        if self._lock >= 0:
+            os.close(self._lock)
+            self._lock = -1
+
     def __enter__(self) -> ResultsFolder:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if not self.committed and not self.resumable:
-            self.discard()
+        self.close()
 
 
 def open_results(
@@ -251,6 +276,7 @@ def open_results(
         if staging.exists() or staging.is_symlink():
             if not staging.is_dir() or staging.is_symlink():
                 raise OutputError(f"{staging} is in the way of the staging folder; remove it")
+            os.close(_lock(staging))  # refused if a live run is writing it
             staged = read_manifest(staging)
             differ = "" if staged is None else _differences(staged, command, arguments)
             if differ and not force:
@@ -275,6 +301,7 @@ def open_results(
             replaces=replaces,
             resumed=resumed,
             resumable=resumable,
+            lock=_lock(staging),
         )
         folder.start()
     except OSError as error:
