@@ -74,6 +74,8 @@ def criticize_command(
     from bayesdrive.drivers.extensions import CAUSES
     from bayesdrive.drivers.registry import get_model
 
+    check_json_out(json_out)
+    results = None if out is None else results_folder(out, "criticize", force=force)
     try:
         traj = _load(data, format)
     except (DataError, FileNotFoundError) as error:
@@ -110,8 +112,6 @@ def criticize_command(
             f"{config.num_particles}, {rollouts}, {config.unmoved_tolerance}"
         )
 
-    check_json_out(json_out)
-    results = None if out is None else results_folder(out, "criticize", force=force)
     quiet = json_out == "-"
     with Progress(
         SpinnerColumn(),
