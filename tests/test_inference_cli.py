@@ -93,7 +93,11 @@ def test_fit_runs_the_cross_check_engines(data_dir, tmp_path, engine):
     args += ["--particles", "200", "--params", "v_des,sigma", "--seed", "2", "--out", str(tmp_path)]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.nc", "summary.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "manifest.json",
+        "result.nc",
+        "summary.json",
+    ]
     tree = load_result(tmp_path / "result.nc")
     assert metadata(tree)["engine"] == engine
     assert "wrote result.nc, summary.json to" in one_line(result.stdout)
