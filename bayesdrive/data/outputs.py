@@ -210,6 +210,8 @@ class ResultsFolder:
             try:
                 os.rename(self.path, self.target)  # over an empty folder too
             except OSError as error:
+                if self.replaces:
+                    os.rename(replaced, self.target)
                 raise OutputError(f"cannot move the result into {self.target}: {error}") from None
             if self.replaces:
                 shutil.rmtree(replaced)
@@ -255,6 +257,8 @@ def open_results(
     arguments = _plain(arguments)
     try:
         _check_place(target)
+        if staging.is_dir() and not staging.is_symlink():
+            os.close(_lock(staging))  # refused while a live run writes it (or commits it)
         _recover(target)
         replaces = target.is_dir() and any(target.iterdir())
         if replaces:
@@ -276,7 +280,6 @@ def open_results(
         if staging.exists() or staging.is_symlink():
             if not staging.is_dir() or staging.is_symlink():
                 raise OutputError(f"{staging} is in the way of the staging folder; remove it")
-            os.close(_lock(staging))  # refused if a live run is writing it
             staged = read_manifest(staging)
             differ = "" if staged is None else _differences(staged, command, arguments)
             if differ and not force:
