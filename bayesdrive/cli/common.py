@@ -40,7 +40,7 @@ def emit_json(result: Any, out: str | None) -> bool:
 
 
 def check_json_out(out: str | None) -> None:
-    """Refuse a --json OUT that cannot be written, before any work (a folder, a missing place)."""
+    """Refuse, before any work, a --json OUT that names a folder or lies under a file."""
     if out is None or out == "-":
         return
     path = Path(out)
