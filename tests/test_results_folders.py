@@ -70,8 +70,9 @@ def leftovers(folder: Path) -> list[str]:
     return [str(p) for p in folder.rglob("*.tmp-*")]
 
 
-def start_and_kill(args: list[str], out: Path, sig: int, delay: float) -> int:
-    """Run ``bayesdrive ARGS``; ``delay`` s after its staging folder appears, send ``sig``."""
+def start_and_kill(args: list[str], out: Path, sig: int, delay: float, after: str) -> int:
+    """Run ``bayesdrive ARGS``; ``delay`` s after the file ``after`` appears in its staging
+    folder, send ``sig``."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "MPLBACKEND": "Agg"}
     process = subprocess.Popen(
         [sys.executable, "-c", "from bayesdrive.cli.main import app; app()", *args],
@@ -79,10 +80,10 @@ def start_and_kill(args: list[str], out: Path, sig: int, delay: float) -> int:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    manifest = staging_path(out) / MANIFEST
+    sign = staging_path(out) / after
     deadline = time.monotonic() + 180
-    while not manifest.exists() and process.poll() is None:
-        assert time.monotonic() < deadline, "the fit never started its staging folder"
+    while not sign.exists() and process.poll() is None:
+        assert time.monotonic() < deadline, f"the fit never wrote {sign}"
         time.sleep(0.02)
     time.sleep(delay)
     process.send_signal(sig)
@@ -110,10 +111,12 @@ def test_sigkill_at_a_random_moment_leaves_the_old_or_the_new_result(
     old_result, data_dir, tmp_path
 ):
     out = copy_of(old_result, tmp_path / "fit")
-    delay = random.Random(KILL_SEED).uniform(0.0, 3.0)
+    # The moment is drawn in the writing of the files (summary.json comes first), where a folder
+    # written in place would mix two runs; earlier the staging folder holds only its manifest.
+    delay = random.Random(KILL_SEED).uniform(0.0, 1.5)
     args = [*fit_args(data_dir, out, 2), "--force"]
-    code = start_and_kill(args, out, signal.SIGKILL, delay)
-    where = f"SIGKILL {delay:.2f} s after staging (seed {KILL_SEED}), exit {code}"
+    code = start_and_kill(args, out, signal.SIGKILL, delay, after="summary.json")
+    where = f"SIGKILL {delay:.2f} s after summary.json (seed {KILL_SEED}), exit {code}"
     # Whatever the moment: a whole run's folder, never a mix, and no half-written file in it.
     seed = json.loads((out / MANIFEST).read_text())["seed"]
     assert seed in (1, 2), where
@@ -130,8 +133,9 @@ def test_sigkill_at_a_random_moment_leaves_the_old_or_the_new_result(
 def test_sigterm_removes_temporary_files_and_exits_non_zero(old_result, data_dir, tmp_path):
     out = copy_of(old_result, tmp_path / "fit")
     delay = random.Random(KILL_SEED + 1).uniform(0.0, 3.0)
-    code = start_and_kill([*fit_args(data_dir, out, 2), "--force"], out, signal.SIGTERM, delay)
-    where = f"SIGTERM {delay:.2f} s after staging (seed {KILL_SEED + 1}), exit {code}"
+    args = [*fit_args(data_dir, out, 2), "--force"]
+    code = start_and_kill(args, out, signal.SIGTERM, delay, after=MANIFEST)
+    where = f"SIGTERM {delay:.2f} s after the staging folder (seed {KILL_SEED + 1}), exit {code}"
     if code == 0:  # it finished before the signal came
         assert_complete(out, 2)
     else:
