@@ -76,7 +76,10 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
         "multistep.png",
         "screening.png",
     } <= names
-    assert all(p.stat().st_size > 10_000 for p in out.iterdir())
+    assert all(p.stat().st_size > 10_000 for p in out.glob("*.png"))
+    assert json.loads((out / "manifest.json").read_text())["files"] == sorted(
+        names - {"manifest.json"}
+    )
 
 
 def test_bad_input_is_a_one_line_error_with_exit_code_2(tmp_path, small_file):

@@ -207,3 +207,26 @@ def test_an_unreachable_mirror_is_a_data_error(tmp_path):
 def test_an_unknown_name_is_a_data_error(tmp_path):
     with pytest.raises(DataError, match="unknown data set"):
         fetch("no_such_set", tmp_path)
+
+
+@pytest.mark.realdata
+def test_a_fetch_killed_midway_resumes_keeping_only_the_verified_files(data_dir, tmp_path):
+    dataset = registry.DATASETS["ngsim_i80_chains"]
+    kept, torn = dataset.files[0].name, dataset.files[1].name
+    source = data_dir / "ngsim_i80_chains"
+    # What a SIGKILL leaves: the shared staging folder, one file finished, one half-written.
+    dest = tmp_path / "data"
+    staging = dest / ".ngsim_i80_chains.partial"
+    staging.mkdir(parents=True)
+    shutil.copy(source / kept, staging / kept)
+    (staging / torn).write_bytes((source / torn).read_bytes()[:100])
+    # The mirror no longer has the finished file: only the kept copy can supply it.
+    mirror = mirror_copy(data_dir, "ngsim_i80_chains", tmp_path)
+    (mirror / "ngsim_i80_chains" / kept).unlink()
+    with serve(mirror) as url:
+        with pytest.raises(DataError, match="HTTP 404"):  # negative control: nothing kept
+            fetch("ngsim_i80_chains", tmp_path / "elsewhere", base_url=url)
+        result = fetch("ngsim_i80_chains", dest, base_url=url)
+    assert registry.verify("ngsim_i80_chains", dest) == []
+    assert result.path == dest / "ngsim_i80_chains"
+    assert [p.name for p in dest.iterdir()] == ["ngsim_i80_chains"]

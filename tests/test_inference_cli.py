@@ -35,6 +35,7 @@ def test_fit_writes_result_summary_and_plots(data_dir, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == [
         "convergence.png",
         "ess.png",
+        "manifest.json",
         "result.nc",
         "summary.json",
         "unique_particles.png",
@@ -139,7 +140,11 @@ def test_fit_runs_the_cross_check_engines(
     args += ["--params", "v_des,sigma", "--seed", "2", "--out", str(tmp_path)]
     result = runner.invoke(app, args)
     assert result.exit_code == exit_code, result.output
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.nc", "summary.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "manifest.json",
+        "result.nc",
+        "summary.json",
+    ]
     tree = load_result(tmp_path / "result.nc")
     meta = metadata(tree)
     assert meta["engine"] == engine and "num_particles" not in meta

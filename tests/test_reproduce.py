@@ -59,6 +59,9 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
     assert again.exit_code == 0, again.output
     assert (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns == stamp
 
-    # Results of other settings in the same folder are refused rather than mixed.
+    # A complete folder is kept: other settings are refused rather than mixed in, unless --force.
     mixed = runner.invoke(app, ["reproduce", "--out", str(out)])
-    assert mixed.exit_code == 2 and "other settings" in mixed.output
+    assert mixed.exit_code == 2 and "other settings (quick: True there, False here)" in " ".join(
+        mixed.output.split()
+    )
+    assert (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns == stamp

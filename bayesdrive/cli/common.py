@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import functools
 import json
+import signal
 import sys
+import threading
+from collections.abc import Callable
+from contextlib import ExitStack
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +18,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from bayesdrive.data.atomic import write_text_atomic
+from bayesdrive.data.outputs import OutputError, ResultsFolder, open_results
 
 console = Console(stderr=False)
 err_console = Console(stderr=True)
@@ -30,6 +37,91 @@ def emit_json(result: Any, out: str | None) -> bool:
         return True
     write_text_atomic(Path(out), text)
     return False
+
+
+def check_json_out(out: str | None) -> None:
+    """Refuse, before any work, a --json OUT that names a folder or lies under a file."""
+    if out is None or out == "-":
+        return
+    path = Path(out)
+    if path.is_dir():
+        raise fail(f"--json {out} is a folder, not a file")
+    ancestor = path.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise fail(f"cannot write --json {out}: {ancestor} is a file, not a folder")
+
+
+# Options that say where a result goes or whether to replace it, not what it is.
+NOT_IDENTITY = ("out", "force", "json_out")
+FORCE_HELP = "Replace a complete result in OUT (or discard a partial one of other settings)."
+_scope: ContextVar[tuple[ExitStack, dict[str, Any]]] = ContextVar("results_scope")
+
+
+def results_command(command: Callable[..., None]) -> Callable[..., None]:
+    """Run a command that writes a results folder with its arguments at hand, and clean up after it.
+
+    The folder opened by :func:`results_folder` is closed when the command ends, however it ends.
+    """
+
+    @functools.wraps(command)
+    def run(*args: Any, **kwargs: Any) -> None:
+        with ExitStack() as stack:
+            token = _scope.set((stack, kwargs))
+            try:
+                command(*args, **kwargs)
+            finally:
+                _scope.reset(token)
+
+    return run
+
+
+def _terminated(signum: int, frame: Any) -> None:
+    # Unwinds like any error, so temporary files are removed on the way out.
+    raise SystemExit(128 + signum)
+
+
+def exit_cleanly_on_sigterm() -> None:
+    """Until the command ends, SIGTERM exits with code 143 after removing temporary files."""
+    stack, _ = _scope.get()
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminated)
+        stack.callback(signal.signal, signal.SIGTERM, previous)
+
+
+def results_folder(
+    out: str | Path,
+    command: str,
+    *,
+    force: bool,
+    resumable: bool = False,
+    update: bool = False,
+    arguments: dict[str, Any] | None = None,
+) -> ResultsFolder:
+    """Check OUT before any work and open its staging folder (:mod:`bayesdrive.data.outputs`).
+
+    The arguments recorded are the command's own (less where the result goes) unless given.
+    SIGTERM is handled as :func:`exit_cleanly_on_sigterm` says.
+    """
+    stack, kwargs = _scope.get()
+    if arguments is None:
+        arguments = {k: v for k, v in kwargs.items() if k not in NOT_IDENTITY}
+    exit_cleanly_on_sigterm()
+    try:
+        folder = open_results(
+            out, command, arguments, force=force, resumable=resumable, update=update
+        )
+    except OutputError as error:
+        raise fail(str(error)) from None
+    stack.enter_context(folder)
+    if folder.resumed:
+        reused = "reusing its finished steps" if resumable else "starting it again"
+        err_console.print(
+            escape(f"{folder.path}: an interrupted run with the same arguments; {reused}"),
+            soft_wrap=True,
+        )
+    return folder
 
 
 def _jsonable(value):

@@ -9,11 +9,21 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from bayesdrive.cli.common import console, emit_json, err_console, fail
+from bayesdrive.cli.common import (
+    FORCE_HELP,
+    check_json_out,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    results_command,
+    results_folder,
+)
 
 __all__ = ["criticize_command", "print_report"]
 
 
+@results_command
 def criticize_command(
     data: Annotated[str, typer.Argument(help="A data file or folder, or a data set name.")],
     format: Annotated[
@@ -58,6 +68,7 @@ def criticize_command(
     json_out: Annotated[
         str | None, typer.Option("--json", help="Write the report as JSON (- = stdout).")
     ] = None,
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ) -> None:
     """Fit the base model, run the checks, fit the extensions they point to, name the cause."""
     # Imported here so `bayesdrive --help` stays fast (JAX is heavy to import).
@@ -69,6 +80,8 @@ def criticize_command(
     from bayesdrive.drivers.registry import get_model
     from bayesdrive.inference.likelihood import check_model
 
+    check_json_out(json_out)
+    results = None if out is None else results_folder(out, "criticize", force=force)
     try:
         traj = _load(data, format)
     except (DataError, FileNotFoundError) as error:
@@ -141,11 +154,12 @@ def criticize_command(
             )
         except (DataError, ValueError) as error:
             raise fail(str(error)) from None
-    if out is not None:
+    if results is not None:
         from bayesdrive.reports.criticism_plots import plot_criticism
 
-        written = plot_criticism(result, out)
-        result.report["figures"] = [str(p) for p in written]
+        written = plot_criticism(result, results.path)
+        results.commit()
+        result.report["figures"] = [str(out / p.relative_to(results.path)) for p in written]
     if emit_json(result.report, json_out):
         return
     print_report(result.report)

@@ -17,11 +17,14 @@ from rich.table import Table
 from bayesdrive.cli.common import (
     COLUMNS_HELP,
     UNITS_HELP,
+    check_json_out,
     column_map_options,
     console,
     emit_json,
     err_console,
+    exit_cleanly_on_sigterm,
     fail,
+    results_command,
 )
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
@@ -198,6 +201,7 @@ def verify(
 
 
 @app.command()
+@results_command
 def fetch(
     name: str = typer.Argument(..., help="A data set name (see `bayesdrive data list`)."),
     data_dir: str | None = typer.Option(
@@ -211,6 +215,8 @@ def fetch(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """Download a data set, checking every sha256 before anything lands in the data folder."""
+    check_json_out(json_out)
+    exit_cleanly_on_sigterm()
     try:
         dataset = registry.get(name)
         root = _root(dataset, data_dir)

@@ -20,7 +20,15 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from bayesdrive.cli.common import console, emit_json, fail
+from bayesdrive.cli.common import (
+    FORCE_HELP,
+    check_json_out,
+    console,
+    emit_json,
+    fail,
+    results_command,
+    results_folder,
+)
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.inference.agreement import (
     CRITERION,
@@ -139,6 +147,7 @@ def _records(frame: pd.DataFrame) -> list[dict[str, Any]]:
     ]
 
 
+@results_command
 def diagnose(
     results: Annotated[list[Path], typer.Argument(help="Saved result files (netCDF) to diagnose.")],
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
@@ -148,11 +157,14 @@ def diagnose(
             "--out", help="Folder for CSV tables and pictures (marginals, agreement heat map)."
         ),
     ] = None,
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Convergence of each result and, for several results on the same data, their agreement."""
     missing = [str(p) for p in results if not p.is_file()]
     if missing:
         raise fail(f"no such result file(s): {', '.join(missing)}")
+    check_json_out(json_out)
+    results_dir = None if out is None else results_folder(out, "diagnose", force=force)
     trees = []
     for path in results:
         try:
@@ -191,14 +203,16 @@ def diagnose(
             "per_vehicle": _records(agreement),
         }
 
-    if out is not None:
-        figures = plot_marginals(by_label, out)
+    if results_dir is not None:
+        staged = results_dir.path
+        figures = plot_marginals(by_label, staged)
         for label, table in tables.items():
-            write_text_atomic(out / f"convergence_{label}.csv", table.to_csv(index=False))
+            write_text_atomic(staged / f"convergence_{label}.csv", table.to_csv(index=False))
         if agreement is not None:
-            write_text_atomic(out / "agreement.csv", agreement.to_csv(index=False))
-            figures.append(plot_agreement_heatmap(agreement, out / "agreement_heatmap.png"))
-        report["figures"] = [str(f) for f in figures]
+            write_text_atomic(staged / "agreement.csv", agreement.to_csv(index=False))
+            figures.append(plot_agreement_heatmap(agreement, staged / "agreement_heatmap.png"))
+        results_dir.commit()
+        report["figures"] = [str(out / f.relative_to(staged)) for f in figures]
 
     if emit_json(report, json_out):
         return

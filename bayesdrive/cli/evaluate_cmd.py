@@ -15,7 +15,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from bayesdrive.cli.common import console, emit_json, err_console, fail
+from bayesdrive.cli.common import check_json_out, console, emit_json, err_console, fail
 from bayesdrive.data.errors import DataError
 from bayesdrive.simulation import evaluation
 from bayesdrive.simulation.baselines import BASELINES
@@ -119,6 +119,7 @@ def evaluate(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """Roll a model out closed loop on the held-out windows and print the metric table."""
+    check_json_out(json_out)
     with _progress() as bar:
         tasks: dict[str, Any] = {}
 

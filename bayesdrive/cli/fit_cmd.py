@@ -4,10 +4,11 @@ DATA is a file, a folder or a data set name (held-out names are refused: nothing
 them). Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
 merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
 (:func:`bayesdrive.inference.fit.summary`) and, for the filters, the diagnostics ess.png,
-unique_particles.png and convergence.png. Bad input ends with a one-line ``error: ...`` on
-standard error and exit code 2; a fit that fails a convergence check
-(:mod:`bayesdrive.inference.convergence`) is still written, warns naming each vehicle and
-parameter, and exits with code 3.
+unique_particles.png and convergence.png, then manifest.json last (arguments, seed, complete);
+the folder is all of one run or none (:mod:`bayesdrive.data.outputs`: a complete one is replaced
+only with ``--force``). Bad input ends with a one-line ``error: ...`` on standard error and exit
+code 2; a fit that fails a convergence check (:mod:`bayesdrive.inference.convergence`) is still
+written, warns naming each vehicle and parameter, and exits with code 3.
 """
 
 from __future__ import annotations
@@ -23,12 +24,16 @@ from rich.table import Table
 
 from bayesdrive.cli.common import (
     COLUMNS_HELP,
+    FORCE_HELP,
     UNITS_HELP,
+    check_json_out,
     column_map_options,
     console,
     emit_json,
     err_console,
     fail,
+    results_command,
+    results_folder,
 )
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
@@ -105,6 +110,7 @@ def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
     console.print(escape(f"wrote {', '.join(written)} to {out}"))
 
 
+@results_command
 def fit(
     data: str = typer.Argument(..., help="A file, a folder, or a data set name."),
     out: str = typer.Option(..., "--out", help="Folder for result.nc, summary.json and plots."),
@@ -143,9 +149,9 @@ def fit(
     columns: str | None = typer.Option(None, "--columns", help=COLUMNS_HELP),
     units: str | None = typer.Option(None, "--units", help=UNITS_HELP),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Fit per-vehicle parameter distributions and write result.nc, summary.json and plots."""
-    folder = Path(out)
     if window not in ("fit", "all"):
         raise fail(
             f"--window must be 'fit' or 'all' (held-out steps are never fitted), not {window!r}"
@@ -163,6 +169,8 @@ def fit(
         for name, value in (("epochs", epochs), ("num_steps", steps))
         if value is not None
     }
+    check_json_out(json_out)
+    results = results_folder(out, "fit", force=force)
     try:
         # Checked before reading any data, so a typo fails at once.
         get_engine(engine)
@@ -198,12 +206,13 @@ def fit(
         raise fail(f"model {model!r} cannot be fitted on car-following data: {error}") from None
 
     result = summary(tree)
-    emit_json(result, str(folder / "summary.json"))
-    plots = write_filter_plots(tree, folder)
+    emit_json(result, str(results.path / "summary.json"))
+    plots = write_filter_plots(tree, results.path)
     try:
-        save_result(tree, folder / "result.nc")
+        save_result(tree, results.path / "result.nc")
     except ImportError as error:
-        raise fail(f"cannot write {folder / 'result.nc'}: {error}") from None
+        raise fail(f"cannot write {Path(out) / 'result.nc'}: {error}") from None
+    folder = results.commit()
     if not emit_json(result, json_out):
         _print(result, folder, ["result.nc", "summary.json", *(p.name for p in plots)])
     problems = result["convergence"]["problems"]

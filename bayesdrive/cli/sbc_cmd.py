@@ -21,7 +21,16 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from bayesdrive.cli.common import console, emit_json, err_console, fail
+from bayesdrive.cli.common import (
+    FORCE_HELP,
+    check_json_out,
+    console,
+    emit_json,
+    err_console,
+    fail,
+    results_command,
+    results_folder,
+)
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.fit import ENGINES
@@ -86,6 +95,7 @@ def _print(outcome: SBCOutcome) -> None:
     )
 
 
+@results_command
 def sbc(
     engine: str = typer.Option(..., "--engine", help=f"Engine to calibrate: {', '.join(ENGINES)}."),
     replications: int = typer.Option(200, "--replications", min=10, help="Simulated vehicles."),
@@ -108,6 +118,7 @@ def sbc(
         Path | None, typer.Option("--out", help="Folder for histograms, ranks, digest.")
     ] = None,
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Simulation-based calibration: are the engine's posteriors calibrated on the IDM?"""
     if engine not in ENGINES:
@@ -120,6 +131,8 @@ def sbc(
     names = [p.strip() for p in params.split(",") if p.strip()]
     options: dict[str, Any] = {} if particles is None else {"num_particles": particles}
     fit_model = sd_doubled(IDM) if sd_doubled_model else IDM
+    check_json_out(json_out)
+    results = None if out is None else results_folder(out, "sbc", force=force)
     with Progress(
         TextColumn("{task.description}"),
         BarColumn(),
@@ -148,9 +161,11 @@ def sbc(
         except ValueError as error:
             raise fail(str(error)) from error
     result = outcome.summary()
-    if out is not None:
+    if results is not None:
         stem = f"sbc_{engine}" + ("_sd_doubled" if sd_doubled_model else "")
-        result["files"] = [str(p) for p in write_outcome(outcome, out, stem)]
+        written = write_outcome(outcome, results.path, stem)
+        results.commit()
+        result["files"] = [str(out / p.name) for p in written]
     if emit_json(result, json_out):
         return
     _print(outcome)

@@ -10,7 +10,15 @@ import numpy as np
 import typer
 import xarray as xr
 
-from bayesdrive.cli.common import console, emit_json, fail
+from bayesdrive.cli.common import (
+    FORCE_HELP,
+    check_json_out,
+    console,
+    emit_json,
+    fail,
+    results_command,
+    results_folder,
+)
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.simulation.generate import (
@@ -46,6 +54,7 @@ def _posterior_draw(key, result: Path, num_scenes: int, num_vehicles: int):
     return model, draw_pooled(key, model, names, particles, num_scenes, num_vehicles, fixed)
 
 
+@results_command
 def simulate(
     source: str = typer.Argument(
         ..., help="A preset name (models/presets), a preset .json, or a result.nc from fit."
@@ -57,10 +66,12 @@ def simulate(
     dt: float = typer.Option(0.1, help="Step length (s)."),
     out: Path = typer.Option(..., help="Output directory."),
     json_out: str | None = typer.Option(None, "--json", help="Summary as JSON to a file or '-'."),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Generate scenes of VEHICLES cars for DURATION seconds; write trajectories, figures, summary."""
     from bayesdrive.reports.scene_plots import plot_speed_gap_kde, plot_sweep
 
+    check_json_out(json_out)
     key_params, key_scenes, key_sweep = jax.random.split(jax.random.key(seed), 3)
     preset_path = _preset_path(source)
     if preset_path is not None:
@@ -77,6 +88,8 @@ def simulate(
             + ", ".join(sorted(p.stem for p in PRESET_DIR.glob("*.json")))
             + ") nor a result .nc file"
         )
+    results = results_folder(out, "simulate", force=force)
+    staged = results.path
 
     num_steps = round(duration / dt)
     started = time.perf_counter()
@@ -88,7 +101,6 @@ def simulate(
     speeds = np.asarray(generated.v)
     gaps = np.asarray(generated.gap)[:, 1:]  # the first car drives on free road
 
-    out.mkdir(parents=True, exist_ok=True)
     time_s = np.arange(num_steps + 1) * dt
     trajectories = xr.Dataset(
         {
@@ -99,16 +111,16 @@ def simulate(
         coords={"time": time_s},
         attrs={"source": source, "seed": seed, "model": model.name, "dt": dt},
     )
-    write_atomic(out / "scenes.nc", lambda tmp: trajectories.to_netcdf(tmp, engine="h5netcdf"))
+    write_atomic(staged / "scenes.nc", lambda tmp: trajectories.to_netcdf(tmp, engine="h5netcdf"))
 
     sweep = median_sweep(key_sweep, model, params, duration_s=min(duration, 60.0), dt=dt)
     plot_speed_gap_kde(
-        {label: (speeds[:, 1:], gaps)}, out / "speed_gap_kde.png", f"generated scenes: {label}"
+        {label: (speeds[:, 1:], gaps)}, staged / "speed_gap_kde.png", f"generated scenes: {label}"
     )
     plot_sweep(
         sweep,
         dt,
-        out / "sweep.png",
+        staged / "sweep.png",
         f"leader-follower sweep over desired-speed difference ({label}, median parameters)",
     )
     summary = {
@@ -138,7 +150,8 @@ def simulate(
         "hard_braking": int(np.asarray(generated.hard_braking).sum()),
         "files": ["scenes.nc", "speed_gap_kde.png", "sweep.png", "summary.json"],
     }
-    emit_json(summary, str(out / "summary.json"))
+    emit_json(summary, str(staged / "summary.json"))
+    results.commit()
     if emit_json(summary, json_out):
         return
     console.print(

@@ -1,9 +1,13 @@
 """Fetch a registered data set from its pinned origin or a mirror, checking every sha256.
 
-Files are downloaded into a hidden staging folder beside the destination; only when every file
-has its registered size and sha256 is the staging folder renamed into place, in one step. Any
-failure (an HTTP error, a timeout, a wrong checksum) removes the staging folder: nothing is left
-behind, and the error names the file, the URL and, for a checksum, both digests.
+Files are downloaded into the staging folder beside the destination that every results folder
+uses (:func:`bayesdrive.data.outputs.staging_path`); only when every file has its registered size
+and sha256 is it renamed into place, in one step. Any failure (an HTTP error, a timeout, a wrong
+checksum, SIGTERM) removes the staging folder: nothing is left behind, and the error names the
+file, the URL and, for a checksum, both digests. A staging folder left by a killed process is
+recognised by the next fetch, which keeps the files in it that match the registry and downloads
+the rest. The registry is the data folder's manifest: a folder that matches it is complete, and
+fetching it again changes nothing.
 
 Without ``base_url`` each file comes from its origin (raw file URLs at the pinned commit); files
 the origin does not publish (notes written with the copy) are then skipped and reported. A mirror
@@ -16,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import tempfile
 import urllib.error
 import urllib.request
 from collections.abc import Callable
@@ -25,6 +28,7 @@ from typing import NamedTuple
 from urllib.parse import quote
 
 from bayesdrive.data.errors import DataError
+from bayesdrive.data.outputs import staging_path
 from bayesdrive.data.registry import DataFile, DataSet, check_files, get
 
 __all__ = ["FetchResult", "fetch", "file_url", "files_to_fetch"]
@@ -98,11 +102,17 @@ def fetch(
 
     created_dest = not dest_dir.exists()
     dest_dir.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=dest_dir, prefix=f".{dataset.name}.fetch-"))
+    staging = staging_path(target)
+    staging.mkdir(exist_ok=True)
     try:
+        # Files a killed fetch finished are kept (the registry vouches for them); others redone.
+        unfinished = {mismatch.file for mismatch in check_files(staging, wanted)}
         for file in wanted:
+            if file.name not in unfinished:
+                if progress is not None:
+                    progress(file.size)
+                continue
             _download(dataset, file, file_url(dataset, file, base_url), staging, timeout, progress)
-        staging.chmod(0o755)  # mkdtemp makes it private; a data folder is for everyone to read
         os.rename(staging, target)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

@@ -67,7 +67,7 @@ from bayesdrive.simulation.two_sample import (
     segment_features,
 )
 
-__all__ = ["FULL", "QUICK", "SEEDS", "Settings", "recorded_settings", "run_all"]
+__all__ = ["FULL", "QUICK", "SEEDS", "Settings", "run_all"]
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +135,17 @@ def cached(out: Path, name: str, compute: Callable[[], dict], force: bool) -> di
     result = compute()
     _save_json(path, result)
     return result
+
+
+def highway_folder(out: Path, label: str) -> Path:
+    """Where the highway experiment on ``label`` keeps its fits and evaluation."""
+    return out / "highway" / label.replace(":", "_")
+
+
+def fit_paths(experiment: dict, folder: Path) -> dict[str, Path]:
+    """The saved fits of a step, which records them by name inside its folder (so a results
+    folder may move, or be staged elsewhere and renamed into place)."""
+    return {name: folder / Path(recorded).name for name, recorded in experiment["fits"].items()}
 
 
 def highway_data(name: str) -> dict[str, Trajectories]:
@@ -237,7 +248,7 @@ def highway_step(
         "label": label,
         "scenario_set": scored.summary(),
         "scenarios_dropped_without_posterior": len(scenarios.scenarios) - len(scored.scenarios),
-        "fits": {e: str(p) for e, p in results_nc.items()},
+        "fits": {e: p.name for e, p in results_nc.items()},
         "models": rows,
         "seed": SEEDS["evaluate"],
         "rollouts": settings.rollouts,
@@ -307,7 +318,7 @@ def merge_step(out: Path, settings: Settings, force: bool) -> dict:
     }
     posterior = trees["cidm-smc"]["posterior"]
     return {
-        "fits": {name: str(path) for name, (_, path) in fits.items()},
+        "fits": {name: path.name for name, (_, path) in fits.items()},
         "scenario_set": scenarios.summary(),
         "fitting_stays": len(stays.vehicle_ids),
         "fitting_steps": int(fitting.mask.sum()),
@@ -360,7 +371,8 @@ def turing_step(
     results = {}
     for label, experiment in highway.items():
         traj = trajs[label]
-        trees = {e: load_result(p) for e, p in experiment["fits"].items()}
+        folder = highway_folder(out.parent, label)
+        trees = {e: load_result(p) for e, p in fit_paths(experiment, folder).items()}
         scenarios = _covered(_highway_scenarios(label, traj, settings), trees)
         real_v, real_g = [], []
         for scenario in scenarios.scenarios:
@@ -689,14 +701,6 @@ def data_step() -> dict:
     return {name: summary(registry.load(name)) for name in registry.DATASETS}
 
 
-def recorded_settings(out: Path) -> Settings:
-    """The settings a results folder was made with."""
-    path = out / "settings.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{out} holds no results of bayesdrive reproduce ({path} missing)")
-    return Settings(**json.loads(path.read_text()))
-
-
 def run_all(
     out: Path, settings: Settings, *, force: bool = False, progress: Callable[[str], None] = print
 ) -> dict:
@@ -717,7 +721,7 @@ def run_all(
     highway = {}
     for label, traj in trajs.items():
         progress(f"highway experiment: {label}")
-        folder = out / "highway" / label.replace(":", "_")
+        folder = highway_folder(out, label)
         highway[label] = cached(
             folder,
             "evaluation",
@@ -729,8 +733,9 @@ def run_all(
     results["merge"] = cached(
         out, "merge", lambda: merge_step(out / "merge", settings, force), force
     )
-    smc_trees = {label: load_result(h["fits"]["smc"]) for label, h in highway.items()}
-    pf_trees = {label: load_result(h["fits"]["pf"]) for label, h in highway.items()}
+    highway_fits = {label: fit_paths(h, highway_folder(out, label)) for label, h in highway.items()}
+    smc_trees = {label: load_result(fits["smc"]) for label, fits in highway_fits.items()}
+    pf_trees = {label: load_result(fits["pf"]) for label, fits in highway_fits.items()}
     results["parameters"] = parameter_table(smc_trees).to_dict("records")
     progress("Turing test")
     results["turing"] = cached(
@@ -764,12 +769,12 @@ def run_all(
         )
     results["criticism"] = criticism
     fitted = {
-        f"{label.replace(':', '_')}_idm_smc": (label, Path(h["fits"]["smc"]))
-        for label, h in highway.items()
+        f"{label.replace(':', '_')}_idm_smc": (label, fits["smc"])
+        for label, fits in highway_fits.items()
     }
     fitted[f"{MERGE_DATA}_cidm_smc"] = (
         MERGE_DATA,
-        Path(results["merge"]["fits"]["cidm-smc"]),
+        fit_paths(results["merge"], out / "merge")["cidm-smc"],
     )
     results["models"] = export_models(out / "models", fitted, settings)
     results["trees"] = {"smc": smc_trees, "pf": pf_trees}
