@@ -12,7 +12,11 @@ Groups (dims in brackets):
   set of draws; its ``draw`` coordinate then names the posterior draws scored.
 * ``observed_data``: the :class:`~bayesdrive.data.views.FollowerArrays` the engine saw [vehicle, step].
 
-Root attributes hold the metadata (:data:`REQUIRED_METADATA` plus versions and creation time).
+Root attributes hold the metadata (:data:`REQUIRED_METADATA` plus versions, the code that made
+the result (``code``: version, git commit and whether the code was clean, see
+:mod:`bayesdrive.data.provenance`) and creation time). The only attributes that differ between two
+runs of the same command on the same machine are :data:`RUN_DEPENDENT_ATTRS`: the creation time
+and the measured wall and compile times.
 netCDF attributes take only strings and numbers, so lists, dicts, booleans and None are stored as
 JSON text; the attribute ``json_attrs`` names those, and :func:`metadata` decodes them. Opening a
 result needs nothing but xarray or ArviZ: ``xarray.open_datatree(path)`` or
@@ -32,11 +36,13 @@ import numpy as np
 import xarray as xr
 
 from bayesdrive.data.atomic import write_atomic
+from bayesdrive.data.provenance import code_provenance
 from bayesdrive.data.views import SPLIT_RULE, FollowerArrays
 
 __all__ = [
     "OBSERVED_VARIABLE",
     "REQUIRED_METADATA",
+    "RUN_DEPENDENT_ATTRS",
     "EngineResult",
     "build_tree",
     "load_result",
@@ -60,6 +66,8 @@ REQUIRED_METADATA = (
     "num_particles",
     "flagged_samples",
 )
+# Timestamps and timings: everything else in a result is a function of its inputs and seed.
+RUN_DEPENDENT_ATTRS = ("created_at", "wall_time_s", "compile_time_s")
 _VERSIONED = ("bayesdrive", "jax", "numpyro", "arviz", "xarray")
 
 
@@ -169,6 +177,7 @@ def build_tree(
         **metadata,
         "split_rule": SPLIT_RULE,
         "versions": {name: version(name) for name in _VERSIONED},
+        "code": code_provenance(),
         "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     tree = xr.DataTree.from_dict(

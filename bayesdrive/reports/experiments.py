@@ -30,6 +30,7 @@ import pandas as pd
 
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
+from bayesdrive.data.provenance import describe_code
 from bayesdrive.data.trajectories import Trajectories, summary
 from bayesdrive.data.views import FollowerArrays, pooled_series
 from bayesdrive.drivers.base import PriorBox
@@ -667,6 +668,7 @@ def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Sett
                 f"- diagnostics: median log-evidence per unit {np.nanmedian(evidence):.1f} nats; "
                 f"wall time {meta.get('wall_time_s', float('nan')):.0f} s",
                 f"- settings: bayesdrive reproduce, '{settings.name}' run",
+                f"- fitted by: {describe_code(meta.get('code'))}",
                 "- cross-engine agreement of smc with nuts and emcee on real NGSIM vehicles: "
                 "reports/agreement/agreement.md; congested data leaves v_des, d_min and b_pref "
                 "weakly identified",
