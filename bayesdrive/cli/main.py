@@ -8,6 +8,7 @@ from bayesdrive.cli import (
     criticize_cmd,
     data_cmd,
     diagnose_cmd,
+    export_cmd,
     evaluate_cmd,
     fit_cmd,
     reproduce_cmd,
@@ -21,6 +22,7 @@ app = typer.Typer(
     pretty_exceptions_show_locals=False,
 )
 app.add_typer(data_cmd.app, name="data")
+app.add_typer(export_cmd.app, name="export")
 app.command("fit")(fit_cmd.fit)
 app.command("evaluate")(evaluate_cmd.evaluate)
 app.command("simulate")(simulate_cmd.simulate)

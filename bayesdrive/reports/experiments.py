@@ -649,7 +649,8 @@ def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Sett
         meta = metadata(tree)
         posterior = tree["posterior"].to_dataset().astype("float32")
         slim = xr.DataTree.from_dict({"posterior": posterior})
-        slim.attrs = dict(tree.attrs)
+        # The step length stays with the slim file: SUMO export sub-steps the IDM at it.
+        slim.attrs = {**tree.attrs, "dt": float(tree["observed_data"].attrs["dt"])}
         save_result(slim, out / f"{stem}.nc")
         summary_by_vehicle = fit_summary(tree)["vehicles"].values()
         ess = tree["sample_stats"].to_dataset()
