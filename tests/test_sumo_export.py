@@ -71,8 +71,15 @@ def _road(folder: Path, sumo_home: Path) -> Path:
     )
     net = folder / "road.net.xml"
     subprocess.run(
-        [sumo_home / "bin" / "netconvert", "-n", folder / "road.nod.xml", "-e",
-         folder / "road.edg.xml", "-o", net],
+        [
+            sumo_home / "bin" / "netconvert",
+            "-n",
+            folder / "road.nod.xml",
+            "-e",
+            folder / "road.edg.xml",
+            "-o",
+            net,
+        ],
         check=True,
         capture_output=True,
     )
@@ -93,8 +100,21 @@ def _sumo_follower(folder, sumo_home, net, vtypes, vtype_id, lead_v, lead_offset
         f'departSpeed="{v0}" insertionChecks="none"/></routes>'
     )
     libsumo.start(
-        [str(sumo_home / "bin" / "sumo"), "-n", str(net), "-a", str(vtypes), "-r", str(routes),
-         "--step-length", str(DT_S), "--step-method.ballistic", "true", "--no-step-log", "true"]
+        [
+            str(sumo_home / "bin" / "sumo"),
+            "-n",
+            str(net),
+            "-a",
+            str(vtypes),
+            "-r",
+            str(routes),
+            "--step-length",
+            str(DT_S),
+            "--step-method.ballistic",
+            "true",
+            "--no-step-log",
+            "true",
+        ]
     )
     try:
         libsumo.simulationStep()  # inserts both cars at their recorded state
@@ -137,7 +157,9 @@ def test_an_exported_type_follows_a_recorded_leader_in_sumo_as_bayesdrives_idm_d
     posterior = tree["posterior"].to_dataset().sel(vehicle="124")
     medians = {name: float(np.median(posterior[name].values)) for name in posterior.data_vars}
     params = broadcast_params(IDMParams(**{**medians, "sigma": 0.0}), 1, 1)
-    scene = platoon_scene(lead_v, np.array([-lead_offset]), np.array([v0]), length=LENGTH_M, dt=DT_S)
+    scene = platoon_scene(
+        lead_v, np.array([-lead_offset]), np.array([v0]), length=LENGTH_M, dt=DT_S
+    )
     ours = rollout(jax.random.key(0), IDM, params, scene, num_rollouts=1)
     our_x = np.asarray(ours.x[0, 0]) + lead_offset
     our_v = np.asarray(ours.v[0, 0])
@@ -153,7 +175,7 @@ def test_an_exported_type_follows_a_recorded_leader_in_sumo_as_bayesdrives_idm_d
     vtype.set("accel", decel)
     vtype.set("decel", accel)
     write_vtype_distribution(vtypes, xml)
-    wrong_x, wrong_v = _sumo_follower(
+    wrong_x, _ = _sumo_follower(
         tmp_path, sumo_home, net, vtypes, "ngsim_vehicle_124", lead_v, lead_offset, v0
     )
     assert np.max(np.abs(wrong_x - our_x)) > 10 * POSITION_TOL_M

@@ -16,17 +16,24 @@ def sumo(
     result: Path = typer.Argument(..., help="A result.nc from `bayesdrive fit` (or models/)."),
     out: Path = typer.Option(..., "--out", help="The SUMO additional file to write (.xml)."),
     draws: int | None = typer.Option(
-        None, "--draws", min=1, help="Draw N drivers from the pooled posterior (default: one "
-        "driver per fitted vehicle at its posterior medians)."
+        None,
+        "--draws",
+        min=1,
+        help="Draw N drivers from the pooled posterior (default: one "
+        "driver per fitted vehicle at its posterior medians).",
     ),
     population: bool = typer.Option(
-        False, "--population", help="Draw the --draws drivers from the hierarchical fit's "
-        "population distribution of a new driver instead."
+        False,
+        "--population",
+        help="Draw the --draws drivers from the hierarchical fit's "
+        "population distribution of a new driver instead.",
     ),
     seed: int | None = typer.Option(None, "--seed", help="Seed of the draws (recorded)."),
     stepping: float | None = typer.Option(
-        None, "--stepping", help="SUMO IDM sub-step (s); default: the step length of the "
-        "fitted data, recorded in the result."
+        None,
+        "--stepping",
+        help="SUMO IDM sub-step (s); default: the step length of the "
+        "fitted data, recorded in the result.",
     ),
     distribution_id: str | None = typer.Option(
         None, "--id", help="Id of the vTypeDistribution (default: the result file's stem)."

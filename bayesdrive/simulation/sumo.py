@@ -142,9 +142,7 @@ def posterior_drivers(key: Array, tree: xr.DataTree, num_drivers: int) -> list[D
     return [
         Driver(
             id=f"draw_{i}",
-            params=_all_parameters(
-                tree, dict(zip(names, by_vehicle[vehicles[v]][d], strict=True))
-            ),
+            params=_all_parameters(tree, dict(zip(names, by_vehicle[vehicles[v]][d], strict=True))),
             source=f"posterior draw {d} of vehicle {vehicles[v]}",
         )
         for i, (v, d) in enumerate(zip(chosen.tolist(), draw.tolist(), strict=True))
@@ -214,7 +212,9 @@ def vtype_distribution(
             **sumo_attributes(driver.params, stepping),
         )
         for name in sorted(set(driver.params) - set(IDM_TO_SUMO)):
-            ET.SubElement(vtype, "param", key=f"bayesdrive.{name}", value=_number(driver.params[name]))
+            ET.SubElement(
+                vtype, "param", key=f"bayesdrive.{name}", value=_number(driver.params[name])
+            )
         ET.SubElement(vtype, "param", key="bayesdrive.source", value=driver.source)
     ET.indent(root)
     return ET.ElementTree(root)
