@@ -352,7 +352,8 @@ def turing_step(
     """Classifier two-sample test: real held-out segments against one rollout of each model on
     the same scenarios (features of :func:`segment_features`), once on all features and once on
     the speed and gap levels only (``levels_only``: no acceleration or jerk). Also writes the material for a
-    human test: paired clips (real and idm-smc, seeded order) and the answer sheet apart."""
+    human test: paired clips (real and idm-smc, seeded order) in ``out``, and the answer sheet
+    beside that folder, never in it."""
     from bayesdrive.reports.clips import write_answer_sheet, write_clip_pair
 
     out.mkdir(parents=True, exist_ok=True)
@@ -410,8 +411,14 @@ def turing_step(
                 )._asdict(),
             }
         results[label] = rows
-    write_answer_sheet(answers, out / "answer_sheet.json")
-    return {"classifier": results, "clips": str(out), "pairs": len(answers)}
+    # Outside the clips' folder: whoever is handed the clips to judge blind must not get it.
+    sheet = write_answer_sheet(answers, out.parent / f"{out.name}_answer_sheet.json")
+    return {
+        "classifier": results,
+        "clips": str(out),
+        "answer_sheet": str(sheet),
+        "pairs": len(answers),
+    }
 
 
 def scenes_step(
