@@ -204,6 +204,7 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "wall_time_s",
         "compile_time_s",
         "engine_options",
+        "code",
         "created_at",
     )
     result = {**{k: meta.get(k) for k in keys}, "vehicles": vehicles}
