@@ -13,9 +13,10 @@ How the parameters map onto SUMO's IDM (``carFollowModel="IDM"``, SUMO >= 1.15):
 ============  =====================  =========================================================
 bayesdrive    SUMO attribute         note
 ============  =====================  =========================================================
-v_des         maxSpeed,              SUMO's IDM drives towards min(maxSpeed, speed limit x
-              desiredMaxSpeed        speedFactor); speedFactor 1 and speedDev 0 keep the
-                                     driver's own v_des wherever the limit is not below it
+v_des         maxSpeed,              SUMO's IDM drives towards min(maxSpeed, speedFactor x
+              desiredMaxSpeed        min(desiredMaxSpeed, speed limit)) (measured, SUMO 1.28);
+                                     speedFactor 1 and speedDev 0 keep the driver's own v_des
+                                     wherever the speed limit is not below it
 d_min         minGap                 SUMO's IDM adds minGap back to the gap it is handed, so its
                                      gap is the bumper gap and minGap is d_min exactly
 tau           tau
@@ -38,6 +39,11 @@ braking limit, SUMO's caps braking at ``emergencyDecel`` (9 m/s^2 by default); v
 not fitted (the types leave SUMO's default). Parameters a model has beyond the IDM's (e.g. the
 C-IDM's cooperation ``c``) have no SUMO counterpart: they are kept as ``<param>`` entries and
 logged. Every file records its source result, the seed of any draws and the code that wrote it.
+
+Measured on an NGSIM follower behind its recorded leader (``tests/test_sumo_export.py``, 25 s at
+a 0.1 s step): with the ballistic update and stepping 0.1 s, SUMO's follower stays within 4e-5 m
+and 1.3e-5 m/s of bayesdrive's deterministic rollout; SUMO's default Euler update moves it by
+0.36 m, and stepping 0.025 s (four sub-steps holding the leader's speed) by 0.07 m.
 """
 
 from __future__ import annotations
