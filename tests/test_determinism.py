@@ -1,8 +1,8 @@
 """The same command with the same seed gives the same bits, in another process too.
 
 The issue asks for the quick main job run twice with identical bits; ``reproduce --quick`` took
-more than 15 minutes on this project's 2-core machines (measured once, while other jobs ran), far
-over a test's budget. So the test runs the subset every number of the report starts from: an smc
+44 minutes of wall time (7.4 CPU-minutes) on this project's shared 2-core machine (measured
+once, at a load average of about 20), far over a test's budget. So the test runs the subset every number of the report starts from: an smc
 fit of real NGSIM vehicles through ``bayesdrive fit`` (2 vehicles, 100 particles, v_des and
 sigma), once in this process and once in a fresh one, and requires every array of the result to
 be bit-identical and every attribute equal except :data:`RUN_DEPENDENT_ATTRS` (creation time and
