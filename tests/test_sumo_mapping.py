@@ -5,11 +5,14 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import jax
 import numpy as np
+import xarray as xr
 from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
 from bayesdrive.inference.output import load_result
+from bayesdrive.simulation.sumo import population_drivers
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
 runner = CliRunner()
@@ -71,3 +74,21 @@ def test_bad_requests_exit_2_with_a_message_and_write_nothing(tmp_path):
     assert (code, root) == (2, None) and "--seed" in output
     code, root, output = _export(tmp_path, "--population", "--draws", "5", "--seed", "1")
     assert (code, root) == (2, None) and "no population distribution" in output
+
+
+def test_population_drivers_are_rows_of_the_population_new_driver_draws():
+    tree = load_result(MODEL)
+    params = ["v_des", "tau", "sigma"]  # a fit of these three; the others stay at their defaults
+    rows = np.array([[20.0 + d, 1.0 + d / 10, 0.3] for d in range(8)]).reshape(2, 4, 3)
+    stats = xr.Dataset(
+        {"population_new_driver": (("chain", "draw", "param"), rows)},
+        coords={"param": params},
+    )
+    tree["sample_stats"] = xr.DataTree(stats)
+    drivers = population_drivers(jax.random.key(0), tree, 6)
+    assert len(drivers) == 6
+    flat = rows.reshape(-1, 3)
+    for driver in drivers:
+        drawn = [driver.params[name] for name in params]
+        assert any(np.allclose(drawn, row) for row in flat), drawn
+    assert drivers != population_drivers(jax.random.key(1), tree, 6)
