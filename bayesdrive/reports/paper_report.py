@@ -258,7 +258,8 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         f"{with_unit(a)}: {'mean' if b == 'mean' else 'sd'}" for a, b in summary.columns
     ]
     params.table(
-        summary.reset_index(), caption="Mean and sd across vehicles of the posterior means"
+        summary.reset_index(names="data set"),
+        caption="Mean and sd across vehicles of the posterior means",
     )
     params.figure(plot_parameters(table, figures / "parameters.png"), "Posterior means per vehicle")
     for label, tree in results["trees"]["pf"].items():
