@@ -3,6 +3,7 @@ and a re-run reuses finished steps."""
 
 import html
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -52,6 +53,16 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
     cooperation = merge["cidm_posterior"]["c"]
     assert 0 <= cooperation["q05"] <= cooperation["mean"] <= cooperation["q95"] <= 1
     assert (out / "models" / "ngsim_merge_episodes_cidm_smc.md").exists()
+
+    # The code that made them is recorded: in the report, the model cards and every result.
+    assert "Code: bayesdrive" in page
+    card = (out / "models" / "ngsim_merge_episodes_cidm_smc.md").read_text()
+    assert "- fitted by: bayesdrive" in card and "not recorded" not in card
+    # The answer sheet is kept out of the folder of clips meant to be judged blind.
+    turing = json.loads((out / "turing.json").read_text())
+    assert Path(turing["answer_sheet"]).parent != Path(turing["clips"])
+    assert not list(Path(turing["clips"]).glob("*.json"))
+    assert Path(turing["answer_sheet"]).name in html.unescape(page)
 
     # A re-run rebuilds the report from the saved steps without recomputing them.
     stamp = (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns

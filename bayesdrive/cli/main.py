@@ -29,6 +29,9 @@ COMMANDS: dict[str, LazyCommand] = {
     "data": LazyCommand(
         "bayesdrive.cli.data_cmd", "app", "List, inspect, verify and fetch trajectory data sets."
     ),
+    "export": LazyCommand(
+        "bayesdrive.cli.export_cmd", "app", "Export fitted drivers to other tools."
+    ),
     "fit": LazyCommand(
         "bayesdrive.cli.fit_cmd",
         "fit",

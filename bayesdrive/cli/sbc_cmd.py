@@ -35,7 +35,7 @@ from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.fit import ENGINES
 from bayesdrive.inference.sbc import SBCOutcome, run_sbc, sd_doubled
-from bayesdrive.reports.diagnostic_plots import plot_rank_histograms
+from bayesdrive.reports.diagnostic_plots import plot_rank_ecdf
 
 __all__ = ["sbc", "write_outcome"]
 
@@ -57,7 +57,7 @@ def write_outcome(outcome: SBCOutcome, out: Path, stem: str) -> list[Path]:
     summary_path = out / f"{stem}.json"
     write_text_atomic(ranks_path, "\n".join(lines) + "\n")
     write_text_atomic(summary_path, json.dumps(outcome.summary(), indent=2) + "\n")
-    figure = plot_rank_histograms(outcome, out / f"{stem}_ranks.png")
+    figure = plot_rank_ecdf(outcome, out / f"{stem}_ranks.png")
     return [figure, ranks_path, summary_path]
 
 

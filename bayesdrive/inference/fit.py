@@ -292,6 +292,7 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "compile_time_s",
         "engine_options",
         "convergence",
+        "code",
         "created_at",
     )
     result = {**{k: meta[k] for k in keys if k in meta}, "vehicles": vehicles}

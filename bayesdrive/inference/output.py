@@ -19,8 +19,11 @@ Groups (dims in brackets):
 
 ``posterior``, ``prior`` and ``sample_stats`` carry ArviZ's ``inference_library`` and
 ``inference_library_version`` attributes. Root attributes hold the metadata
-(:data:`REQUIRED_METADATA`, plus ``num_chains`` and ``num_draws`` read off the posterior, versions
-and creation time). A fit on read data also records ``input_sha256`` (file path -> sha256 of every
+(:data:`REQUIRED_METADATA`, plus ``num_chains`` and ``num_draws`` read off the posterior, versions,
+the code that made the result (``code``: version, git commit and whether the code was clean, see
+:mod:`bayesdrive.data.provenance`) and creation time). The only attributes that differ between two
+runs of the same command on the same machine are :data:`RUN_DEPENDENT_ATTRS`: the creation time
+and the measured wall and compile times. A fit on read data also records ``input_sha256`` (file path -> sha256 of every
 input file) and ``input_repairs`` (the changes the reader made to the input). netCDF attributes take only strings and numbers, so lists, dicts, booleans and
 None are stored as JSON text; the attribute ``json_attrs`` names those, and :func:`metadata`
 decodes them. Opening a result needs nothing but xarray or ArviZ: ``xarray.open_datatree(path)`` or
@@ -42,12 +45,14 @@ import numpy as np
 import xarray as xr
 
 from bayesdrive.data.atomic import write_atomic
+from bayesdrive.data.provenance import code_provenance
 from bayesdrive.data.views import SPLIT_RULE, FollowerArrays
 from bayesdrive.drivers.base import ParamSpec
 
 __all__ = [
     "OBSERVED_VARIABLE",
     "REQUIRED_METADATA",
+    "RUN_DEPENDENT_ATTRS",
     "EngineResult",
     "build_tree",
     "load_result",
@@ -73,6 +78,8 @@ REQUIRED_METADATA = (
     "window",
     "flagged_samples",
 )
+# Timestamps and timings: everything else in a result is a function of its inputs and seed.
+RUN_DEPENDENT_ATTRS = ("created_at", "wall_time_s", "compile_time_s")
 _VERSIONED = ("bayesdrive", "jax", "numpyro", "arviz", "xarray")
 # Groups that describe draws, so ArviZ's provenance attributes belong on them.
 _DRAW_GROUPS = ("posterior", "prior", "sample_stats")
@@ -226,6 +233,7 @@ def build_tree(
         "num_draws": num_chains * num_draws,
         "split_rule": SPLIT_RULE,
         "versions": {name: _version(name) for name in _VERSIONED},
+        "code": code_provenance(),
         "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     tree = xr.DataTree.from_dict(groups)

@@ -45,7 +45,6 @@ __all__ = [
     "MIN_EXPECTED",
     "SBCOutcome",
     "choose_bins",
-    "expected_band",
     "posterior_ranks",
     "run_sbc",
     "sd_doubled",
@@ -317,10 +316,3 @@ def run_sbc(
         wall_time_s=result.wall_time_s,
         engine_options={**options, **result.options},
     )
-
-
-def expected_band(num_replications: int, bins: int, level: float = 0.99) -> tuple[float, float]:
-    """Central ``level`` binomial range of one bin's count under uniform ranks (for histograms)."""
-    dist = scipy.stats.binom(num_replications, 1.0 / bins)
-    tail = (1.0 - level) / 2.0
-    return float(dist.ppf(tail)), float(dist.ppf(1.0 - tail))

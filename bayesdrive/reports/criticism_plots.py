@@ -138,28 +138,43 @@ def _multistep(check: Check, path: Path) -> Path:
     return _save(fig, path)
 
 
+def _per_vehicle_values(check: Check) -> np.ndarray:
+    return np.asarray(check.figure.get("scores", check.figure.get("values", [])), float)
+
+
+def _per_vehicle_label(check: Check) -> str:
+    """What a screening check's per-vehicle value is, for its y axis."""
+    if "parameter" in check.summary:
+        return f"held-out score in {check.summary['parameter']}"
+    return check.title.removeprefix("Per-vehicle ").removesuffix(", across vehicles")
+
+
 def _by_vehicle(checks: list[Check], path: Path) -> Path:
-    """The screening checks: each vehicle's value, their mean +-2 se, and the zero line."""
-    screening = [c for c in checks if c.screening]
+    """The screening checks with one value per vehicle: each vehicle's value, their mean +-2 se,
+    and the zero line. Screening checks without per-vehicle values (change points) have their own
+    figure and get no empty panel here."""
+    screening = [c for c in checks if c.screening and _per_vehicle_values(c).size]
     cols = min(4, len(screening))
     rows = int(np.ceil(len(screening) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.9 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.2 * rows), squeeze=False)
     for ax in axes.flat[len(screening) :]:
         ax.set_visible(False)
     rng = np.random.default_rng(0)  # horizontal jitter of the dots only
     for ax, check in zip(axes.flat, screening, strict=False):
-        values = np.asarray(check.figure.get("scores", check.figure.get("values", [])), float)
-        if values.size:
-            ax.plot(rng.uniform(-0.2, 0.2, values.size), values, "o", ms=3, alpha=0.7)
-            se = values.std(ddof=1) / np.sqrt(values.size) if values.size > 1 else 0.0
-            ax.errorbar([0.5], [values.mean()], yerr=[2 * se], fmt="s", color="k", ms=4)
+        values = _per_vehicle_values(check)
+        ax.plot(rng.uniform(-0.2, 0.2, values.size), values, "o", ms=3, alpha=0.7)
+        se = values.std(ddof=1) / np.sqrt(values.size) if values.size > 1 else 0.0
+        ax.errorbar([0.5], [values.mean()], yerr=[2 * se], fmt="s", color="k", ms=4)
         ax.axhline(0, color="k", ls="--", lw=0.8)
-        ax.set_xticks([])
+        ax.set_xticks([0.0, 0.5], ["vehicles", "mean"], fontsize=8)
         ax.set_xlim(-0.5, 1.0)
-        title = check.name.removeprefix("score_")
-        ax.set_title(f"{title}\np = {check.p_value:.2g}", fontsize=8)
-        ax.tick_params(labelsize=7)
-    fig.suptitle("Screening checks: one value per vehicle (dots), mean +-2 se (square)", fontsize=9)
+        ax.set_ylabel(_per_vehicle_label(check), fontsize=8, wrap=True)
+        title = check.name.removeprefix("score_").replace("_", " ")
+        ax.set_title(f"{title}\np = {check.p_value:.2g}", fontsize=9)
+        ax.tick_params(labelsize=8)
+    fig.suptitle(
+        "Screening checks: one value per vehicle (dots), mean +-2 se (square)", fontsize=10
+    )
     return _save(fig, path)
 
 

@@ -1,4 +1,4 @@
-"""Pictures of engine diagnostics: marginal overlays, agreement heat maps, SBC rank histograms.
+"""Pictures of engine diagnostics: marginal overlays, agreement heat maps, SBC rank ECDFs.
 
 Figures are drawn on matplotlib ``Figure`` objects with the Agg canvas (no pyplot, no global
 backend switch) and written atomically as PNG.
@@ -19,9 +19,9 @@ from matplotlib.figure import Figure
 
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.inference.agreement import MEAN_TOLERANCE_SD
-from bayesdrive.inference.sbc import SBCOutcome, expected_band
+from bayesdrive.inference.sbc import SBCOutcome
 
-__all__ = ["plot_agreement_heatmap", "plot_marginals", "plot_rank_histograms", "save_figure"]
+__all__ = ["plot_agreement_heatmap", "plot_marginals", "plot_rank_ecdf", "save_figure"]
 
 # Engines keep their colour across every figure.
 ENGINE_COLOURS = {
@@ -151,42 +151,38 @@ def plot_agreement_heatmap(table: pd.DataFrame, path: Path) -> Path:
     return save_figure(figure, path)
 
 
-def plot_rank_histograms(outcome: SBCOutcome, path: Path) -> Path:
-    """SBC rank histograms, one panel per parameter, with the 99% band of a uniform histogram."""
-    num_params = len(outcome.names)
-    replications = outcome.ranks.shape[0]
-    low, high = expected_band(replications, outcome.bins)
-    figure = Figure(figsize=(max(7.0, 3.2 * num_params), 3.2), layout="constrained")
-    axes = figure.subplots(1, num_params, squeeze=False)[0]
-    level = outcome.alpha / num_params
-    for k, (ax, name) in enumerate(zip(axes, outcome.names, strict=True)):
-        ax.axhspan(low, high, color="0.85", zorder=0, label="99% band (uniform)")
-        ax.axhline(replications / outcome.bins, color="0.5", linewidth=0.8, zorder=1)
-        ax.bar(
-            np.arange(outcome.bins),
-            outcome.counts[k],
-            width=0.9,
-            color="#c62828" if outcome.chi2_pvalue[k] < level else "#1f77b4",
-            zorder=2,
-        )
-        width = (outcome.num_ranks + 1) // outcome.bins
-        ax.set_xticks(
-            [0, outcome.bins - 1],
-            [f"0-{width - 1}", f"{outcome.num_ranks + 1 - width}-{outcome.num_ranks}"],
-        )
-        ax.set_xlabel("rank of the truth (binned)", fontsize=8)
-        ax.set_title(
-            f"{name}\nchi2 p={outcome.chi2_pvalue[k]:.2g}, KS p={outcome.ks_pvalue[k]:.2g}",
-            fontsize=9,
-        )
-        ax.tick_params(labelsize=7)
-    axes[0].set_ylabel("replications", fontsize=8)
-    handles, labels = axes[0].get_legend_handles_labels()
-    figure.legend(handles, labels, loc="outside lower center", fontsize=7)
+def plot_rank_ecdf(outcome: SBCOutcome, path: Path) -> Path:
+    """SBC ranks as ArviZ's PIT-ECDF difference plot (``arviz_plots.plot_ecdf_pit``), one panel
+    per parameter: no binning, and ArviZ's own simultaneous uniformity test marks the ranks that
+    depart. The verdict in the title is bayesdrive's (chi-square, Bonferroni over parameters).
+
+    A rank r of L + 1 possible is shown at the PIT (r + 0.5) / (L + 1), the centre of its cell.
+    """
+    import arviz_plots
+
+    pit = (outcome.ranks + 0.5) / (outcome.num_ranks + 1)
+    sbc = xr.Dataset(
+        {name: (("chain", "draw"), pit[None, :, k]) for k, name in enumerate(outcome.names)}
+    )
+    collection = arviz_plots.plot_ecdf_pit(
+        xr.DataTree.from_dict({"prior_sbc": sbc}),
+        backend="matplotlib",
+        figure_kwargs={
+            "figsize": (max(7.0, 3.2 * len(outcome.names)), 3.4),
+            "layout": "constrained",
+        },
+        visuals={
+            "xlabel": {"text": "rank of the truth / (draws + 1)"},
+            "ylabel": {"text": "ECDF - uniform CDF"},
+        },
+    )
+    figure = collection.viz.ds["figure"].item()
     verdict = "no miscalibration found" if outcome.calibrated else "MISCALIBRATED"
+    worst = float(np.min(outcome.chi2_pvalue))
     figure.suptitle(
-        f"SBC {outcome.engine} fitting {outcome.fit_model}: {replications} replications, "
-        f"{outcome.num_steps} steps; {verdict} at alpha={outcome.alpha} (Bonferroni)",
-        fontsize=10,
+        f"SBC {outcome.engine} fitting {outcome.fit_model}: {outcome.ranks.shape[0]} "
+        f"replications, {outcome.num_steps} steps\n{verdict} at alpha={outcome.alpha} "
+        f"(chi-square, Bonferroni; smallest p {worst:.2g}); p in panels: ArviZ's ECDF test",
+        fontsize=9,
     )
     return save_figure(figure, path)

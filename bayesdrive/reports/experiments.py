@@ -30,6 +30,7 @@ import pandas as pd
 
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
+from bayesdrive.data.provenance import describe_code
 from bayesdrive.data.trajectories import Trajectories, summary
 from bayesdrive.data.views import FollowerArrays, pooled_series
 from bayesdrive.drivers.base import PriorBox
@@ -362,7 +363,8 @@ def turing_step(
     """Classifier two-sample test: real held-out segments against one rollout of each model on
     the same scenarios (features of :func:`segment_features`), once on all features and once on
     the speed and gap levels only (``levels_only``: no acceleration or jerk). Also writes the material for a
-    human test: paired clips (real and idm-smc, seeded order) and the answer sheet apart."""
+    human test: paired clips (real and idm-smc, seeded order) in ``out``, and the answer sheet
+    beside that folder, never in it."""
     from bayesdrive.reports.clips import write_answer_sheet, write_clip_pair
 
     out.mkdir(parents=True, exist_ok=True)
@@ -421,8 +423,14 @@ def turing_step(
                 )._asdict(),
             }
         results[label] = rows
-    write_answer_sheet(answers, out / "answer_sheet.json")
-    return {"classifier": results, "clips": str(out), "pairs": len(answers)}
+    # Outside the clips' folder: whoever is handed the clips to judge blind must not get it.
+    sheet = write_answer_sheet(answers, out.parent / f"{out.name}_answer_sheet.json")
+    return {
+        "classifier": results,
+        "clips": str(out),
+        "answer_sheet": str(sheet),
+        "pairs": len(answers),
+    }
 
 
 def scenes_step(
@@ -660,7 +668,8 @@ def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Sett
         meta = metadata(tree)
         posterior = tree["posterior"].to_dataset().astype("float32")
         slim = xr.DataTree.from_dict({"posterior": posterior})
-        slim.attrs = dict(tree.attrs)
+        # The step length stays with the slim file: SUMO export sub-steps the IDM at it.
+        slim.attrs = {**tree.attrs, "dt": float(tree["observed_data"].attrs["dt"])}
         save_result(slim, out / f"{stem}.nc")
         summary_by_vehicle = fit_summary(tree)["vehicles"].values()
         ess = tree["sample_stats"].to_dataset()
@@ -679,6 +688,7 @@ def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Sett
                 f"- diagnostics: median log-evidence per unit {np.nanmedian(evidence):.1f} nats; "
                 f"wall time {meta.get('wall_time_s', float('nan')):.0f} s",
                 f"- settings: bayesdrive reproduce, '{settings.name}' run",
+                f"- fitted by: {describe_code(meta.get('code'))}",
                 "- cross-engine agreement of smc with nuts and emcee on real NGSIM vehicles: "
                 "reports/agreement/agreement.md; congested data leaves v_des, d_min and b_pref "
                 "weakly identified",

@@ -1,7 +1,8 @@
 """Self-contained HTML reports: sections of text, tables and figures, images embedded as base64.
 
 A report opens in any browser with no other file beside it. It always ends with the exact command
-that made it and the versions of the packages involved.
+that made it, the commit of the code (and whether it was clean) and the versions of the packages
+involved.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 import pandas as pd
 
 from bayesdrive.data.atomic import write_text_atomic
+from bayesdrive.data.provenance import provenance_line
 
 __all__ = ["Report", "Section", "versions"]
 
@@ -130,6 +132,7 @@ class Report:
             f"<nav><ul>{toc}</ul></nav>{body}"
             "<h2>How this report was made</h2>"
             f"<p>Command:</p><pre>{html.escape(command_line)}</pre>"
+            f"<p>Code: {html.escape(provenance_line())}.</p>"
             f"<p>Generated {stamp}.</p><table><tr><th>package</th><th>version</th></tr>"
             f"{version_rows}</table></body></html>"
         )

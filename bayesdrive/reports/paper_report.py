@@ -14,6 +14,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from bayesdrive.data.atomic import write_atomic
+from bayesdrive.drivers.registry import MODELS
 from bayesdrive.inference.agreement import agreement_summary, agreement_table
 from bayesdrive.reports.filter_plots import plot_convergence
 from bayesdrive.reports.html import Report
@@ -27,6 +28,30 @@ PAPER_NOTE = (
     "only, scored on its later held-out window, with seeds fixed in advance; the RMSE is the true "
     "root mean square over vehicles and rollouts, and the paper's variant is shown beside it."
 )
+
+
+# Every driver-model parameter's unit, for table headers and axis labels.
+UNITS = {spec.name: spec.unit for model in MODELS.values() for spec in model.specs}
+LEGEND_FONTSIZE = 9
+# The agreement summary's columns (bayesdrive.inference.agreement) as a reader names them.
+AGREEMENT_HEADERS = {
+    "a": "engine",
+    "b": "reference engine",
+    "param": "parameter",
+    "vehicles": "vehicles",
+    "agree": "share of vehicles agreeing",
+    "agree_mean": "share agreeing on the mean",
+    "agree_sd": "share agreeing on the sd",
+    "max_abs_mean_diff_sd": "largest mean difference (reference sds)",
+    "median_sd_ratio": "median sd ratio (engine / reference)",
+    "max_wasserstein_sd": "largest Wasserstein-1 distance (reference sds)",
+}
+
+
+def with_unit(param: str) -> str:
+    """A parameter name with its unit, e.g. 'v_des (m/s)'; dimensionless ones without."""
+    unit = UNITS.get(param, "--")
+    return param if unit in ("--", "") else f"{param} ({unit})"
 
 
 def _save(fig: Figure, path: Path) -> Path:
@@ -52,7 +77,7 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
                 "collisions": result["collisions"]["total"],
                 "colliding vehicle-rollouts": f"{result['collisions']['fraction']:.2%}",
                 "hard braking per rollout": f"{result['hard_braking']['per_rollout']:.1f}",
-                "speed W1 to data (m/s)": f"{result['speed_distribution_mps']['wasserstein']:.2f}",
+                "speed distribution: Wasserstein-1 to data (m/s)": f"{result['speed_distribution_mps']['wasserstein']:.2f}",
             }
         )
     return pd.DataFrame(rows)
@@ -76,7 +101,7 @@ def plot_rmse_curves(models: dict[str, Any], path: Path, title: str, dt: float) 
     ax_x.set(xlabel="horizon (s)", ylabel="position RMSE (m)")
     ax_v.set(xlabel="horizon (s)", ylabel="speed RMSE (m/s)")
     ax_e.set(xlabel="horizon (s)", ylabel="share with an undesirable event so far")
-    ax_x.legend(fontsize=7)
+    ax_x.legend(fontsize=LEGEND_FONTSIZE, title="model")
     fig.suptitle(title)
     return _save(fig, path)
 
@@ -91,7 +116,7 @@ def plot_speed_densities(models: dict[str, Any], path: Path, title: str) -> Path
         density = result["speed_density"]
         ax.plot(density["grid_mps"], density["simulated"], lw=1.2, label=name)
     ax.set(xlabel="speed (m/s)", ylabel="density", title=title)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return _save(fig, path)
 
 
@@ -102,7 +127,7 @@ def plot_cooperation(draws: list[float], path: Path) -> Path:
     ax.hist(draws, bins=40, range=(0.0, 1.0), density=True, alpha=0.7, label="posterior (smc)")
     ax.axhline(1.0, color="k", lw=1, ls="--", label="prior (uniform)")
     ax.set(xlabel="cooperation c", ylabel="density", title="C-IDM cooperation, merge episodes")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=LEGEND_FONTSIZE)
     return _save(fig, path)
 
 
@@ -124,7 +149,8 @@ def plot_parameters(table: pd.DataFrame, path: Path) -> Path:
     for ax, name in zip(axes, params, strict=True):
         ax.boxplot([table.loc[table["data"] == lab, name] for lab in labels], widths=0.6)
         ax.set_xticks(range(1, len(labels) + 1), letters)
-        ax.set_title(name)
+        ax.set_title(with_unit(name))
+        ax.set_xlabel("data set")
     key = ", ".join(f"{letter}: {lab}" for letter, lab in zip(letters, labels, strict=True))
     fig.suptitle(f"posterior mean per vehicle (smc), by data set ({key})", fontsize=10)
     return _save(fig, path)
@@ -150,10 +176,10 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
             "format": info["format"],
             "scenes": info["scenes"],
             "vehicles": info["vehicles"],
-            "recorded s": round(info["duration_s"], 1),
+            "recorded (s)": round(info["duration_s"], 1),
             "leader-follower pairs": info["leader_follower_pairs"],
             "median speed (m/s)": round(info["speed_mps"]["median"], 2),
-            "flags": sum(info["flags"].values()),
+            "flagged samples": sum(info["flags"].values()),
         }
         for name, info in results["data"].items()
     ]
@@ -208,6 +234,8 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "Speeds of the cooperating car in rollouts against the data, held-out merge episodes",
     )
     posterior = pd.DataFrame(experiment["cidm_posterior"]).T.round(3)
+    posterior.index = [with_unit(name) for name in posterior.index]
+    posterior = posterior.rename(columns={"q05": "5% quantile", "q95": "95% quantile"})
     merge.table(
         posterior.reset_index(names="parameter"),
         caption="C-IDM posterior (smc), pooled over the fitting episodes' V2 stays",
@@ -226,9 +254,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     params = report.section("Per-vehicle parameters and filter convergence")
     table = pd.DataFrame(results["parameters"])
     summary = table.drop(columns="vehicle").groupby("data").agg(["mean", "std"]).round(2)
-    summary.columns = [f"{a} {b}" for a, b in summary.columns]
+    summary.columns = [
+        f"{with_unit(a)}: {'mean' if b == 'mean' else 'sd'}" for a, b in summary.columns
+    ]
     params.table(
-        summary.reset_index(), caption="Mean and sd across vehicles of the posterior means"
+        summary.reset_index(names="data set"),
+        caption="Mean and sd across vehicles of the posterior means",
     )
     params.figure(plot_parameters(table, figures / "parameters.png"), "Posterior means per vehicle")
     for label, tree in results["trees"]["pf"].items():
@@ -240,7 +271,8 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         trees = {"smc": results["trees"]["smc"][label], "pf": results["trees"]["pf"][label]}
         agreement = agreement_table(trees)
         departure.table(
-            agreement_summary(agreement), caption=f"{label}: pf against smc, per parameter"
+            agreement_summary(agreement).rename(columns=AGREEMENT_HEADERS),
+            caption=f"{label}: pf against smc, per parameter",
         )
 
     turing = report.section("Turing test (automated: classifier two-sample test)")
@@ -257,7 +289,9 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     turing.text(
         f"For human judges: {results['turing']['pairs']} pairs of clips (real and idm-smc, order "
         f"drawn from a seeded generator) in the folder {Path(results['turing']['clips']).name}/ "
-        "beside this report; answer_sheet.json there says which clip of each pair is real."
+        "beside this report. Which clip of each pair is real is kept outside that folder, in "
+        f"{Path(results['turing'].get('answer_sheet', 'turing_answer_sheet.json')).name} beside "
+        "this report, so the folder can be handed to judges as it is."
     )
     for label, rows in results["turing"]["classifier"].items():
         frame = pd.DataFrame(
@@ -282,11 +316,22 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "The paper's tables are reproduced as printed; a b_pref of 9 m/s^2 and a free-flow tau of "
         "5 s are odd for an IDM. Our own presets pool the exact posteriors."
     )
+    presets = pd.DataFrame(results["scenes"]["presets"])
     scenes.table(
-        pd.DataFrame(results["scenes"]["presets"]),
+        presets.rename(columns={c: with_unit(c) for c in presets.columns}),
         caption="The paper's parameter tables (mean ± sd, independent normals), as printed",
     )
-    scenes.table(pd.DataFrame(results["scenes"]["table"]), caption="Generated scenes")
+    scenes.table(
+        pd.DataFrame(results["scenes"]["table"]).rename(
+            columns={
+                "speed_mean_mps": "mean speed (m/s)",
+                "gap_median_m": "median bumper gap (m)",
+                "collisions": "colliding vehicles",
+                "hard_braking_steps": "hard-braking steps",
+            }
+        ),
+        caption="Generated scenes",
+    )
     for path in results["scenes"]["figures"] + results["scenes"]["sweeps"]:
         scenes.figure(Path(path), Path(path).stem.replace("_", " "))
 
@@ -312,8 +357,16 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     prior = report.section("Prior sensitivity")
     frame = pd.DataFrame(results["prior_sensitivity"]["rows"])
     by_param = frame.groupby("param")[["shift_in_sd", "sd_ratio"]].agg(["median", "max"]).round(2)
-    by_param.columns = [f"{a} {b}" for a, b in by_param.columns]
-    prior.table(by_param.reset_index(), caption="Posterior shift under a prior twice as wide")
+    readable = {
+        "shift_in_sd": "shift of the posterior mean (posterior sds)",
+        "sd_ratio": "sd ratio (wide prior / box prior)",
+    }
+    by_param.columns = [f"{readable[a]}, {b} over vehicles" for a, b in by_param.columns]
+    by_param.index = [with_unit(name) for name in by_param.index]
+    prior.table(
+        by_param.reset_index(names="parameter"),
+        caption="Posterior shift under a prior twice as wide",
+    )
 
     criticism = report.section("Model criticism: what the stochastic IDM gets wrong on real data")
     criticism.text(
@@ -343,7 +396,11 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         criticism.table(
             pd.DataFrame(
                 [
-                    {"check": c["title"], "p": c["p_value"], "points to": ", ".join(c["points_to"])}
+                    {
+                        "check": c["title"],
+                        "p-value": c["p_value"],
+                        "points to": ", ".join(c["points_to"]),
+                    }
                     for c in found["checks"]
                 ]
             ),
@@ -363,8 +420,8 @@ def causes_table(causes: list[dict[str, Any]]) -> pd.DataFrame:
             {
                 "cause": cause["name"],
                 "fitted": "yes" if gain else "no (screened out)",
-                "elpd gain": gain.get("elpd"),
-                "se": gain.get("se"),
+                "held-out elpd gain (nats)": gain.get("elpd"),
+                "se of the gain (nats)": gain.get("se"),
                 "p (one-sided)": gain.get("p_value"),
                 "significant (Holm)": gain.get("significant"),
                 "RMSE position change (m)": gain.get("rmse_position_change"),

@@ -1,0 +1,81 @@
+"""The same command with the same seed gives the same bits, in another process too.
+
+The issue asks for the quick main job run twice with identical bits; ``reproduce --quick`` took
+44 minutes of wall time (7.4 CPU-minutes) on this project's shared 2-core machine (measured
+once, at a load average of about 20), far over a test's budget. So the test runs the subset every number of the report starts from: an smc
+fit of real NGSIM vehicles through ``bayesdrive fit`` (2 vehicles, 100 particles, v_des and
+sigma), once in this process and once in a fresh one, and requires every array of the result to
+be bit-identical and every attribute equal except :data:`RUN_DEPENDENT_ATTRS` (creation time and
+measured timings). Negative control: another seed changes the posterior.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import xarray as xr
+from typer.testing import CliRunner
+
+from bayesdrive.cli.main import app
+from bayesdrive.inference.output import RUN_DEPENDENT_ATTRS, load_result, metadata
+
+CHAIN = "ngsim_i80_chains/115_124_136_140_146_162.csv"
+
+
+def _fit_args(data_dir, out, seed: int) -> list[str]:
+    return [
+        "fit", str(data_dir / CHAIN), "--vehicles", "2", "--particles", "100",
+        "--params", "v_des,sigma", "--seed", str(seed), "--out", str(out),
+    ]  # fmt: skip
+
+
+def _arrays(tree: xr.DataTree) -> dict[str, np.ndarray]:
+    return {
+        f"{node.path}/{name}": np.asarray(values)
+        for node in tree.subtree
+        for name, values in {**node.data_vars, **node.coords}.items()
+    }
+
+
+def _stable_attrs(tree: xr.DataTree) -> dict:
+    return {k: v for k, v in metadata(tree).items() if k not in RUN_DEPENDENT_ATTRS}
+
+
+@pytest.mark.realdata
+def test_a_fit_repeated_in_a_fresh_process_is_bit_identical(data_dir, tmp_path):
+    first = CliRunner().invoke(app, _fit_args(data_dir, tmp_path / "a", seed=3))
+    assert first.exit_code == 0, first.output
+    script = "import sys; from bayesdrive.cli.main import app; sys.argv[0] = 'bayesdrive'; app()"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    for out, seed in ((tmp_path / "b", 3), (tmp_path / "other_seed", 4)):
+        second = subprocess.run(
+            [sys.executable, "-c", script, *_fit_args(data_dir, out, seed)],
+            capture_output=True,
+            text=True,
+            env=env,
+            check=False,
+        )
+        assert second.returncode == 0, second.stderr
+
+    a, b = (load_result(tmp_path / name / "result.nc") for name in ("a", "b"))
+    arrays_a, arrays_b = _arrays(a), _arrays(b)
+    assert arrays_a.keys() == arrays_b.keys()
+    for name, values in arrays_a.items():
+        assert values.dtype == arrays_b[name].dtype, name
+        assert values.tobytes() == arrays_b[name].tobytes(), f"{name} differs between the runs"
+    assert _stable_attrs(a) == _stable_attrs(b)
+    assert metadata(a)["code"]["version"] is not None  # the code that made it is recorded
+
+    summaries = [json.loads((tmp_path / n / "summary.json").read_text()) for n in ("a", "b")]
+    for summary in summaries:
+        for key in RUN_DEPENDENT_ATTRS:
+            summary.pop(key, None)
+    assert summaries[0] == summaries[1]
+
+    other = load_result(tmp_path / "other_seed" / "result.nc")
+    assert not np.array_equal(other["posterior"]["v_des"].values, a["posterior"]["v_des"].values)
