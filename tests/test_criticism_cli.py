@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import json
 
-import jax
 import pytest
 import typer
 from typer.testing import CliRunner
 
 from bayesdrive.cli.criticize_cmd import criticize_command
-from bayesdrive.criticism.generator import generate
+from trafficgen import generate
 
 app = typer.Typer()
 app.command()(criticize_command)
@@ -20,11 +19,10 @@ app.command()(criticize_command)
 def small_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("cli") / "delay.csv"
     generate(
-        jax.random.key(3),
+        3,
         path,
-        "reaction_delay",
-        effect_range=(0.4, 0.7),
-        num_platoons=1,
+        {"perception_delay": (0.4, 0.7)},
+        platoons=1,
         followers=4,
         duration_s=30.0,
         cut_ins=0,
