@@ -83,8 +83,8 @@ MECHANISMS: dict[str, Mechanism] = {
         {"small": (0.003, 0.01), "medium": (0.01, 0.03), "large": (0.03, 0.1)},
         ("measurement_noise",),
         "white noise on every recorded position, as video extraction has it; the written speeds "
-        "are central differences of the noisy positions, accelerations differences of those "
-        "speeds, headways differences of the noisy positions (the extension assumes exact "
+        "are central differences of the noisy positions (floored at 0), accelerations differences "
+        "of those speeds, headways differences of the noisy positions (the extension assumes exact "
         "speeds and gaps)",
     ),
     "two_leader_anticipation": Mechanism(

@@ -402,8 +402,9 @@ def simulate(
     sd = np.nan_to_num(sizes.get("video_position_noise.position_noise_m", np.zeros(n)))
     recorded_x = true_x + sd[:, None] * streams["recording"].standard_normal(true_x.shape)
     if "video_position_noise" in mechanisms:
-        # Video: speeds are central differences of the positions (one-sided at the ends).
-        recorded_v = np.gradient(recorded_x, DT, axis=1)
+        # Video: speeds are central differences of the positions (one-sided at the ends), floored
+        # at 0 as published speeds are (the noise alone makes a standing vehicle's negative).
+        recorded_v = np.maximum(np.gradient(recorded_x, DT, axis=1), 0.0)
     else:
         recorded_v = true_v
     recorded_a = np.gradient(recorded_v, DT, axis=1)
