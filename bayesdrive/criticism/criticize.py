@@ -108,7 +108,7 @@ class CriticizeConfig(NamedTuple):
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
-# bayesdrive.criticism.generator): the default sampler (moves until every particle has moved with
+# trafficgen, the independent generator at the repository root): the default sampler (moves until every particle has moved with
 # probability 0.99, Drovandi & Pettitt 2011's c = 0.01, since 4 fixed moves let the speed-noise
 # posterior collapse: bayesdrive.criticism.tempering), without rollouts, to keep CI fast.
 DETECTION_CONFIG = CriticizeConfig(num_rollouts=0)
