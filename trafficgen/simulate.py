@@ -19,8 +19,11 @@ acceleration, 2-6 s each, with occasional hard braking), and ``followers`` simul
 follower k follows the simulated follower k - 1. ``cut_ins`` vehicles per platoon change into the
 lane in the last quarter of the record (inside the held-out window of bayesdrive's 70/30 split, the
 fitting window stays ordinary following): each drives in lane 2 at constant speed, enters in front
-of a follower (in turn) at a random fraction of its gap once the gap allows, slightly faster than
-the vehicle it then follows, and is driven by the IDM from then on.
+of a follower (in turn) once MOBIL's safety criterion allows it (neither the new follower nor the
+changer brakes harder than ``B_SAFE`` = 4 m/s^2 at entry, at the place in the gap where the harder
+braking is least; without it the IDM answers a cut-in with physically impossible braking of 10-70
+m/s^2), at a random speed within 1 m/s of the vehicle it then follows, and is driven by the IDM
+from then on.
 
 **Mechanisms** (:data:`trafficgen.mechanisms.MECHANISMS`) change the followers' driving (all but
 ``video_position_noise``, which changes the recording). Each follower draws its own size from the
@@ -67,9 +70,10 @@ HEAD_SEGMENT_S = (2.0, 6.0)
 LENGTH_M = (4.2, 5.0)
 WARMUP_S = 5.0
 CUT_WINDOW = (0.74, 0.92)  # fraction of the record in which cut-ins are attempted
-CUT_FRACTION = (0.35, 0.6)  # where in the follower's gap the cut-in lands
-CUT_SPEED_GAIN = (0.0, 2.0)  # m/s above the speed of the vehicle it will follow
+LANDING = np.linspace(0.2, 0.8, 25)  # places in the follower's gap a cut-in considers
+CUT_SPEED_GAIN = (-1.0, 1.0)  # m/s relative to the vehicle it will follow
 MIN_CUT_GAP = 8.0  # m of bumper gap a cut-in waits for
+B_SAFE = 4.0  # m/s^2: MOBIL's safe braking limit for the new follower of a lane change
 MIN_GAP = 0.1  # m: the interaction term's floor, so a collision does not divide by zero
 STREAMS = ("heads", "drivers", "lengths", "cut_ins", "noise", "recording", *MECHANISMS)
 
@@ -244,7 +248,6 @@ def simulate(
     head_acc = _head_accelerations(streams["heads"], head_start, steps)
     cuts = streams["cut_ins"]
     activation = warmup * DT + duration_s * cuts.uniform(*CUT_WINDOW, n)
-    cut_fraction = cuts.uniform(*CUT_FRACTION, n)
     cut_gain = cuts.uniform(*CUT_SPEED_GAIN, n)
 
     # Start: every lane vehicle at its equilibrium gap behind the one ahead.
@@ -288,8 +291,23 @@ def simulate(
             free_gap = x[ahead] - length[ahead] - x[target]
             if free_gap <= MIN_CUT_GAP:
                 continue
-            x[c] = x[target] + length[c] + cut_fraction[c] * (free_gap - length[c])
-            v[c] = v[ahead] + cut_gain[c]
+            entry_v = v[ahead] + cut_gain[c]
+            # MOBIL's safety criterion (Kesting, Treiber & Helbing 2007): the change waits until
+            # some place in the gap lets neither the new follower nor the changer brake harder
+            # than B_SAFE; it takes the place where the harder of the two brakes least.
+            entry_x = x[target] + length[c] + LANDING * (free_gap - length[c])
+            follower_rule = (p[name][target] for name in ("v0", "s0", "T", "a", "b"))
+            changer_rule = (p[name][c] for name in ("v0", "s0", "T", "a", "b"))
+            gap_behind = entry_x - length[c] - x[target]
+            gap_ahead = x[ahead] - length[ahead] - entry_x
+            worst = np.minimum(
+                _idm(v[target], gap_behind, v[target] - entry_v, *follower_rule, True),
+                _idm(entry_v, gap_ahead, entry_v - v[ahead], *changer_rule, True),
+            )
+            if worst.max() < -B_SAFE:
+                continue
+            entry_x = entry_x[np.argmax(worst)]
+            x[c], v[c] = entry_x, entry_v
             active[c] = True
             entered[c] = k
             entry_sub[c] = k * SUBSTEPS
