@@ -17,7 +17,7 @@ from trafficgen import MECHANISMS, NULL, generate, right_verdicts, simulate, wri
 from trafficgen.ngsim import COLUMNS
 from trafficgen.simulate import _idm
 
-SMALL = {"platoons": 1, "followers": 3, "duration_s": 30.0, "cut_ins": 2}
+SMALL = {"platoons": 1, "followers": 3, "duration_s": 30.0, "cut_ins": 6}
 
 
 @pytest.fixture(scope="module")
