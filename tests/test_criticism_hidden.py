@@ -3,12 +3,15 @@ its own sub-stepped IDM, mechanisms that are not the extensions' equations) writ
 files, the real reader reads them, and ``criticize`` must give a right verdict (trafficgen's table,
 reports/criticism/generator.md); on data without a mechanism it must say "none".
 
-Cells: those the development pilot of benchmarks/bench_detection.py (development seeds,
-reports/criticism/detection_dev.md) named right at the "large" size; the study on fresh seeds
-(reports/criticism/detection.md) is what backs them at 20 of 20 once run. One seed per cell, fixed
-before any of these tests ran and outside both the pilot's and the study's seed ranges (not chosen
-by outcome); video-style measurement noise (noisy positions, speeds and headways differenced from
-them) is one of the cells.
+Cells: only those the development pilot of benchmarks/bench_detection.py named right
+(reports/criticism/detection_dev.md: one replication per cell on development seed 900001, so this
+is a smoke test of what is known to work, not a rate): null data; an Ornstein-Uhlenbeck pedal
+error ("large"); video-style measurement noise ("large": noisy positions, speeds and headways
+differenced from them). Left out because the pilot's verdict was wrong: perception_delay large
+(named drifting_parameters), speed_power_noise large (named none, not screened in); not piloted in
+time: the other mechanisms and sizes. The study on fresh seeds (reports/criticism/detection.md,
+not yet run) is what would back a cell at 20 of 20. One seed per cell, fixed before any of these
+tests ran, outside the pilot's and the study's seed ranges (not chosen by outcome).
 """
 
 from __future__ import annotations
@@ -22,12 +25,7 @@ from trafficgen import DETECTION_SCENARIO, MECHANISMS, NULL, generate, right_ver
 # cell -> (size, seed); seeds fixed in advance, one per cell.
 CI_CELLS = {
     NULL: (NULL, 70001),
-    "perception_delay": ("large", 70002),
     "pedal_noise": ("large", 70003),
-    "speed_power_noise": ("large", 70004),
-    "two_leader_anticipation": ("large", 70005),
-    "cut_in_relaxation": ("large", 70006),
-    "time_gap_drift": ("large", 70007),
     "video_position_noise": ("large", 70008),
 }
 
