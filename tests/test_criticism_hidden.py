@@ -22,18 +22,21 @@ from bayesdrive.criticism.criticize import DETECTION_CONFIG, criticize
 from bayesdrive.data.readers import read
 from trafficgen import DETECTION_SCENARIO, MECHANISMS, NULL, generate, right_verdicts
 
-# cell -> (size, seed); seeds fixed in advance, one per cell.
+# "mechanism[ size]" -> (size, seed); seeds fixed in advance, one per cell.
 CI_CELLS = {
     NULL: (NULL, 70001),
     "pedal_noise": ("large", 70003),
     "video_position_noise": ("large", 70008),
+    "time_gap_drift": ("large", 70007),
+    "video_position_noise small": ("small", 70010),
 }
 
 
 @pytest.mark.parametrize("cell", list(CI_CELLS))
 def test_criticize_names_the_hidden_mechanism(cell, tmp_path):
     size, seed = CI_CELLS[cell]
-    mechanisms = {} if cell == NULL else {cell: MECHANISMS[cell].sizes[size]}
+    name = cell.split()[0]
+    mechanisms = {} if name == NULL else {name: MECHANISMS[name].sizes[size]}
     path = tmp_path / f"{cell}.csv"
     recording = generate(seed, path, mechanisms, **DETECTION_SCENARIO)
     assert recording.collisions == 0
