@@ -1,62 +1,101 @@
-"""Detection study: how often ``criticize`` names a hidden effect, per effect and size, and how
-often it names one on data without any (the false-positive rate).
+"""Detection study: how often ``criticize`` names a hidden effect in data made by the independent
+generator (``trafficgen``: its own IDM on sub-steps, mechanisms that are not the extensions'
+equations), per mechanism and size, on null data, and with two mechanisms at once.
 
-Every replication simulates the detection scenario (``DETECTION_SCENARIO``: platoons with cut-ins,
-the base IDM plus one effect with per-driver sizes drawn uniformly from the size's range), writes it
-as an NGSIM raw CSV, reads it back through the real reader and runs ``criticize`` with
-``DETECTION_CONFIG`` -- exactly what the CI tests (tests/test_criticism_hidden.py) do for the
-sizes this table shows detected in at least 95% of replications. Seeds are 1..N for every cell.
+Every replication simulates ``trafficgen.DETECTION_SCENARIO`` with the cell's mechanisms (per-driver
+sizes uniform on the size's range), writes an NGSIM raw CSV, reads it back through the real reader
+and runs ``criticize`` with ``DETECTION_CONFIG``, exactly as CI's hidden-effect tests
+(tests/test_criticism_hidden.py) do. A replication is right when the verdict is one of the
+mechanism's right verdicts (``trafficgen.right_verdicts``; null data: ``none``).
 
-Results are appended to ``<out>/detection_runs.csv`` as they come (a rerun skips finished cells,
-so the study can be stopped and resumed; with ``--first-seed`` a second process can work on the
-upper seeds at the same time, appending to the same file); the table goes to
-``<out>/detection.md`` with Wilson 95% intervals, and a picture to ``<out>/detection.png``.
+**Seeds, fixed before the run.** Replication r (1, 2, ...) of every cell uses seed
+``STUDY_SEEDS.start + r - 1``: 100001, 100002, ... . These were never used while developing the
+generator or the detector; development and pilots use ``--dev``, which takes ``DEV_SEEDS``
+(900001, ...) and writes to files of their own (``detection_dev_runs.csv``, ``detection_dev.md``).
+CI's seeds (70001, ...) are a third range, fixed in the test.
 
-    python benchmarks/bench_detection.py --seeds 20 --null-seeds 40 --out reports/criticism
+**Resumable.** Each finished replication is appended to ``<out>/detection_runs.csv`` as one line in
+one ``write`` on a file opened for appending (so a stop never leaves half a row); a rerun skips the
+(cell, size, seed) rows already there for the current sampler and generator (a fingerprint of
+trafficgen's source), so the study, hours long, can be stopped and resumed, and rows made by
+another generator version or sampler are neither reused nor reported. The table goes to
+``<out>/detection.md`` with Wilson 95% intervals and the seeds used.
 
-Staged, so that a stop still leaves the cells CI needs: first the null and the CI size, then the
-rest; ``--report-only`` redraws the table from the CSV.
-
-    python benchmarks/bench_detection.py --sizes large --seeds 20 --null-seeds 20
-    python benchmarks/bench_detection.py --sizes medium,small --seeds 10 --null-seeds 0
-    python benchmarks/bench_detection.py --report-only
+    PYTHONPATH=. python benchmarks/bench_detection.py                  # the study (hours)
+    PYTHONPATH=. python benchmarks/bench_detection.py --dev --replications 2 --sizes large
+    PYTHONPATH=. python benchmarks/bench_detection.py --report-only
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
+import io
+import os
 import sys
 import tempfile
-import textwrap
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 import pandas as pd
 
-from bayesdrive.criticism.criticize import DETECTION_CONFIG, criticize
-from bayesdrive.criticism.generator import DETECTION_SCENARIO, DETECTION_SIZES, generate
-from bayesdrive.data.atomic import write_text_atomic
-from bayesdrive.data.readers import read
-from bayesdrive.drivers.extensions import NO_CAUSE
+# trafficgen is not installed with bayesdrive: it lives at the repository root beside it.
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
+from bayesdrive.criticism.criticize import DETECTION_CONFIG, criticize  # noqa: E402
+from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
+from bayesdrive.data.readers import read  # noqa: E402
+from trafficgen import (  # noqa: E402
+    DETECTION_SCENARIO,
+    MECHANISMS,
+    NULL,
+    SIZES,
+    generate,
+    right_verdicts,
+)
+
+STUDY_SEEDS = range(100_001, 200_001)
+DEV_SEEDS = range(900_001, 1_000_001)
+# Two mechanisms at once: a verdict right for either counts.
+PAIRS = (
+    ("perception_delay", "video_position_noise"),
+    ("pedal_noise", "speed_power_noise"),
+    ("two_leader_anticipation", "time_gap_drift"),
+)
 FIELDS = [
-    "cause",
+    "cell",
     "size",
-    "low",
-    "high",
+    "ranges",
     "seed",
     "verdict",
-    "detected",
-    "true_gain",
-    "true_se",
-    "true_significant",
+    "right",
+    "right_verdicts",
+    "best_right_gain",
+    "best_right_se",
     "screened_in",
+    "collisions",
     "seconds",
     "sampler",
+    "generator",
 ]
+# A cell backs CI only with at least this many replications, all right.
+CLAIM_REPLICATIONS = 20
+
+
+def generator_fingerprint() -> str:
+    """First 12 hex digits of the sha256 of trafficgen's source: rows of another version differ."""
+    digest = hashlib.sha256()
+    for source in sorted((ROOT / "trafficgen").glob("*.py")):
+        digest.update(source.read_bytes())
+    return digest.hexdigest()[:12]
+
+
+# Taken once, at start: the rows of a run carry the version it imported.
+GENERATOR = generator_fingerprint()
 
 
 def sampler_label(config=DETECTION_CONFIG) -> str:
@@ -66,9 +105,11 @@ def sampler_label(config=DETECTION_CONFIG) -> str:
     return f"{config.num_moves} moves"
 
 
-# Cells are kept apart by sampler: a cell measured before a sampler change stays in the table,
-# marked, until it is rerun; CI runs the current one (SAMPLER).
-SAMPLER = sampler_label()
+def cell_mechanisms(cell: str, size: str) -> dict[str, tuple[float, float]]:
+    """The mechanisms (name -> size range) of a cell named ``a`` or ``a+b`` (or none)."""
+    if cell == NULL:
+        return {}
+    return {name: MECHANISMS[name].sizes[size] for name in cell.split("+")}
 
 
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -82,285 +123,204 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return max(centre - half, 0.0), min(centre + half, 1.0)
 
 
-def run_one(cause: str, size: str, effect_range, seed: int, workdir: Path) -> dict:
+def run_one(cell: str, size: str, seed: int, workdir: Path) -> dict:
     """One replication: simulate, write, read, criticize."""
     started = time.perf_counter()
-    path = workdir / f"{cause}_{size}_{seed}.csv"
-    generate(
-        jax.random.key(seed),
-        path,
-        cause,
-        effect_range=effect_range,
-        **DETECTION_SCENARIO,
-    )
-    traj = read(path, format="ngsim_raw")
-    report = criticize(traj, seed=seed, config=DETECTION_CONFIG).report
+    mechanisms = cell_mechanisms(cell, size)
+    path = workdir / f"{cell.replace('+', '_')}_{size}_{seed}.csv"
+    recording = generate(seed, path, mechanisms, **DETECTION_SCENARIO)
+    report = criticize(read(path, format="ngsim_raw"), seed=seed, config=DETECTION_CONFIG).report
     path.unlink()
-    entry = next((c for c in report["causes"] if c["name"] == cause), None)
-    gain = entry["gain"] if entry else None
+    right = right_verdicts(tuple(mechanisms))
+    gains = [c["gain"] for c in report["causes"] if c["name"] in right and c["gain"]]
+    best = max(gains, key=lambda g: g["elpd"] if g["elpd"] is not None else -np.inf, default=None)
     return {
-        "cause": cause,
+        "cell": cell,
         "size": size,
-        "low": effect_range[0] if effect_range else "",
-        "high": effect_range[1] if effect_range else "",
+        "ranges": ";".join(f"{k}={v[0]}-{v[1]}" for k, v in mechanisms.items()),
         "seed": seed,
         "verdict": report["verdict"],
-        "detected": int(report["verdict"] == cause),
-        "true_gain": gain["elpd"] if gain else "",
-        "true_se": gain["se"] if gain else "",
-        "true_significant": int(bool(gain and gain["significant"])),
-        "screened_in": int(bool(entry and entry["screened_in"])),
+        "right": int(report["verdict"] in right),
+        "right_verdicts": "|".join(right) or "(out of reach)",
+        "best_right_gain": "" if best is None else best["elpd"],
+        "best_right_se": "" if best is None else best["se"],
+        "screened_in": int(any(c["screened_in"] for c in report["causes"] if c["name"] in right)),
+        "collisions": recording.collisions,
         "seconds": round(time.perf_counter() - started, 1),
-        "sampler": SAMPLER,
+        "sampler": sampler_label(),
+        "generator": GENERATOR,
     }
 
 
-# A cell backs a CI size only with at least this many replications (19 of 20 is 0.95).
-CLAIM_REPLICATIONS = 20
-SIZE_ORDER = ("none", "small", "medium", "large", "xlarge")
+def append_row(path: Path, row: dict) -> None:
+    """Append one CSV line in one write (header first on a new file)."""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=FIELDS)
+    if not path.exists():
+        writer.writeheader()
+    writer.writerow(row)
+    handle = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(handle, buffer.getvalue().encode())
+        os.fsync(handle)
+    finally:
+        os.close(handle)
+
+
+def planned_cells(cells: list[str], sizes: list[str]) -> list[tuple[str, str]]:
+    """(cell, size) pairs: null once, every mechanism and pair at every size."""
+    return [
+        (c, NULL) if c == NULL else (c, s) for c in cells for s in ([NULL] if c == NULL else sizes)
+    ]
 
 
 def cell_rates(runs: pd.DataFrame) -> pd.DataFrame:
-    """One row per (cause, size, sampler), in the order of DETECTION_SIZES and SIZE_ORDER:
-    replications, hits, rate, Wilson interval and the other verdicts."""
-    causes = [NO_CAUSE, *DETECTION_SIZES]
+    """One row per (cell, size, generator): replications, right, rate, Wilson interval, other
+    verdicts, seeds."""
+    order = [NULL, *MECHANISMS, *("+".join(p) for p in PAIRS)]
     rows = []
-    for (cause, size, sampler), cell in runs.groupby(["cause", "size", "sampler"]):
-        n, hits = len(cell), int(cell["detected"].sum())
+    for (cell, size, generator), group in runs.groupby(["cell", "size", "generator"]):
+        n, hits = len(group), int(group["right"].sum())
         low, high = wilson(hits, n)
+        seeds = sorted(group["seed"].astype(int))
         rows.append(
             {
-                "cause": cause,
+                "cell": cell,
                 "size": size,
-                "sampler": sampler,
-                "effect": "-"
-                if cause == NO_CAUSE
-                else f"[{cell['low'].iloc[0]}, {cell['high'].iloc[0]}]",
+                "generator": generator,
+                "ranges": group["ranges"].iloc[0]
+                if isinstance(group["ranges"].iloc[0], str)
+                else "-",
+                "right_verdicts": group["right_verdicts"].iloc[0],
                 "n": n,
                 "hits": hits,
                 "rate": hits / n,
                 "low": low,
                 "high": high,
-                "others": cell.loc[cell["verdict"] != cause, "verdict"].value_counts().to_dict(),
+                "others": group.loc[group["right"] == 0, "verdict"].value_counts().to_dict(),
+                "seeds": _ranges(seeds),
             }
         )
     out = pd.DataFrame(rows)
-    order = {"cause": causes, "size": SIZE_ORDER, "sampler": [SAMPLER]}
+    size_order = [NULL, *SIZES]
     return out.sort_values(
-        ["cause", "size", "sampler"],
-        key=lambda col: col.map(lambda v: order[col.name].index(v) if v in order[col.name] else 99),
+        ["cell", "size"],
+        key=lambda col: col.map((order if col.name == "cell" else size_order).index),
     ).reset_index(drop=True)
 
 
-def table(rates: pd.DataFrame) -> str:
-    """The markdown detection table."""
+def _ranges(seeds: list[int]) -> str:
+    """1,2,3,5 -> '1-3, 5'."""
+    parts, start = [], None
+    for i, s in enumerate(seeds):
+        if start is None:
+            start = s
+        if i + 1 == len(seeds) or seeds[i + 1] != s + 1:
+            parts.append(str(start) if start == s else f"{start}-{s}")
+            start = None
+    return ", ".join(parts)
+
+
+def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
+    """The markdown table of the current sampler's rows: for the study, of the current generator
+    only; for the development pilot, of every generator version it ran (marked)."""
+    runs = pd.read_csv(runs_path)
+    runs = runs[runs["sampler"] == sampler_label()]
+    if not dev:
+        runs = runs[runs["generator"] == GENERATOR]
+    rates = cell_rates(runs)
     lines = [
-        "| cause | size | effect range | sampler | replications | named correctly | rate "
-        "| 95% interval | other verdicts |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| cell | size | generator | size ranges | right verdicts | replications | right | rate "
+        "| 95% interval | other verdicts | seeds |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rates.itertuples():
         lines.append(
-            f"| {r.cause} | {r.size} | {r.effect} | {r.sampler} | {r.n} | {r.hits} | "
-            f"{r.rate:.2f} | [{r.low:.2f}, {r.high:.2f}] | {r.others or ''} |"
+            f"| {r.cell} | {r.size} | {r.generator} | {r.ranges} | {r.right_verdicts} | {r.n} | "
+            f"{r.hits} | "
+            f"{r.rate:.2f} | [{r.low:.2f}, {r.high:.2f}] | {r.others or ''} | {r.seeds} |"
         )
-    return "\n".join(lines)
-
-
-def figure(rates: pd.DataFrame, false_positive: str, path: Path) -> None:
-    """Detection rate per effect (groups) and size (bars) with Wilson intervals; where a cell was
-    measured with several samplers, the current one's."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
-
-    effects = rates[rates["cause"] != NO_CAUSE]
-    effects = effects[
-        (effects["sampler"] == SAMPLER)
-        | ~effects.set_index(["cause", "size"]).index.isin(
-            effects[effects["sampler"] == SAMPLER].set_index(["cause", "size"]).index
-        )
-    ]
-    causes = list(dict.fromkeys(effects["cause"]))
-    sizes = [s for s in SIZE_ORDER if s in set(effects["size"])]
-    width = 0.8 / max(len(sizes), 1)
-    fig, ax = plt.subplots(figsize=(9, 4.2))
-    handles = []
-    for k, size in enumerate(sizes):
-        cell = effects[effects["size"] == size].set_index("cause").reindex(causes)
-        x = np.arange(len(causes)) + (k - (len(sizes) - 1) / 2) * width
-        bars = ax.bar(x, cell["rate"], width)
-        # Legend from a plain patch: a hatched first bar would hatch the size's legend entry.
-        handles.append(Patch(facecolor=bars.patches[0].get_facecolor(), label=size))
-        for bar, sampler in zip(bars, cell["sampler"], strict=True):
-            if isinstance(sampler, str) and sampler != SAMPLER:
-                bar.set_hatch("//")  # measured with an older sampler only
-        ax.bar_label(
-            bars,
-            ["" if pd.isna(n) else f"{n:.0f}" for n in cell["n"]],
-            fontsize=7,
-            label_type="center",
-        )
-        ax.errorbar(
-            x,
-            cell["rate"],
-            yerr=[cell["rate"] - cell["low"], cell["high"] - cell["rate"]],
-            fmt="none",
-            ecolor="k",
-            lw=0.8,
-            capsize=2,
-        )
-    labels = ["\n".join(textwrap.wrap(c.replace("_", " "), 14)) for c in causes]
-    ax.set_xticks(np.arange(len(causes)), labels, fontsize=8)
-    ax.set_title(
-        f"Named correctly, per effect and size (whiskers: Wilson 95%, in the bar: replications)\n"
-        f"null data: {false_positive}; hatched: older sampler only",
-        fontsize=9,
-    )
-    handles.append(ax.axhline(0.95, color="k", ls="--", lw=1, label="0.95"))
-    ax.set_ylim(0, 1.05)
-    ax.set_ylabel("share of replications")
-    ax.legend(handles=handles, fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def misses(runs: pd.DataFrame) -> str:
-    """The missed replications with the hidden cause's gain: was it screened in, how large?"""
-    missed = runs[(runs["cause"] != NO_CAUSE) & (runs["detected"] == 0)]
-    if missed.empty:
-        return "No effect was missed.\n"
-    lines = [
-        "Missed replications (gain of the hidden cause's extension: summed held-out elpd, its se "
-        "across vehicles; screened in: whether the checks pointed to it):",
-        "",
-        "| cause | size | sampler | seed | verdict | gain | se | screened in |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in missed.sort_values(["cause", "size", "sampler", "seed"]).itertuples():
-        lines.append(
-            f"| {r.cause} | {r.size} | {r.sampler} | {r.seed} | {r.verdict} | "
-            f"{r.true_gain:.1f} | {r.true_se:.1f} | {'yes' if r.screened_in else 'no'} |"
-        )
-    return "\n".join(lines) + "\n"
-
-
-def write_report(runs_path: Path, out: Path) -> None:
-    """detection.md (the table, false positives, the sizes at or above 0.95) and detection.png."""
-    runs = pd.read_csv(runs_path)
-    rates = cell_rates(runs)
-    # The false-positive rate of the current sampler (older null runs are in the table).
-    null = runs[(runs["cause"] == NO_CAUSE) & (runs["sampler"] == SAMPLER)]
-    fp = int((null["verdict"] != NO_CAUSE).sum())
-    fp_low, fp_high = wilson(fp, len(null))
-    false_positive = (
-        f"{fp} of {len(null)} ({fp / max(len(null), 1):.3f}, 95% interval "
-        f"[{fp_low:.3f}, {fp_high:.3f}])"
-    )
     reliable = rates[
-        (rates["cause"] != NO_CAUSE) & (rates["rate"] >= 0.95) & (rates["n"] >= CLAIM_REPLICATIONS)
+        (rates["n"] >= CLAIM_REPLICATIONS)
+        & (rates["hits"] == rates["n"])
+        & (rates["generator"] == GENERATOR)
     ]
-    by_cause = reliable.groupby("cause", sort=False).apply(
-        lambda cell: ", ".join(f"{r.size} ({r.sampler})" for r in cell.itertuples()),
-        include_groups=False,
+    kind = (
+        "**Development pilot** (development seeds, never evidence for CI: it chose what to measure)"
+        if dev
+        else "Study (seeds fixed before the run, never used in development)"
     )
-    unbacked = [c for c in DETECTION_SIZES if c not in by_cause.index]
-    now = rates[rates["sampler"] == SAMPLER]
-    current = set(zip(now["cause"], now["size"], strict=True))
-    older = {
-        f"{r.cause} {r.size}" for r in reliable.itertuples() if (r.cause, r.size) not in current
-    }
     text = (
-        "# Detection of hidden effects by `bayesdrive criticize`\n\n"
-        f"Generated by `benchmarks/bench_detection.py`. Scenario: {DETECTION_SCENARIO} "
-        f"(followers with per-driver effect sizes uniform on the range); settings: "
-        f"{DETECTION_CONFIG._asdict()}. Seeds 1..N per cell (N = replications). A replication "
-        "counts as detected when the verdict names the hidden cause (a significant gain for "
-        "another cause, or none, counts as a miss). Intervals: Wilson 95%. Sampler: the "
-        "Metropolis-Hastings moves per tempering stage the run used; the current settings "
-        f'make "{SAMPLER}" (bayesdrive.criticism.tempering, "How many moves"); cells '
-        "measured with an older sampler stay in the table, marked, until rerun.\n\n"
-        f"False positives on null data with the current sampler (verdict other than none): "
-        f"{false_positive}.\n\n"
-        + table(rates)
-        + f"\n\nSizes named correctly in at least 95% of at least {CLAIM_REPLICATIONS} "
-        "replications: "
-        + ("; ".join(f"{c}: {s}" for c, s in by_cause.items()) or "none")
-        + ". CI (tests/test_criticism_hidden.py) runs, per cause, one of these sizes"
-        + (f"; it skips {', '.join(unbacked)}, which no measured size backs" if unbacked else "")
-        + ".\n\n"
-        + (
-            "CI runs the current sampler; these backing cells were measured only with an older "
-            f"one and not rerun since: {', '.join(sorted(older))}.\n\n"
-            if older
-            else ""
-        )
-        + misses(runs)
+        "# Detection of hidden effects by `bayesdrive criticize` on independent data\n\n"
+        f"{kind}. Generated by `benchmarks/bench_detection.py` from `{runs_path.name}`; "
+        f"current generator trafficgen {GENERATOR} (sha256 prefix of its source), scenario "
+        f"{DETECTION_SCENARIO}; criticize settings {DETECTION_CONFIG._asdict()}; sampler "
+        f'"{sampler_label()}". A replication is right when the verdict is one of the right '
+        "verdicts (trafficgen's table, reports/criticism/generator.md; two mechanisms: either "
+        "one's); out-of-reach mechanisms have none, and their row shows what criticize said "
+        "instead. Intervals: Wilson 95%. Seeds: replication r of every cell uses the r-th seed of "
+        f"the range ({'development' if dev else 'study'} seeds "
+        f"{(DEV_SEEDS if dev else STUDY_SEEDS).start}, ...).\n\n"
+        + "\n".join(lines)
+        + f"\n\nCells right in all of at least {CLAIM_REPLICATIONS} replications: "
+        + (", ".join(f"{r.cell} {r.size}" for r in reliable.itertuples()) or "none yet")
+        + ".\n"
     )
-    write_text_atomic(out / "detection.md", text)
-    figure(rates, f"{fp} of {len(null)} named a cause", out / "detection.png")
-    print(text)
+    write_text_atomic(out / ("detection_dev.md" if dev else "detection.md"), text)
+    return text
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=20, help="replications per effect and size")
-    parser.add_argument("--null-seeds", type=int, default=40, help="replications without effect")
+    parser.add_argument("--replications", type=int, default=20, help="per mechanism and size")
+    parser.add_argument("--null-replications", type=int, default=40)
     parser.add_argument(
-        "--first-seed",
-        type=int,
-        default=1,
-        help="start at this seed (a second process can take the upper seeds; same CSV)",
+        "--cells",
+        default=",".join([NULL, *MECHANISMS, *("+".join(p) for p in PAIRS)]),
+        help="comma-separated: none, mechanisms, pairs a+b",
     )
-    parser.add_argument(
-        "--causes", default=",".join(DETECTION_SIZES), help="comma-separated causes"
-    )
-    parser.add_argument("--sizes", default="small,medium,large")
-    parser.add_argument("--out", type=Path, default=Path("reports/criticism"))
-    parser.add_argument(
-        "--report-only",
-        action="store_true",
-        help="rewrite detection.md and detection.png from the CSV without running anything "
-        "(e.g. after several processes shared the study)",
-    )
+    parser.add_argument("--sizes", default=",".join(SIZES))
+    parser.add_argument("--dev", action="store_true", help="development seeds and files")
+    parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
+    parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    runs_path = args.out / "detection_runs.csv"
+    runs_path = args.out / ("detection_dev_runs.csv" if args.dev else "detection_runs.csv")
     if args.report_only:
-        write_report(runs_path, args.out)
+        print(write_report(runs_path, args.out, dev=args.dev))
         return 0
+    seeds = DEV_SEEDS if args.dev else STUDY_SEEDS
+    unknown = [
+        c for c in args.cells.split(",") for m in c.split("+") if m not in (NULL, *MECHANISMS)
+    ]
+    if unknown:
+        parser.error(f"unknown cell(s) {unknown}; known: {[NULL, *MECHANISMS]} and pairs a+b")
     done = set()
     if runs_path.exists():
         previous = pd.read_csv(runs_path)
-        current = previous[previous["sampler"] == SAMPLER]
-        done = set(zip(current["cause"], current["size"], current["seed"], strict=True))
-    cells = [(NO_CAUSE, "none", None, s) for s in range(args.first_seed, args.null_seeds + 1)]
-    for seed in range(args.first_seed, args.seeds + 1):
-        for cause in args.causes.split(","):
-            for size in args.sizes.split(","):
-                cells.append((cause, size, DETECTION_SIZES[cause][size], seed))
-    todo = [c for c in cells if (c[0], c[1], c[3]) not in done]
-    todo.sort(key=lambda c: c[3])  # seed by seed, so a stopped study has every cell covered
-    print(f"{len(cells) - len(todo)} replications done, {len(todo)} to go", flush=True)
+        current = previous[
+            (previous["sampler"] == sampler_label()) & (previous["generator"] == GENERATOR)
+        ]
+        done = set(zip(current["cell"], current["size"], current["seed"], strict=True))
+    todo = []
+    for r in range(max(args.replications, args.null_replications)):
+        for cell, size in planned_cells(args.cells.split(","), args.sizes.split(",")):
+            wanted = args.null_replications if cell == NULL else args.replications
+            if r < wanted and (cell, size, seeds[r]) not in done:
+                todo.append((cell, size, seeds[r]))
+    print(f"{len(done)} replications done, {len(todo)} to go", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        for i, (cause, size, effect_range, seed) in enumerate(todo, 1):
+        for i, (cell, size, seed) in enumerate(todo, 1):
             try:
-                row = run_one(cause, size, effect_range, seed, Path(tmp))
-            except Exception as error:
-                row = {field: "" for field in FIELDS}
-                row.update(cause=cause, size=size, seed=seed, detected=0)
+                row = run_one(cell, size, seed, Path(tmp))
+            except Exception as error:  # a crash on independent data is a miss, kept on record
+                row = dict.fromkeys(FIELDS, "")
+                row.update(cell=cell, size=size, seed=seed, right=0, sampler=sampler_label())
+                row.update(generator=GENERATOR)
                 row["verdict"] = f"error: {type(error).__name__}: {error}"[:200]
-            new = not runs_path.exists()
-            with runs_path.open("a", newline="") as handle:
-                writer = csv.DictWriter(handle, fieldnames=FIELDS)
-                if new:
-                    writer.writeheader()
-                writer.writerow(row)
+            append_row(runs_path, row)
             print(f"[{i}/{len(todo)}] {row}", flush=True)
-    write_report(runs_path, args.out)
+    print(write_report(runs_path, args.out, dev=args.dev))
     return 0
 
 

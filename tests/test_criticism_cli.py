@@ -4,17 +4,16 @@ from __future__ import annotations
 
 import json
 
-import jax
 import pytest
 import typer
 from typer.testing import CliRunner
 
 from bayesdrive.cli.criticize_cmd import criticize_command
 from bayesdrive.criticism.criticize import POWERED_VEHICLES, criticized_series, power_warning
-from bayesdrive.criticism.generator import generate
 from bayesdrive.data.readers import read
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.inference.fit import first_vehicles
+from trafficgen import DETECTION_SCENARIO, generate
 
 app = typer.Typer()
 app.command()(criticize_command)
@@ -24,11 +23,10 @@ app.command()(criticize_command)
 def small_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("cli") / "delay.csv"
     generate(
-        jax.random.key(3),
+        3,
         path,
-        "reaction_delay",
-        effect_range=(0.4, 0.7),
-        num_platoons=1,
+        {"perception_delay": (0.4, 0.7)},
+        platoons=1,
         followers=4,
         duration_s=30.0,
         cut_ins=0,
@@ -118,3 +116,7 @@ def test_vehicles_are_counted_as_fit_counts_them_and_few_of_them_draw_a_warning(
     assert criticized_series(traj, 2).vehicle_ids == fitted
     assert power_warning(POWERED_VEHICLES) is None
     assert "undefined with one vehicle" in power_warning(1)
+
+
+def test_the_power_threshold_is_the_detection_studys_vehicle_count():
+    assert DETECTION_SCENARIO["platoons"] * DETECTION_SCENARIO["followers"] == POWERED_VEHICLES

@@ -207,21 +207,19 @@ def test_base_evidence_agrees_with_the_smc_engine(tmp_path):
     """On the same steps, the IDM's fit-window log evidence from this sampler and from the
     ``smc`` engine (resample-move IBIS, another algorithm) agree within 2 nats per vehicle.
 
-    Two followers, 20 s of generated data (seed 8); 256 particles here, 512 there. Both are
+    Two followers, 20 s of trafficgen data without effect (seed 8); 256 particles here, 512 there. Both are
     unbiased for the evidence; their Monte Carlo sds on such data are a few tenths of a nat.
     """
-    from bayesdrive.criticism.generator import generate
     from bayesdrive.data.readers import read
     from bayesdrive.data.views import FollowerArrays
     from bayesdrive.drivers.extensions import as_extended
     from bayesdrive.drivers.extensions.inputs import extended_series
     from bayesdrive.drivers.idm import IDM
     from bayesdrive.inference import smc
+    from trafficgen import generate
 
     path = tmp_path / "two.csv"
-    generate(
-        jax.random.key(8), path, "none", num_platoons=1, followers=2, duration_s=20.0, cut_ins=0
-    )
+    generate(8, path, None, platoons=1, followers=2, duration_s=20.0, cut_ins=0)
     series = extended_series(read(path, format="ngsim_raw"))
     ours = fit_model(
         jax.random.key(1), series, as_extended(IDM), config=FitConfig(num_particles=256)

@@ -258,9 +258,11 @@ def test_fit_model_gipps_runs_with_every_engine(data_dir, tmp_path, engine, monk
         monkeypatch.setitem(fit.ENGINES, engine, QUICK[engine])
     args = ["fit", str(data_dir / CHAIN), "--model", "gipps", "--engine", engine]
     vehicles = 2 if engine == "hierarchical" else 1  # a population needs two
-    args += ["--vehicles", str(vehicles), "--particles", "64", "--params", "v_des,b_max,sigma"]
+    size = "--particles" if engine in ("smc", "pf") else "--draws"
+    args += ["--vehicles", str(vehicles), size, "64", "--params", "v_des,b_max,sigma"]
     result = runner.invoke(app, [*args, "--seed", "4", "--out", str(tmp_path)])
-    assert result.exit_code == 0, result.output
+    # 64 MCMC draws cannot pass the convergence checks: such a fit is written and exits 3.
+    assert result.exit_code in ((0,) if engine in ("smc", "pf", "lm") else (0, 3)), result.output
     tree = load_result(tmp_path / "result.nc")
     meta = metadata(tree)
     assert (meta["model"], meta["engine"]) == ("gipps", engine)
@@ -287,16 +289,15 @@ def test_pmmh_with_gipps_is_refused_in_one_line(data_dir, tmp_path):
 
 @pytest.fixture(scope="module")
 def delayed_platoon(tmp_path_factory):
-    """A small platoon from the criticism's own generator (an IDM with a reaction delay)."""
-    from bayesdrive.criticism.generator import generate
+    """A small platoon from the independent generator (IDM drivers with a perception delay)."""
+    from trafficgen import generate
 
     path = tmp_path_factory.mktemp("gipps") / "delay.csv"
     generate(
-        jax.random.key(5),
+        5,
         path,
-        "reaction_delay",
-        effect_range=(0.4, 0.7),
-        num_platoons=1,
+        {"perception_delay": (0.4, 0.7)},
+        platoons=1,
         followers=3,
         duration_s=30.0,
         cut_ins=0,
