@@ -180,7 +180,7 @@ def _filter_runs(keys, model, params, observations, inputs, num_particles):
 
 def filter_logliks(model: DriverModel, arrays: FollowerArrays, num_particles: int) -> np.ndarray:
     """NUM_SEEDS independent filter estimates for the one vehicle in ``arrays``."""
-    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays))
+    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays, model))
     params = model.params_type(*(jnp.asarray(TRUTH[name]) for name in model.param_names))
     keys = jax.random.split(jax.random.key(FILTER_SEED), NUM_SEEDS)
     logliks = _filter_runs(keys, model, params, observations, inputs, num_particles)
@@ -234,7 +234,7 @@ def test_holes_and_padding_restart_the_filter(linear_series):
 
 def test_padding_leaves_the_estimate_and_info_unchanged(linear_series):
     arrays = follower_arrays_of(linear_series, np.ones(NUM_STEPS))
-    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays))
+    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays, NOISY_LINEAR))
     params = NOISY_LINEAR.params_type(*(jnp.asarray(TRUTH[n]) for n in NOISY_LINEAR.param_names))
     padding = 14
 
@@ -262,7 +262,7 @@ def test_padding_leaves_the_estimate_and_info_unchanged(linear_series):
 
 def test_filter_refuses_bad_input(linear_series):
     arrays = follower_arrays_of(linear_series, np.ones(NUM_STEPS))
-    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays))
+    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays, NOISY_LINEAR))
     params = NOISY_LINEAR.defaults()
     short = inputs._replace(lead_v=inputs.lead_v[:-1])
     with pytest.raises(ValueError, match=r"inputs\.lead_v"):
@@ -360,7 +360,7 @@ def noisy_idm_data():
     vehicles = jax.tree.map(lambda a: jnp.full((PMMH_NUM_VEHICLES,), a), IDMParams(*truth[:-1]))
     exact = simulate_following(sim_key, IDM, vehicles, num_steps=150)
     arrays = noisy_readings(noise_key, exact, PMMH_TRUTH["sigma_obs"])
-    return known, latent_data(arrays), arrays
+    return known, latent_data(arrays, NOISY_IDM), arrays
 
 
 def run_pmmh(seed: int, model: DriverModel, data):

@@ -4,7 +4,7 @@ and keep the one whose held-out gain is largest, if it is significant.
 Steps (``criticize``):
 
 1. Build the per-step arrays with the history the extensions need
-   (:func:`~bayesdrive.drivers.extensions.inputs.extended_series`; same split rule as every engine).
+   (:func:`~bayesdrive.data.views.scored_series`; same split rule as every engine).
 2. Fit the base model to every vehicle's fitting window and continue over its held-out window
    (:mod:`bayesdrive.criticism.tempering`).
 3. Run the checks on the held-out windows (:mod:`bayesdrive.criticism.checks`), including
@@ -50,13 +50,11 @@ from bayesdrive.criticism.tempering import (
     FitConfig,
     FitResult,
     fit_model,
-    vehicle_steps,
 )
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.views import SPLIT_RULE
+from bayesdrive.data.views import SPLIT_RULE, FollowerArrays, scored_series
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, as_extended, extend
-from bayesdrive.drivers.extensions.inputs import ExtendedSeries, extended_series
 from bayesdrive.drivers.idm import IDM
 
 __all__ = [
@@ -120,7 +118,7 @@ class CriticismResult(NamedTuple):
     report: dict[str, Any]
     checks: list[Check]
     residuals: Residuals
-    series: ExtendedSeries
+    series: FollowerArrays
     fits: dict[str, FitResult]
     gains: dict[str, Gain]
     rollouts: dict[str, Rollouts]
@@ -201,8 +199,7 @@ def criticize(
     )
     started = time.perf_counter()
 
-    series = extended_series(traj)
-    steps = vehicle_steps(series)
+    series = scored_series(traj)
     windows = heldout_windows(series, config.horizon_s)
     if config.num_rollouts == 0:
         windows = windows._replace(row=windows.row[:0], start=windows.start[:0])
@@ -214,7 +211,6 @@ def criticize(
             series,
             extended,
             config=fit_config,
-            steps=steps,
             start=start,
             vehicle_batch=config.vehicle_batch,
         )
@@ -227,9 +223,7 @@ def criticize(
     base_model = as_extended(model)
     base, base_rollouts = fit_and_roll(base_model, None)
     say("running the checks")
-    residuals, checks = run_checks(
-        named_key(key, "checks"), base, series, steps, causes=config.causes
-    )
+    residuals, checks = run_checks(named_key(key, "checks"), base, series, causes=config.causes)
     checks.append(multistep_check(base_rollouts, series.dt))
 
     fits = {NO_CAUSE: base}
@@ -296,8 +290,8 @@ def criticize(
             "source": str(traj.source),
             "format": traj.format,
             "vehicles": len(series.vehicle_ids),
-            "scored_steps_fit": int(series.fit.sum()),
-            "scored_steps_heldout": int(series.heldout.sum()),
+            "scored_steps_fit": int(series.windows.fit.sum()),
+            "scored_steps_heldout": int(series.windows.heldout.sum()),
             "dt_s": series.dt,
             "split_rule": SPLIT_RULE,
             "history_s": series.history * series.dt,

@@ -42,9 +42,10 @@ from jax import Array
 
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.data.units import FOOT_M
-from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.data.views import AheadArrays
+from bayesdrive.drivers.base import EgoState, Series, fill_params
 from bayesdrive.drivers.extensions import NO_CAUSE, extend
-from bayesdrive.drivers.extensions.inputs import VehicleSeries, history_steps, inputs_at
+from bayesdrive.drivers.extensions.inputs import history_steps, inputs_at
 from bayesdrive.drivers.idm import IDM
 
 __all__ = [
@@ -317,18 +318,20 @@ def _closed_loop(
         has2 = lead2 >= 0
         gap2 = jnp.where(has2, gap + gap[safe], 100.0)
         lead2_v = jnp.where(has2, v[jnp.maximum(lead2, 0)], 1.0)
-        column = {
-            "gap": gap,
-            "lead_v": lead_v,
-            "has_leader": has.astype(x.dtype),
+
+        def written(part, column):
+            return part._replace(**{k: getattr(part, k).at[:, s].set(c) for k, c in column.items()})
+
+        buf = written(buf, {"gap": gap, "lead_v": lead_v, "has_leader": has.astype(x.dtype)})
+        ahead = {
             "lead_acc": lead_acc,
             "gap2": gap2,
             "lead2_v": lead2_v,
             "has_leader2": has2.astype(x.dtype),
         }
-        buf = buf._replace(**{k: getattr(buf, k).at[:, s].set(val) for k, val in column.items()})
+        buf = buf._replace(ahead=written(buf.ahead, ahead))
 
-        inputs = jax.vmap(lambda row: inputs_at(row, s, dt, history))(buf)
+        inputs = jax.vmap(lambda row: inputs_at(row, s, history))(buf)
         keys = jax.random.split(jax.random.fold_in(key_steps, s), n)
         moved = jax.vmap(model.transition_sample)(
             keys, scene.params, states._replace(x=jnp.zeros_like(x)), inputs
@@ -342,7 +345,11 @@ def _closed_loop(
         return (x + dx, next_v, active, states, buf), (lead, active, gap, x)
 
     zeros = jnp.zeros((n, num_steps + 1), scene.x0.dtype)
-    buffers = VehicleSeries(*(zeros for _ in VehicleSeries._fields))
+    buffers = Series(
+        *(zeros for _ in range(len(Series._fields) - 3)),
+        dt=jnp.full_like(zeros, dt),
+        ahead=AheadArrays(*(zeros for _ in AheadArrays._fields)),
+    )
     start = (scene.x0, scene.v0, ~scene.is_cutter, initial_states, buffers)
     (_, v_end, _, _, buf), (lead, active, gap, x_sim) = jax.lax.scan(
         step, start, jnp.arange(num_steps)

@@ -69,14 +69,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.data.views import FollowerArrays
+from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.drivers.extensions.inputs import (
-    ExtendedInputs,
-    ExtendedSeries,
-    series_inputs,
-    vehicle_series,
-)
+from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
 from bayesdrive.inference.resampling import systematic
 from bayesdrive.inference.weights import effective_sample_size, log_mean_weight
 
@@ -84,10 +80,7 @@ __all__ = [
     "DEFAULT_CONFIG",
     "FitConfig",
     "FitResult",
-    "VehicleSteps",
     "fit_model",
-    "step_logpdfs",
-    "vehicle_steps",
 ]
 
 
@@ -107,22 +100,6 @@ class FitConfig(NamedTuple):
 
 
 DEFAULT_CONFIG = FitConfig()
-
-
-class VehicleSteps(NamedTuple):
-    """Everything one vehicle's likelihood reads, as JAX arrays with a leading step axis (T,).
-
-    ``usable`` marks real car-following steps (a state filter runs through them and restarts after
-    a gap); ``fit`` and ``heldout`` mark the scored ones.
-    """
-
-    inputs: ExtendedInputs
-    v: Array
-    next_v: Array
-    dx: Array
-    usable: Array
-    fit: Array
-    heldout: Array
 
 
 class FitResult(NamedTuple):
@@ -152,44 +129,11 @@ class FitResult(NamedTuple):
     run_time_s: float
 
 
-def vehicle_steps(series: ExtendedSeries) -> VehicleSteps:
-    """The (vehicle, step) arrays of ``series`` with every step's inputs precomputed."""
-    data = vehicle_series(series)
-    history = series.history
-    inputs = jax.vmap(lambda one: series_inputs(one, series.dt, history))(data)
-    return VehicleSteps(
-        inputs=inputs,
-        v=data.v,
-        next_v=data.next_v,
-        dx=data.dx,
-        usable=jnp.asarray(series.usable, dtype=data.v.dtype),
-        fit=jnp.asarray(series.fit, dtype=data.v.dtype),
-        heldout=jnp.asarray(series.heldout, dtype=data.v.dtype),
-    )
-
-
-def step_logpdfs(extended: ExtendedModel, params: Any, steps: VehicleSteps) -> Array:
-    """One-step log predictive density of every step of one vehicle under ``params`` -> (T,).
-
-    Exactly observed models score each step on its own (from the lifted state); models with a
-    hidden state run their filter over the vehicle's steps in order.
-    """
-    if extended.filter is not None:
-        return extended.filter(params, steps)
-    model = extended.model
-
-    def one(inputs, v, next_v, dx):
-        state = extended.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
-        return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs)
-
-    return jax.vmap(one)(steps.inputs, steps.v, steps.next_v, steps.dx)
-
-
 def _window_logliks(
-    extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: VehicleSteps
+    extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: StepInputs
 ) -> tuple[Array, Array]:
     """(fit, held-out) log-likelihood sums for one parameter vector; unscored steps give 0."""
-    logp = step_logpdfs(extended, fill_params(extended.model, names, theta), steps)
+    logp = step_logpdfs(extended.model, fill_params(extended.model, names, theta), steps)
     fit = jnp.sum(jnp.where(steps.fit > 0, logp, 0.0))
     held = jnp.sum(jnp.where(steps.heldout > 0, logp, 0.0))
     return fit, held
@@ -348,7 +292,7 @@ class _VehicleFit(NamedTuple):
 
 def _fit_vehicle(
     key: Array,
-    steps: VehicleSteps,
+    steps: StepInputs,
     start_theta: Array | None,
     from_prior: Array,
     *,
@@ -448,7 +392,7 @@ def _compiled_batch(
     extended: ExtendedModel,
     config: FitConfig,
     keys: Array,
-    steps: VehicleSteps,
+    steps: StepInputs,
     start_theta: Array | None,
     from_prior: Array,
 ):
@@ -467,11 +411,10 @@ def _compiled_batch(
 
 def fit_model(
     key: Array,
-    series: ExtendedSeries,
+    series: FollowerArrays,
     extended: ExtendedModel,
     *,
     config: FitConfig = DEFAULT_CONFIG,
-    steps: VehicleSteps | None = None,
     start: FitResult | None = None,
     vehicle_batch: int = 1,
     progress: Callable[[int, int], None] | None = None,
@@ -481,8 +424,8 @@ def fit_model(
     All the model's parameters are inferred under its uniform prior box. Vehicles are vectorised
     ``vehicle_batch`` at a time (the last batch is padded by repeating its last vehicle, so one
     program serves every batch: one compile per model and padded shape, cached for the process).
-    ``steps`` may pass precomputed :func:`vehicle_steps` of ``series``; ``progress(done, total)``
-    is called after each batch. Batching changes only the speed, not the algorithm: under ``vmap``
+    ``series`` comes from :func:`~bayesdrive.data.views.scored_series` (its ``windows`` are the
+    scored steps); ``progress(done, total)`` is called after each batch. Batching changes only the speed, not the algorithm: under ``vmap``
     the tempering and move loops run until the batch's slowest vehicle is done, so one vehicle
     at a time (the default) was 1.6-2.2x faster at fixed moves and 1.7-2.3x at moves until moved
     (20 vehicles x 60 s, 256 particles; a single vehicle's 256 particles x steps already fill
@@ -500,7 +443,7 @@ def fit_model(
     posteriors are far apart, which is exactly when the prior start works). The choice uses the
     fitting window only. ``from_prior`` records it per vehicle.
     """
-    steps = vehicle_steps(series) if steps is None else steps
+    steps = step_inputs(series, extended.model)
     num_vehicles = len(series.vehicle_ids)
     # Batches are multiples of 8 vehicles, so data sets of similar size share one compiled program.
     batch = max(1, min(vehicle_batch, 8 * math.ceil(num_vehicles / 8)))

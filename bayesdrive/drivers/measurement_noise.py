@@ -133,4 +133,5 @@ def with_measurement_noise(model: DriverModel) -> DriverModel:
         transition_logpdf=transition_logpdf,
         observation_logpdf=observation_logpdf,
         initial_sample=initial_sample,
+        inputs_at=model.inputs_at,
     )

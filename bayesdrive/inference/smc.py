@@ -438,7 +438,7 @@ def run(
     ``min(log_likelihood_draws, num_particles)`` evenly spaced draws of each replicate's equally
     weighted final particles (a thinned but still exact posterior sample).
     """
-    check_model(model)
+    check_model(model, "smc")
     names = param_names(model, params)
     if not 0.0 < ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold must be in (0, 1], got {ess_threshold}")
@@ -481,7 +481,7 @@ def run(
         if prior_key is None
         else ("smc", model, names, config, prior_key, static_key(fixed_values))
     )
-    series = step_inputs(arrays)
+    series = step_inputs(arrays, model)
     num_vehicles = series.mask.shape[0]
     # Replicates are whole independent runs (own keys), laid out replicate-major as extra vehicles.
     # Repeat along the vehicle axis only (merge scenes carry a trailing merge-slot axis).

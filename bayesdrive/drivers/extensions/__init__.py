@@ -21,7 +21,7 @@ from bayesdrive.drivers.extensions import (
     second_leader,
     speed_dependent_noise,
 )
-from bayesdrive.drivers.extensions.compose import ExtendedModel, observed_lift
+from bayesdrive.drivers.extensions.compose import ExtendedModel
 
 __all__ = ["CAUSES", "EXTENSIONS", "NO_CAUSE", "as_extended", "extend"]
 
@@ -44,7 +44,7 @@ CAUSES = tuple(EXTENSIONS)
 @functools.cache
 def as_extended(base: DriverModel) -> ExtendedModel:
     """The base model itself in the :class:`ExtendedModel` form (cause "none", nothing added)."""
-    return ExtendedModel(NO_CAUSE, base, base, (), observed_lift)
+    return ExtendedModel(NO_CAUSE, base, base, ())
 
 
 def extend(cause: str, base: DriverModel) -> ExtendedModel:

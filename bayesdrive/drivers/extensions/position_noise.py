@@ -49,11 +49,11 @@ from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
     base_params,
+    check_base,
     extended_specs,
-    observed_lift,
     params_type,
 )
-from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs, inputs_at
 from bayesdrive.drivers.idm import STOP_SPEED, step_logpdf
 
 __all__ = ["CAUSE", "POSITION_NOISE_SPECS", "with_position_noise"]
@@ -67,6 +67,7 @@ POSITION_NOISE_SPECS = (
 @functools.cache
 def with_position_noise(base: DriverModel) -> ExtendedModel:
     """``base`` observed through white noise on positions (module docstring)."""
+    check_base(base, CAUSE)
     specs = extended_specs(base, POSITION_NOISE_SPECS)
 
     def mean_acceleration(params, state: EgoState, inputs: ExtendedInputs) -> Array:
@@ -93,7 +94,7 @@ def with_position_noise(base: DriverModel) -> ExtendedModel:
         noise_var = params.position_noise**2
         dynamics_sd = 0.5 * params.sigma * dt**2
         index = jnp.arange(steps.v.shape[0])
-        usable = steps.usable > 0
+        usable = steps.mask > 0
         starts = usable & ~jnp.concatenate([jnp.zeros(1, bool), usable[:-1]])
         first = jax.lax.cummax(jnp.where(starts, index, 0))
         rank = (index - first).astype(steps.v.dtype)  # k: steps since the stretch began
@@ -123,5 +124,7 @@ def with_position_noise(base: DriverModel) -> ExtendedModel:
         transition_logpdf=transition_logpdf,
         observation_logpdf=observation_logpdf,
         initial_sample=base.initial_sample,
+        inputs_at=inputs_at,
+        filter=kalman,
     )
-    return ExtendedModel(CAUSE, base, model, ("position_noise",), observed_lift, filter=kalman)
+    return ExtendedModel(CAUSE, base, model, ("position_noise",))
