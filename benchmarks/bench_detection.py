@@ -281,7 +281,7 @@ def write_report(runs_path: Path, out: Path) -> None:
         "counts as detected when the verdict names the hidden cause (a significant gain for "
         "another cause, or none, counts as a miss). Intervals: Wilson 95%. Sampler: the "
         "Metropolis-Hastings moves per tempering stage the run used; the current settings "
-        f'make "{SAMPLER}" (bayesdrive.criticism.tempering, "How many moves"); cells '
+        f'make "{SAMPLER}" (bayesdrive.inference.tempering, "How many moves"); cells '
         "measured with an older sampler stay in the table, marked, until rerun.\n\n"
         f"False positives on null data with the current sampler (verdict other than none): "
         f"{false_positive}.\n\n"

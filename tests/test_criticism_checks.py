@@ -16,10 +16,10 @@ from bayesdrive.criticism.checks import (
     vehicle_autocorrelation_checks,
 )
 from bayesdrive.criticism.gain import elpd_gain, holm, rmse_change
-from bayesdrive.criticism.tempering import FitResult
 from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
 from bayesdrive.drivers.extensions import as_extended
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.inference.tempering import FitResult
 
 VEHICLES, STEPS = 12, 300
 

@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesdrive.criticism.tempering import FitConfig, _move_until_moved, fit_model
 from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
 from bayesdrive.drivers.base import DriverModel, ParamSpec
 from bayesdrive.drivers.extensions.compose import ExtendedModel
@@ -26,7 +25,9 @@ from bayesdrive.drivers.idm import (
     noisy_step,
     step_logpdf,
 )
+from bayesdrive.inference.kernels import WalkInfo, WalkState, moves_until_moved
 from bayesdrive.inference.likelihood import step_inputs, step_logpdfs
+from bayesdrive.inference.tempering import FitConfig, fit_model
 
 SIGMA = 0.4
 DT = 0.1
@@ -139,15 +140,18 @@ def fitted(request):
 )
 def test_moves_continue_until_every_particle_has_likely_moved(rate, expected):
     """The stage's move count: at least num_moves, then until prod(1 - acceptance) <= 0.01."""
-    config = FitConfig(num_moves=3, unmoved_tolerance=0.01, max_moves=20)
 
-    def move(state, key):
+    def move(key, state):
         del key
-        return (state[0] + 1.0,), jnp.asarray(rate, jnp.float32)
+        return state._replace(theta=state.theta + 1.0), WalkInfo(jnp.asarray(rate, jnp.float32))
 
-    state, (count, rate_sum) = _move_until_moved(move, (jnp.zeros(()),), jax.random.key(0), config)
+    zero = jnp.zeros(1, jnp.float32)
+    start = WalkState(jnp.zeros((1, 1), jnp.float32), zero, zero, zero, zero[0])
+    state, count, rate_sum = moves_until_moved(
+        jax.random.key(0), start, move, num_moves=3, unmoved_tolerance=0.01, max_moves=20
+    )
     assert int(count) == expected
-    assert float(state[0]) == expected  # the move was applied that many times
+    assert float(state.theta[0, 0]) == expected  # the move was applied that many times
     assert float(rate_sum) == pytest.approx(rate * expected, rel=1e-5)
 
 

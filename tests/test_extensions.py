@@ -386,11 +386,12 @@ def test_filter_switched_off_is_the_base_model(cause):
     extended = extend(cause, IDM)
     steps = platoon_steps(extended.model)
     ours = extended.model.filter(params_for(extended), steps)
+    base_steps = platoon_steps(IDM)
     base = jax.vmap(
         lambda i, v, nv, dx: IDM.transition_logpdf(
-            IDM.defaults(), EgoState(0.0 * v, v), EgoState(dx, nv), i.car_following
+            IDM.defaults(), EgoState(0.0 * v, v), EgoState(dx, nv), i
         )
-    )(steps.inputs, steps.v, steps.next_v, steps.dx)
+    )(base_steps.inputs, base_steps.v, base_steps.next_v, base_steps.dx)
     np.testing.assert_allclose(ours, base, rtol=1e-5, atol=1e-4)
 
 
@@ -425,7 +426,7 @@ def simulate_follower(cause: str, effect: float, seed: int, steps: int = 3000):
     return extended, params, StepInputs(v, next_v, dx, ones, inputs, ones, 0 * ones)
 
 
-def test_position_noise_filter_is_maximised_at_the_true_noise():
+def test_measurement_noise_filter_is_maximised_at_the_true_noise():
     """Data simulated with 2 cm position noise (3000 steps, seed 12): the filter's log density
     over a grid of noise levels peaks at the true one (the MLE's relative sd is ~1.3% here, the
     grid steps 15%), and beats the base model (noise 0) by > 1000 nats. A filter with a wrong
@@ -433,11 +434,10 @@ def test_position_noise_filter_is_maximised_at_the_true_noise():
     extended, params, steps = simulate_follower("measurement_noise", 0.02, seed=12)
     grid = 0.02 * np.array([0.7, 0.85, 1.0, 1.15, 1.4])
     totals = [
-        float(jnp.sum(extended.model.filter(params._replace(position_noise=s), steps)))
-        for s in grid
+        float(jnp.sum(extended.model.filter(params._replace(sigma_obs=s), steps))) for s in grid
     ]
     assert int(np.argmax(totals)) == 2
-    base = float(jnp.sum(extended.model.filter(params._replace(position_noise=0.0), steps)))
+    base = float(jnp.sum(extended.model.filter(params._replace(sigma_obs=0.0), steps)))
     assert totals[2] - base > 1000.0
 
 

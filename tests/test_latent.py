@@ -279,7 +279,7 @@ def test_wrapper_adds_sigma_obs_and_keeps_the_dynamics():
     noisy = with_measurement_noise(IDM)
     assert noisy.param_names == (*IDM.param_names, "sigma_obs")
     spec = noisy.spec("sigma_obs")
-    assert (spec.lower, spec.default, spec.upper, spec.unit) == (0.005, 0.05, 1.0, "m")
+    assert (spec.lower, spec.default, spec.upper, spec.unit) == (0.0, 0.0, 0.5, "m")
     params = noisy.defaults()._replace(sigma_obs=jnp.asarray(0.2))
     base = IDMParams(*params[:-1])
     state = EgoState(x=jnp.asarray(0.3), v=jnp.asarray(12.0))

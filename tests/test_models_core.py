@@ -25,7 +25,7 @@ def test_a_name_is_recognised_in_any_order():
     assert canonical_name("reaction_delay+idm") == "idm+reaction_delay"
     assert get_model("reaction_delay+idm") is get_model("idm+reaction_delay")
     assert get_model("idm+autocorrelated_noise").name == "idm+autocorrelated_noise"
-    assert get_model("idm+obs_noise").name == "idm+obs_noise"
+    assert get_model("measurement_noise+idm").name == "idm+measurement_noise"
 
 
 @pytest.mark.parametrize(
@@ -35,6 +35,7 @@ def test_a_name_is_recognised_in_any_order():
         ("reaction_delay", "one base model"),
         ("idm+cidm", "one base model"),
         ("idm+reaction_delay+autocorrelated_noise", "joins 2 extensions"),
+        ("idm+obs_noise", r"former name.*'idm\+measurement_noise'.*refit"),
     ],
 )
 def test_bad_names_are_refused_with_what_is_wrong(name, message):
@@ -53,9 +54,8 @@ def test_an_extension_that_would_drop_the_merge_scene_is_refused():
         ("smc", "idm+drifting_parameters", NotImplementedError, "state filter"),
         ("pf", "idm+measurement_noise", NotImplementedError, "state filter"),
         ("lm", "idm+drifting_parameters", NotImplementedError, "state filter"),
-        ("smc", "idm+obs_noise", NotImplementedError, "observed with noise"),
-        ("nuts", "idm+obs_noise", NotImplementedError, "observed with noise"),
         ("pmmh", "idm+reaction_delay", ValueError, "observes them exactly"),
+        ("pmmh", "idm+drifting_parameters", ValueError, "observes them exactly"),
     ],
 )
 def test_impossible_engine_model_pairs_are_refused_before_any_work(engine, name, error, message):
@@ -71,7 +71,8 @@ def test_impossible_engine_model_pairs_are_refused_before_any_work(engine, name,
         ("nuts", "idm+drifting_parameters"),
         ("emcee", "idm+measurement_noise"),
         ("hierarchical", "idm+second_leader_anticipation"),
-        ("pmmh", "idm+obs_noise"),
+        ("pmmh", "idm+measurement_noise"),
+        ("nuts", "cidm+measurement_noise"),
     ],
 )
 def test_possible_pairs_pass(engine, name):
@@ -167,3 +168,31 @@ def test_the_smc_engine_fits_a_reaction_delay():
     assert abs(posterior["delayed"].mean() - 0.6) < 0.1
     assert posterior["control"].mean() < 0.15
     assert np.quantile(posterior["control"], 0.99) < 0.6
+
+
+def test_the_simulator_runs_an_extension_through_its_own_inputs():
+    """A 3-car platoon behind a braking head (40 steps, key 5): the reaction-delay extension
+    switched off rolls out exactly like the IDM (same keys), switched on (1.0 s) it brakes later
+    and so comes closer to its leader; the autocorrelated-noise extension runs too."""
+    from bayesdrive.simulation.rollout import broadcast_params, platoon_scene, rollout
+
+    steps = 40
+    time = np.arange(steps + 1) * DT
+    head_v = np.where(time < 1.0, 15.0, np.maximum(5.0, 15.0 - 4.0 * (time - 1.0)))
+    scene = platoon_scene(
+        head_v, np.array([-25.0, -50.0, -75.0]), np.full(3, 15.0), length=4.5, dt=DT
+    )
+    key = jax.random.key(5)
+
+    def run(model, **effect):
+        params = model.defaults()._replace(sigma=np.float32(0.05), **effect)
+        return rollout(key, model, broadcast_params(params, 2, 3), scene, num_rollouts=2)
+
+    delay = get_model("idm+reaction_delay")
+    base = run(IDM)
+    off = run(delay)
+    np.testing.assert_array_equal(np.asarray(off.x), np.asarray(base.x))
+    late = run(delay, reaction_time=np.float32(1.0))
+    assert float(late.gap[:, 0].min()) < float(base.gap[:, 0].min()) - 0.5
+    noisy = run(get_model("idm+autocorrelated_noise"), rho=np.float32(0.9))
+    assert np.isfinite(np.asarray(noisy.x)).all()

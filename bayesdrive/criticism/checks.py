@@ -55,14 +55,14 @@ import numpy as np
 from jax import Array
 from scipy import stats
 
-from bayesdrive.criticism.rollout import Rollouts
-from bayesdrive.criticism.tempering import FitResult
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import EgoState, fill_params
 from bayesdrive.drivers.extensions import extend
 from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.drivers.idm import STOP_SPEED
 from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.tempering import FitResult
+from bayesdrive.simulation.follower_rollout import Rollouts
 
 __all__ = [
     "ACF_LAGS",

@@ -78,7 +78,7 @@ EFFECTS: dict[str, tuple[str, tuple[float, float]]] = {
     "second_leader_anticipation": ("anticipation", (0.4, 0.7)),
     "cut_in_overreaction": ("coolness", (0.9, 1.0)),
     "drifting_parameters": ("tau_drift", (0.05, 0.15)),
-    "measurement_noise": ("position_noise", (0.005, 0.03)),
+    "measurement_noise": ("sigma_obs", (0.005, 0.03)),
 }
 HEAD_SPEED = (5.0, 22.0)  # m/s bounds of the replayed head vehicles
 HEAD_START_SPEED = (8.0, 16.0)
@@ -103,7 +103,7 @@ DETECTION_SIZES: dict[str, dict[str, tuple[float, float]]] = {
     "autocorrelated_noise": {"small": (0.2, 0.4), "medium": (0.4, 0.6), "large": (0.6, 0.9)},
     # "xlarge" (inside the prior) tested whether size was what kept "large" below 0.95 with 4
     # fixed moves per tempering stage: it was not (18 of 20 against 16 of 20); the sampler was
-    # (bayesdrive.criticism.tempering, "How many moves").
+    # (bayesdrive.inference.tempering, "How many moves").
     "speed_dependent_noise": {
         "small": (0.02, 0.05),
         "medium": (0.05, 0.1),
@@ -463,7 +463,7 @@ def simulate_traffic(
     recorded_x = x[:, keep]
     if cause == "measurement_noise":
         # Recorded positions carry white noise; speeds and gaps (headways) stay exact.
-        noise_sd = np.asarray(params.position_noise, np.float64)[:, None]
+        noise_sd = np.asarray(params.sigma_obs, np.float64)[:, None]
         recorded_x = recorded_x + noise_sd * np.asarray(
             jax.random.normal(key_noise, recorded_x.shape), np.float64
         )

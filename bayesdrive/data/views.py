@@ -321,7 +321,7 @@ def _ahead_arrays(traj: Trajectories, arrays: FollowerArrays) -> AheadArrays:
         out["lead2_v"][row, :n] = np.where(known, rows["lead2_v"], 1.0)
         out["has_leader2"][row, :n] = known
     if no_lead_acc:
-        log.warning(
+        log.info(
             "%d usable step(s) have no previous leader sample; their leader acceleration is "
             "taken as 0",
             no_lead_acc,

@@ -140,7 +140,7 @@ def check_model(model: DriverModel) -> None:
     if model.observation_logpdf is exact_observation_logpdf:
         raise ValueError(
             f"engine 'pmmh' filters hidden states, but model {model.name!r} observes them exactly; "
-            "use with_measurement_noise(model) (bayesdrive.drivers.measurement_noise)"
+            "use its '+measurement_noise' variant (bayesdrive.drivers.measurement_noise)"
         )
 
 

@@ -124,19 +124,22 @@ def fixed_params(model: DriverModel, fixed: Mapping[str, float] | None) -> Any:
 
 
 def check_model(model: DriverModel, engine: str, *, whole_series: bool = False) -> None:
-    """Refuse, in one line and before any work, a model ``engine`` cannot evaluate: one with its
-    own observation model (these engines condition on exactly observed states and would ignore
-    it), and, unless the engine scores whole series (``whole_series``), one whose density needs a
-    state filter over the series (such an engine scores one step at a time)."""
-    if model.observation_logpdf is not exact_observation_logpdf:
+    """Refuse, in one line and before any work, a model ``engine`` cannot evaluate: one whose
+    density needs a state filter over the series unless the engine scores whole series
+    (``whole_series``; such a filter handles the model's hidden state, noisy readings included),
+    and one with an observation model but no filter (these engines condition on exactly observed
+    states and would ignore it)."""
+    if model.filter is not None:
+        if not whole_series:
+            raise NotImplementedError(
+                f"engine {engine!r} cannot fit {model.name!r}: its density needs a state filter "
+                "over the whole series and the engine scores one step at a time (use 'nuts' or "
+                "'emcee')"
+            )
+    elif model.observation_logpdf is not exact_observation_logpdf:
         raise NotImplementedError(
             f"engine {engine!r} cannot fit {model.name!r}: its states are observed with noise and "
             "the engine scores exactly observed states (use engine 'pmmh')"
-        )
-    if model.filter is not None and not whole_series:
-        raise NotImplementedError(
-            f"engine {engine!r} cannot fit {model.name!r}: its density needs a state filter over "
-            "the whole series and the engine scores one step at a time (use 'nuts' or 'emcee')"
         )
 
 
