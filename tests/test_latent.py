@@ -475,7 +475,7 @@ def test_fit_with_the_pmmh_engine_gives_the_shared_layout(noisy_idm_data):
 
 def test_engine_refuses_exact_models_and_custom_priors(noisy_idm_data):
     _, _, arrays = noisy_idm_data
-    with pytest.raises(ValueError, match="with_measurement_noise"):
+    with pytest.raises(ValueError, match="measurement_noise"):
         run(jax.random.key(0), arrays, model=IDM)
     with pytest.raises(ValueError, match="prior"):
         run(jax.random.key(0), arrays, model=NOISY_IDM, prior=NOISY_IDM.prior())
