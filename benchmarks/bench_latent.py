@@ -79,7 +79,7 @@ def simulated(key: jax.Array, num_vehicles: int, num_steps: int) -> tuple[Follow
 
 def loglik_noise(key: jax.Array, arrays: FollowerArrays, known: dict, replicates: int) -> list:
     """sd of the filter's log-likelihood estimate at the truth, and speed, per particle count."""
-    observations, inputs = latent_data(arrays)
+    observations, inputs = latent_data(arrays, NOISY_IDM)
     params = fixed_params(NOISY_IDM, {**known, **TRUTH})
     rows = []
     for n in PARTICLE_COUNTS:
@@ -114,7 +114,7 @@ def real_filter_noise(key: jax.Array, arrays: FollowerArrays) -> list[dict]:
     fit_key, filter_key = jax.random.split(key)
     exact_fit = lm.run(fit_key, arrays, model=IDM, num_particles=10)
     estimate = np.asarray(exact_fit.sample_stats["estimate"][1])  # (vehicle, IDM param)
-    observations, inputs = latent_data(arrays)
+    observations, inputs = latent_data(arrays, NOISY_IDM)
     rows = []
     for n in REAL_PARTICLE_COUNTS:
         for sigma_obs in REAL_SIGMA_OBS:

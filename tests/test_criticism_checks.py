@@ -16,10 +16,10 @@ from bayesdrive.criticism.checks import (
     vehicle_autocorrelation_checks,
 )
 from bayesdrive.criticism.gain import elpd_gain, holm, rmse_change
-from bayesdrive.criticism.tempering import FitResult
+from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
 from bayesdrive.drivers.extensions import as_extended
-from bayesdrive.drivers.extensions.inputs import ExtendedSeries
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.inference.tempering import FitResult
 
 VEHICLES, STEPS = 12, 300
 
@@ -36,9 +36,9 @@ def ar1(rng, rho: float) -> np.ndarray:
     return z
 
 
-def series_with(lead_acc: np.ndarray, v: np.ndarray | None = None) -> ExtendedSeries:
+def series_with(lead_acc: np.ndarray, v: np.ndarray | None = None) -> FollowerArrays:
     ones = np.ones((VEHICLES, STEPS))
-    return ExtendedSeries(
+    return FollowerArrays(
         vehicle_ids=tuple(str(i) for i in range(VEHICLES)),
         t=np.tile(np.arange(STEPS) * 0.1, (VEHICLES, 1)),
         v=ones * 10 if v is None else v,
@@ -47,14 +47,10 @@ def series_with(lead_acc: np.ndarray, v: np.ndarray | None = None) -> ExtendedSe
         gap=ones * 20,
         lead_v=ones * 10,
         has_leader=ones,
-        lead_acc=lead_acc,
-        gap2=ones * 40,
-        lead2_v=ones * 10,
-        has_leader2=ones,
-        usable=ones,
-        fit=0 * ones,
-        heldout=ones,
+        mask=ones,
         dt=0.1,
+        ahead=AheadArrays(lead_acc=lead_acc, gap2=ones * 40, lead2_v=ones * 10, has_leader2=ones),
+        windows=ScoredWindows(fit=0 * ones, heldout=ones),
     )
 
 

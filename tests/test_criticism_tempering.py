@@ -16,22 +16,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesdrive.criticism.tempering import (
-    FitConfig,
-    _move_until_moved,
-    fit_model,
-    step_logpdfs,
-    vehicle_steps,
-)
+from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
 from bayesdrive.drivers.base import DriverModel, ParamSpec
-from bayesdrive.drivers.extensions.compose import ExtendedModel, observed_lift
-from bayesdrive.drivers.extensions.inputs import ExtendedSeries
+from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.drivers.idm import (
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
     step_logpdf,
 )
+from bayesdrive.inference.kernels import WalkInfo, WalkState, moves_until_moved
+from bayesdrive.inference.likelihood import step_inputs, step_logpdfs
+from bayesdrive.inference.tempering import FitConfig, fit_model
 
 SIGMA = 0.4
 DT = 0.1
@@ -61,10 +57,10 @@ LINEAR = DriverModel(
     observation_logpdf=exact_observation_logpdf,
     initial_sample=exact_initial_sample,
 )
-EXTENDED = ExtendedModel("none", LINEAR, LINEAR, (), observed_lift)
+EXTENDED = ExtendedModel("none", LINEAR, LINEAR, ())
 
 
-def simulate(seed: int, vehicles: int, steps: int, fit_steps: int) -> ExtendedSeries:
+def simulate(seed: int, vehicles: int, steps: int, fit_steps: int) -> FollowerArrays:
     """Speeds around 15 m/s behind a leader whose speed wanders; truth theta = (0.3, 0.5)."""
     rng = np.random.default_rng(seed)
     shape = (vehicles, steps)
@@ -84,7 +80,7 @@ def simulate(seed: int, vehicles: int, steps: int, fit_steps: int) -> ExtendedSe
     fit[:, :fit_steps] = 1.0
     held = 1.0 - fit
     ones, zeros = np.ones(shape), np.zeros(shape)
-    return ExtendedSeries(
+    return FollowerArrays(
         vehicle_ids=tuple(f"v{i}" for i in range(vehicles)),
         t=np.tile(np.arange(steps) * DT, (vehicles, 1)),
         v=v,
@@ -93,18 +89,14 @@ def simulate(seed: int, vehicles: int, steps: int, fit_steps: int) -> ExtendedSe
         gap=ones * 30.0,
         lead_v=lead_v,
         has_leader=ones,
-        lead_acc=zeros,
-        gap2=ones * 60.0,
-        lead2_v=lead_v,
-        has_leader2=zeros,
-        usable=ones,
-        fit=fit,
-        heldout=held,
+        mask=ones,
         dt=DT,
+        ahead=AheadArrays(lead_acc=zeros, gap2=ones * 60.0, lead2_v=lead_v, has_leader2=zeros),
+        windows=ScoredWindows(fit=fit, heldout=held),
     )
 
 
-def gaussian_evidence(series: ExtendedSeries, row: int, mask: np.ndarray):
+def gaussian_evidence(series: FollowerArrays, row: int, mask: np.ndarray):
     """log Z, posterior mean and sd under the flat box prior (float64, closed form)."""
     r = (series.lead_v - series.v)[row][mask > 0]
     y = (series.dx - series.v * DT)[row][mask > 0]
@@ -148,15 +140,18 @@ def fitted(request):
 )
 def test_moves_continue_until_every_particle_has_likely_moved(rate, expected):
     """The stage's move count: at least num_moves, then until prod(1 - acceptance) <= 0.01."""
-    config = FitConfig(num_moves=3, unmoved_tolerance=0.01, max_moves=20)
 
-    def move(state, key):
+    def move(key, state):
         del key
-        return (state[0] + 1.0,), jnp.asarray(rate, jnp.float32)
+        return state._replace(theta=state.theta + 1.0), WalkInfo(jnp.asarray(rate, jnp.float32))
 
-    state, (count, rate_sum) = _move_until_moved(move, (jnp.zeros(()),), jax.random.key(0), config)
+    zero = jnp.zeros(1, jnp.float32)
+    start = WalkState(jnp.zeros((1, 1), jnp.float32), zero, zero, zero, zero[0])
+    state, count, rate_sum = moves_until_moved(
+        jax.random.key(0), start, move, num_moves=3, unmoved_tolerance=0.01, max_moves=20
+    )
     assert int(count) == expected
-    assert float(state[0]) == expected  # the move was applied that many times
+    assert float(state.theta[0, 0]) == expected  # the move was applied that many times
     assert float(rate_sum) == pytest.approx(rate * expected, rel=1e-5)
 
 
@@ -167,8 +162,10 @@ def test_evidence_and_heldout_predictive_match_closed_form(fitted):
     """
     series, result = fitted
     for row in range(4):
-        log_z_fit, _, _ = gaussian_evidence(series, row, series.fit[row])
-        log_z_all, _, _ = gaussian_evidence(series, row, series.fit[row] + series.heldout[row])
+        log_z_fit, _, _ = gaussian_evidence(series, row, series.windows.fit[row])
+        log_z_all, _, _ = gaussian_evidence(
+            series, row, series.windows.fit[row] + series.windows.heldout[row]
+        )
         assert abs(result.log_z_fit[row] - log_z_fit) < 0.3
         assert abs(result.log_z_held[row] - (log_z_all - log_z_fit)) < 0.3
 
@@ -177,7 +174,7 @@ def test_posterior_moments_match_closed_form(fitted):
     """Posterior means within 0.15 posterior sd, sds within 15% (512 equally weighted draws)."""
     series, result = fitted
     for row in range(4):
-        _, mean, sd = gaussian_evidence(series, row, series.fit[row])
+        _, mean, sd = gaussian_evidence(series, row, series.windows.fit[row])
         draws = result.theta[row]
         assert np.all(np.abs(draws.mean(axis=0) - mean) < 0.15 * sd)
         assert np.all(np.abs(draws.std(axis=0) / sd - 1.0) < 0.15)
@@ -187,15 +184,17 @@ def test_a_plug_in_heldout_score_would_fail_the_same_check(fitted):
     """The check has power: the average held-out log-likelihood over posterior draws (a common
     mistake: E[log p] instead of log E[p]) misses the exact predictive density by > 0.6 nats."""
     series, result = fitted
-    steps = vehicle_steps(series)
+    steps = step_inputs(series, LINEAR)
     misses = []
     for row in range(4):
-        log_z_fit, _, _ = gaussian_evidence(series, row, series.fit[row])
-        log_z_all, _, _ = gaussian_evidence(series, row, series.fit[row] + series.heldout[row])
+        log_z_fit, _, _ = gaussian_evidence(series, row, series.windows.fit[row])
+        log_z_all, _, _ = gaussian_evidence(
+            series, row, series.windows.fit[row] + series.windows.heldout[row]
+        )
         one = jax.tree.map(lambda a, row=row: a[row], steps)
 
         def held_loglik(theta, one=one):
-            logp = step_logpdfs(EXTENDED, LinearParams(*theta), one)
+            logp = step_logpdfs(LINEAR, LinearParams(*theta), one)
             return jnp.sum(jnp.where(one.heldout > 0, logp, 0.0))
 
         plug_in = float(jnp.mean(jax.vmap(held_loglik)(jnp.asarray(result.theta[row]))))
@@ -211,31 +210,19 @@ def test_base_evidence_agrees_with_the_smc_engine(tmp_path):
     unbiased for the evidence; their Monte Carlo sds on such data are a few tenths of a nat.
     """
     from bayesdrive.data.readers import read
-    from bayesdrive.data.views import FollowerArrays
+    from bayesdrive.data.views import scored_series
     from bayesdrive.drivers.extensions import as_extended
-    from bayesdrive.drivers.extensions.inputs import extended_series
     from bayesdrive.drivers.idm import IDM
     from bayesdrive.inference import smc
     from trafficgen import generate
 
     path = tmp_path / "two.csv"
     generate(8, path, None, platoons=1, followers=2, duration_s=20.0, cut_ins=0)
-    series = extended_series(read(path, format="ngsim_raw"))
+    series = scored_series(read(path, format="ngsim_raw"))
     ours = fit_model(
         jax.random.key(1), series, as_extended(IDM), config=FitConfig(num_particles=256)
     )
-    same_steps = FollowerArrays(
-        vehicle_ids=series.vehicle_ids,
-        v=series.v,
-        next_v=series.next_v,
-        dx=series.dx,
-        gap=series.gap,
-        lead_v=series.lead_v,
-        has_leader=series.has_leader,
-        mask=series.fit,
-        t=series.t,
-        dt=series.dt,
-    )
+    same_steps = series._replace(mask=series.windows.fit, windows=None)
     theirs = smc.run(jax.random.key(2), same_steps, model=IDM, num_particles=512)
     evidence = theirs.sample_stats["log_evidence"][1]
     np.testing.assert_allclose(ours.log_z_fit, evidence, atol=2.0)

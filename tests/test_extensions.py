@@ -13,18 +13,14 @@ from scipy import stats
 
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.validate import validate_tracks
-from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.data.views import scored_series
+from bayesdrive.drivers.base import EgoState, device_series, fill_params
 from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, extend
 from bayesdrive.drivers.extensions.autocorrelated_noise import implied_acceleration
 from bayesdrive.drivers.extensions.cut_in import cah_acceleration
-from bayesdrive.drivers.extensions.inputs import (
-    ExtendedInputs,
-    extended_series,
-    history_steps,
-    inputs_at,
-    vehicle_series,
-)
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs, history_steps, inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
+from bayesdrive.inference.likelihood import StepInputs, step_inputs
 
 DT = 0.1
 K = history_steps(DT)
@@ -62,8 +58,8 @@ ON = {
 }
 # Causes whose state is lifted from the observed past (each step scored on its own) and causes
 # with a hidden state (scored through their filter).
-LIFTED = tuple(c for c in CAUSES if extend(c, IDM).filter is None)
-FILTERED = tuple(c for c in CAUSES if extend(c, IDM).filter is not None)
+LIFTED = tuple(c for c in CAUSES if extend(c, IDM).model.filter is None)
+FILTERED = tuple(c for c in CAUSES if extend(c, IDM).model.filter is not None)
 
 
 def params_for(extended, effect=None):
@@ -84,7 +80,7 @@ def test_extension_switched_off_is_the_base_model(cause):
     extended = extend(cause, IDM)
     inputs = make_inputs()
     params = params_for(extended)
-    state = extended.lift(params, STATE, inputs)
+    state = extended.model.lift(params, STATE, inputs)
     base_params = IDM.defaults()
     for dx, next_v in ((1.18, 11.6), (1.25, 12.9), (1.10, 10.2)):
         nxt = EgoState(jnp.float32(dx), jnp.float32(next_v))
@@ -115,7 +111,7 @@ def test_sampler_agrees_with_density(cause):
     params = params_for(extended, ON[cause])
     inputs = make_inputs()
     # A known previous residual, so the AR(1) conditional is exercised too.
-    state = extended.lift(params, STATE, inputs)
+    state = extended.model.lift(params, STATE, inputs)
     keys = jax.random.split(jax.random.key(0), 4000)
     sampled = jax.vmap(lambda k: extended.model.transition_sample(k, params, state, inputs))(keys)
     increments = np.asarray(sampled.x, np.float64)
@@ -183,7 +179,7 @@ def test_autocorrelated_noise_lift_recovers_the_drawn_residual():
         lag_lead_v=inputs0.lag_lead_v.at[1].set(inputs0.lead_v),
         prev_dx=first.x,
     )
-    lifted = extended.lift(params, EgoState(jnp.float32(0.0), first.v), inputs1)
+    lifted = extended.model.lift(params, EgoState(jnp.float32(0.0), first.v), inputs1)
     np.testing.assert_allclose(lifted.residual, first.residual, atol=2e-4)
     assert float(lifted.known) == 1.0
     applied = implied_acceleration(STATE.v, first.x, DT)
@@ -338,35 +334,36 @@ def three_car_platoon() -> Trajectories:
     return Trajectories(tracks=tracks, scenes=scenes, dt=DT, format="test", source="platoon")
 
 
-def test_extended_series_second_vehicle_leader_acceleration_and_history():
+def test_scored_series_second_vehicle_leader_acceleration_and_history():
     """gap2 = sum of the two bumper gaps; lead_acc = backward difference; K steps unscored."""
-    series = extended_series(three_car_platoon())
+    series = scored_series(three_car_platoon())
     assert series.vehicle_ids == ("B", "C")
     b, c = 0, 1
     steps = 29
     # C's second vehicle ahead is A: gap2 = (x_B - 4.5 - x_C) + (x_A - 4.5 - x_B).
     t = np.arange(steps) * DT
     expected_gap2 = (100.0 + 10 * t + 0.25 * t**2 - 4.5 - 4.5) - (40.0 + 9.0 * t)
-    np.testing.assert_allclose(series.gap2[c, :steps], expected_gap2, atol=1e-9)
-    np.testing.assert_allclose(series.lead2_v[c, :steps], 10.0 + 0.5 * t, atol=1e-9)
-    assert series.has_leader2[c, :steps].all() and not series.has_leader2[b, :steps].any()
+    ahead = series.ahead
+    np.testing.assert_allclose(ahead.gap2[c, :steps], expected_gap2, atol=1e-9)
+    np.testing.assert_allclose(ahead.lead2_v[c, :steps], 10.0 + 0.5 * t, atol=1e-9)
+    assert ahead.has_leader2[c, :steps].all() and not ahead.has_leader2[b, :steps].any()
     # B's leader A accelerates at 0.5: backward differences from the second sample on.
-    np.testing.assert_allclose(series.lead_acc[b, 1:steps], 0.5, atol=1e-9)
-    np.testing.assert_allclose(series.lead_acc[c, 1:steps], 0.0, atol=1e-9)
-    scored = series.fit + series.heldout
+    np.testing.assert_allclose(ahead.lead_acc[b, 1:steps], 0.5, atol=1e-9)
+    np.testing.assert_allclose(ahead.lead_acc[c, 1:steps], 0.0, atol=1e-9)
+    scored = series.windows.fit + series.windows.heldout
     assert not scored[:, :K].any()
     # Every later step is scored except the one that straddles the split (in neither window).
     assert (scored[:, K:steps] == 0).sum(axis=1).tolist() == [1, 1]
 
 
 def test_inputs_at_reads_the_history_window():
-    series = extended_series(three_car_platoon())
-    data = jax.tree.map(lambda a: a[1], vehicle_series(series))
+    series = scored_series(three_car_platoon())
+    data = jax.tree.map(lambda a: a[1], device_series(series))
     j = K + 3
-    inputs = inputs_at(data, j, DT, K)
+    inputs = inputs_at(data, j, K)
     np.testing.assert_allclose(inputs.lag_gap, series.gap[1, j - np.arange(K + 1)], rtol=1e-6)
     np.testing.assert_allclose(inputs.prev_dx, series.dx[1, j - 1], rtol=1e-6)
-    np.testing.assert_allclose(inputs.gap2, series.gap2[1, j], rtol=1e-6)
+    np.testing.assert_allclose(inputs.gap2, series.ahead.gap2[1, j], rtol=1e-6)
 
 
 def test_fill_params_round_trip_of_an_extension():
@@ -379,32 +376,30 @@ def test_fill_params_round_trip_of_an_extension():
     assert float(params.reaction_time) == len(names) - 1
 
 
-def platoon_steps():
-    from bayesdrive.criticism.tempering import vehicle_steps
-
-    series = extended_series(three_car_platoon())
-    return jax.tree.map(lambda a: a[1], vehicle_steps(series))
+def platoon_steps(model):
+    series = scored_series(three_car_platoon())
+    return jax.tree.map(lambda a: a[1], step_inputs(series, model))
 
 
 @pytest.mark.parametrize("cause", FILTERED)
 def test_filter_switched_off_is_the_base_model(cause):
     """With its parameter at 0 the filter gives the base model's one-step densities exactly."""
     extended = extend(cause, IDM)
-    steps = platoon_steps()
-    ours = extended.filter(params_for(extended), steps)
+    steps = platoon_steps(extended.model)
+    ours = extended.model.filter(params_for(extended), steps)
+    base_steps = platoon_steps(IDM)
     base = jax.vmap(
         lambda i, v, nv, dx: IDM.transition_logpdf(
-            IDM.defaults(), EgoState(0.0 * v, v), EgoState(dx, nv), i.car_following
+            IDM.defaults(), EgoState(0.0 * v, v), EgoState(dx, nv), i
         )
-    )(steps.inputs, steps.v, steps.next_v, steps.dx)
+    )(base_steps.inputs, base_steps.v, base_steps.next_v, base_steps.dx)
     np.testing.assert_allclose(ours, base, rtol=1e-5, atol=1e-4)
 
 
 def simulate_follower(cause: str, effect: float, seed: int, steps: int = 3000):
     """One follower of the extension model behind a replayed leader (speed 10-14 m/s), simulated
-    in a scan; returns the model, its parameters and VehicleSteps of the record (for measurement
+    in a scan; returns the model, its parameters and StepInputs of the record (for measurement
     noise the recorded positions carry the noise; speeds and gaps are exact)."""
-    from bayesdrive.criticism.tempering import VehicleSteps
 
     extended = extend(cause, IDM)
     params = params_for(extended, effect)
@@ -429,10 +424,10 @@ def simulate_follower(cause: str, effect: float, seed: int, steps: int = 3000):
         noise = effect * jax.random.normal(jax.random.key(seed + 1), (steps + 1,))
         dx = dx + jnp.diff(noise)
     ones = jnp.ones(steps)
-    return extended, params, VehicleSteps(inputs, v, next_v, dx, ones, ones, 0 * ones)
+    return extended, params, StepInputs(v, next_v, dx, ones, inputs, ones, 0 * ones)
 
 
-def test_position_noise_filter_is_maximised_at_the_true_noise():
+def test_measurement_noise_filter_is_maximised_at_the_true_noise():
     """Data simulated with 2 cm position noise (3000 steps, seed 12): the filter's log density
     over a grid of noise levels peaks at the true one (the MLE's relative sd is ~1.3% here, the
     grid steps 15%), and beats the base model (noise 0) by > 1000 nats. A filter with a wrong
@@ -440,10 +435,10 @@ def test_position_noise_filter_is_maximised_at_the_true_noise():
     extended, params, steps = simulate_follower("measurement_noise", 0.02, seed=12)
     grid = 0.02 * np.array([0.7, 0.85, 1.0, 1.15, 1.4])
     totals = [
-        float(jnp.sum(extended.filter(params._replace(position_noise=s), steps))) for s in grid
+        float(jnp.sum(extended.model.filter(params._replace(sigma_obs=s), steps))) for s in grid
     ]
     assert int(np.argmax(totals)) == 2
-    base = float(jnp.sum(extended.filter(params._replace(position_noise=0.0), steps)))
+    base = float(jnp.sum(extended.model.filter(params._replace(sigma_obs=0.0), steps)))
     assert totals[2] - base > 1000.0
 
 
@@ -453,7 +448,7 @@ def test_drift_filter_prefers_the_true_drift():
     extended, params, steps = simulate_follower("drifting_parameters", 0.1, seed=13)
 
     def total(q):
-        return float(jnp.sum(extended.filter(params._replace(tau_drift=q), steps)))
+        return float(jnp.sum(extended.model.filter(params._replace(tau_drift=q), steps)))
 
     assert total(0.1) - total(0.0) > 20.0
     assert total(0.1) > total(0.4)

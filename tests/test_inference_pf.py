@@ -123,7 +123,7 @@ def test_log_evidence_is_the_sum_of_log_mean_weights(arrays):
     mask = np.zeros_like(arrays.mask)
     mask[:, 5] = 1.0
     result = run(arrays._replace(mask=mask), prior=PointPrior(START))
-    series = step_inputs(arrays._replace(mask=mask))
+    series = step_inputs(arrays._replace(mask=mask), IDM)
     expected = [
         float(
             step_loglik(

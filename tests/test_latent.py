@@ -180,7 +180,7 @@ def _filter_runs(keys, model, params, observations, inputs, num_particles):
 
 def filter_logliks(model: DriverModel, arrays: FollowerArrays, num_particles: int) -> np.ndarray:
     """NUM_SEEDS independent filter estimates for the one vehicle in ``arrays``."""
-    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays))
+    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays, model))
     params = model.params_type(*(jnp.asarray(TRUTH[name]) for name in model.param_names))
     keys = jax.random.split(jax.random.key(FILTER_SEED), NUM_SEEDS)
     logliks = _filter_runs(keys, model, params, observations, inputs, num_particles)
@@ -234,7 +234,7 @@ def test_holes_and_padding_restart_the_filter(linear_series):
 
 def test_padding_leaves_the_estimate_and_info_unchanged(linear_series):
     arrays = follower_arrays_of(linear_series, np.ones(NUM_STEPS))
-    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays))
+    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays, NOISY_LINEAR))
     params = NOISY_LINEAR.params_type(*(jnp.asarray(TRUTH[n]) for n in NOISY_LINEAR.param_names))
     padding = 14
 
@@ -262,7 +262,7 @@ def test_padding_leaves_the_estimate_and_info_unchanged(linear_series):
 
 def test_filter_refuses_bad_input(linear_series):
     arrays = follower_arrays_of(linear_series, np.ones(NUM_STEPS))
-    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays))
+    observations, inputs = jax.tree.map(lambda a: a[0], latent_data(arrays, NOISY_LINEAR))
     params = NOISY_LINEAR.defaults()
     short = inputs._replace(lead_v=inputs.lead_v[:-1])
     with pytest.raises(ValueError, match=r"inputs\.lead_v"):
@@ -279,7 +279,7 @@ def test_wrapper_adds_sigma_obs_and_keeps_the_dynamics():
     noisy = with_measurement_noise(IDM)
     assert noisy.param_names == (*IDM.param_names, "sigma_obs")
     spec = noisy.spec("sigma_obs")
-    assert (spec.lower, spec.default, spec.upper, spec.unit) == (0.005, 0.05, 1.0, "m")
+    assert (spec.lower, spec.default, spec.upper, spec.unit) == (0.0, 0.0, 0.5, "m")
     params = noisy.defaults()._replace(sigma_obs=jnp.asarray(0.2))
     base = IDMParams(*params[:-1])
     state = EgoState(x=jnp.asarray(0.3), v=jnp.asarray(12.0))
@@ -360,7 +360,7 @@ def noisy_idm_data():
     vehicles = jax.tree.map(lambda a: jnp.full((PMMH_NUM_VEHICLES,), a), IDMParams(*truth[:-1]))
     exact = simulate_following(sim_key, IDM, vehicles, num_steps=150)
     arrays = noisy_readings(noise_key, exact, PMMH_TRUTH["sigma_obs"])
-    return known, latent_data(arrays), arrays
+    return known, latent_data(arrays, NOISY_IDM), arrays
 
 
 def run_pmmh(seed: int, model: DriverModel, data):
@@ -474,7 +474,7 @@ def test_fit_with_the_pmmh_engine_gives_the_shared_layout(noisy_idm_data):
 
 def test_engine_refuses_exact_models_and_custom_priors(noisy_idm_data):
     _, _, arrays = noisy_idm_data
-    with pytest.raises(ValueError, match="with_measurement_noise"):
+    with pytest.raises(ValueError, match="measurement_noise"):
         run(jax.random.key(0), arrays, model=IDM)
     with pytest.raises(ValueError, match="prior"):
         run(jax.random.key(0), arrays, model=NOISY_IDM, prior=NOISY_IDM.prior())

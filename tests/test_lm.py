@@ -223,7 +223,7 @@ def test_bad_requests_are_refused_clearly(short_data):
         lm.run(jax.random.key(0), arrays, model=IDM, params=("sigma",))
     with pytest.raises(NotImplementedError, match="prior box only"):
         lm.run(jax.random.key(0), arrays, model=IDM, prior=IDM.prior())
-    with pytest.raises(TypeError, match="MergeInputs"):
+    with pytest.raises(ValueError, match="merge scene"):
         lm.run(jax.random.key(0), arrays, model=CIDM, params=("v_des", "c"))
     few = arrays._replace(mask=np.where(np.arange(512) < 4, arrays.mask, 0.0))
     with pytest.raises(ValueError, match=r"'sim0': 4, 'sim1': 4"):

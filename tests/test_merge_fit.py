@@ -10,7 +10,7 @@ import pytest
 
 from bayesdrive.data import registry
 from bayesdrive.data.views import pooled_series
-from bayesdrive.drivers.cidm import CIDM, MergeInputs, yield_target
+from bayesdrive.drivers.cidm import CIDM, yield_target
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.likelihood import fixed_params, series_loglik, step_inputs
 from bayesdrive.inference.output import metadata
@@ -36,7 +36,7 @@ def stays(data_dir):
 def _loglik(arrays, c: float) -> np.ndarray:
     """Per-step log-density of every row at the model's defaults with cooperation ``c``."""
     params = fixed_params(CIDM, {"c": c})
-    series = step_inputs(arrays)
+    series = step_inputs(arrays, CIDM)
     return np.asarray(jax.vmap(lambda s: series_loglik(CIDM, (), params, jnp.zeros(0), s))(series))
 
 
@@ -53,16 +53,10 @@ def test_stays_carry_the_merge_scene_and_cooperation_changes_the_likelihood(stay
     changed = np.abs(never - always) > 1e-6
     # Only steps where a fully cooperative driver yields can score differently (not all of them:
     # yielding takes the smaller of two accelerations), and on real merges many do.
-    series = step_inputs(stays)
-    yields = np.asarray(
-        jax.vmap(jax.vmap(lambda s: yield_target(1.0, s.v, _merge_inputs(s))[0]))(series)
-    )
+    series = step_inputs(stays, CIDM)
+    yields = np.asarray(jax.vmap(jax.vmap(lambda s: yield_target(1.0, s.v, s.inputs)[0]))(series))
     assert not (changed & ~yields)[usable].any()
     assert changed[usable].mean() > 0.05
-
-
-def _merge_inputs(step) -> MergeInputs:
-    return MergeInputs(step.gap, step.lead_v, step.has_leader, step.dt, *step.merge)
 
 
 def test_pooling_keeps_every_usable_step_and_its_density(stays):

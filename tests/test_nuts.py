@@ -70,7 +70,7 @@ def test_result_layout_and_divergences_reported(vehicle, result):
 
 def test_pointwise_log_likelihood_scores_every_stored_draw(vehicle, result):
     assert result.log_likelihood.shape == (4, 250, 1, vehicle.mask.shape[1])
-    series = jax.tree.map(lambda a: a[0], step_inputs(vehicle))
+    series = jax.tree.map(lambda a: a[0], step_inputs(vehicle, IDM))
     theta = result.posterior["sigma"][2, 7, 0]
     expected = series_loglik(IDM, ("sigma",), IDM.defaults(), jnp.array([theta]), series)
     np.testing.assert_allclose(result.log_likelihood[2, 7, 0], expected, rtol=1e-5, atol=1e-4)

@@ -37,8 +37,9 @@ from bayesdrive.cli.common import (
 )
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
+from bayesdrive.drivers.extensions import CAUSES
 from bayesdrive.drivers.registry import MODELS, get_model
-from bayesdrive.inference.fit import ENGINES, PARTICLE_ENGINES, get_engine, summary
+from bayesdrive.inference.fit import ENGINES, PARTICLE_ENGINES, check_engine_model, summary
 from bayesdrive.inference.fit import fit as fit_model
 from bayesdrive.inference.likelihood import param_names
 from bayesdrive.inference.output import save_result
@@ -114,7 +115,12 @@ def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
 def fit(
     data: str = typer.Argument(..., help="A file, a folder, or a data set name."),
     out: str = typer.Option(..., "--out", help="Folder for result.nc, summary.json and plots."),
-    model: str = typer.Option("idm", "--model", help=f"Driver model: {', '.join(MODELS)}."),
+    model: str = typer.Option(
+        "idm",
+        "--model",
+        help=f"Driver model: {', '.join(MODELS)}, or a base joined by '+' to an extension "
+        f"({', '.join(CAUSES)}), e.g. idm+reaction_delay.",
+    ),
     engine: str = typer.Option("smc", "--engine", help=f"Engine: {', '.join(ENGINES)}."),
     params: str | None = typer.Option(
         None, "--params", help="Comma-separated parameters to infer (default: all)."
@@ -173,8 +179,8 @@ def fit(
     results = results_folder(out, "fit", force=force)
     try:
         # Checked before reading any data, so a typo fails at once.
-        get_engine(engine)
         driver = get_model(model)
+        check_engine_model(engine, driver)
         names = (
             None if params is None else param_names(driver, [p.strip() for p in params.split(",")])
         )
@@ -202,8 +208,6 @@ def fit(
             )
     except (DataError, KeyError, ValueError, NotImplementedError) as error:
         raise fail(str(error.args[0] if isinstance(error, KeyError) else error)) from None
-    except TypeError as error:  # a model whose inputs car-following data cannot provide
-        raise fail(f"model {model!r} cannot be fitted on car-following data: {error}") from None
 
     result = summary(tree)
     emit_json(result, str(results.path / "summary.json"))

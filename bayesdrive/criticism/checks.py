@@ -55,13 +55,14 @@ import numpy as np
 from jax import Array
 from scipy import stats
 
-from bayesdrive.criticism.rollout import Rollouts
-from bayesdrive.criticism.tempering import FitResult, VehicleSteps, step_logpdfs
+from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import EgoState, fill_params
 from bayesdrive.drivers.extensions import extend
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.drivers.extensions.inputs import ExtendedSeries
 from bayesdrive.drivers.idm import STOP_SPEED
+from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.tempering import FitResult
+from bayesdrive.simulation.follower_rollout import Rollouts
 
 __all__ = [
     "ACF_LAGS",
@@ -118,12 +119,12 @@ class Residuals(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: VehicleSteps):
+def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: StepInputs):
     """Draw-averaged P(increment <= observed) and P(stop) of every step: (vehicle, step) each."""
     model = extended.model
 
     def per_step(params, inputs, v, dx):
-        state = extended.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
+        state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
         mean_acc = model.mean_acceleration(params, state, inputs)
         dt = inputs.dt
         predicted = v * dt + 0.5 * mean_acc * dt**2
@@ -145,7 +146,7 @@ def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, st
 
 
 def predictive_residuals(
-    key: Array, fit: FitResult, steps: VehicleSteps, *, num_draws: int = 64
+    key: Array, fit: FitResult, steps: StepInputs, *, num_draws: int = 64
 ) -> Residuals:
     """PIT and quantile residuals of every held-out step under the fitted model (module docstring).
 
@@ -288,11 +289,11 @@ def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
     return checks
 
 
-def leader_cross_correlation_check(res: Residuals, series: ExtendedSeries) -> tuple[Check, Check]:
+def leader_cross_correlation_check(res: Residuals, series: FollowerArrays) -> tuple[Check, Check]:
     """Correlation of z[t] with the leader's acceleration at t - k, k = 0..history: per vehicle
     (a portmanteau tested across vehicles, for screening) and pooled (the picture)."""
-    lead_acc = series.lead_acc
-    usable = series.usable > 0
+    lead_acc = series.ahead.lead_acc
+    usable = series.mask > 0
     lags = np.arange(series.history + 1)
     ccf, pairs = zip(
         *(_pooled_correlation(res.z, lead_acc, res.mask, usable, int(k)) for k in lags),
@@ -361,7 +362,7 @@ def _time_in_window(t: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return t - t[np.arange(t.shape[0]), first][:, None]
 
 
-def covariate_checks(res: Residuals, series: ExtendedSeries) -> list[Check]:
+def covariate_checks(res: Residuals, series: FollowerArrays) -> list[Check]:
     """z^2 - 1 (variance) and z (mean) against speed, gap, relative speed and time in window."""
     covariates = {
         "speed": ("speed (m/s)", series.v),
@@ -446,7 +447,7 @@ def change_point_check(res: Residuals) -> Check:
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _vehicle_scores(extended: ExtendedModel, base_theta: Array, steps: VehicleSteps) -> Array:
+def _vehicle_scores(extended: ExtendedModel, base_theta: Array, steps: StepInputs) -> Array:
     """d/dpsi of each vehicle's held-out log-likelihood at psi = off, averaged over draws."""
     model = extended.model
     names = model.param_names
@@ -454,7 +455,7 @@ def _vehicle_scores(extended: ExtendedModel, base_theta: Array, steps: VehicleSt
 
     def held_loglik(psi, theta, steps_v):
         params = fill_params(model, names, jnp.concatenate([theta, psi]))
-        logp = step_logpdfs(extended, params, steps_v)
+        logp = step_logpdfs(model, params, steps_v)
         return jnp.sum(jnp.where(steps_v.heldout > 0, logp, 0.0))
 
     def per_vehicle(theta_v, steps_v):
@@ -464,11 +465,14 @@ def _vehicle_scores(extended: ExtendedModel, base_theta: Array, steps: VehicleSt
     return jax.vmap(per_vehicle)(base_theta, steps)
 
 
-def score_check(cause: str, fit: FitResult, steps: VehicleSteps, *, num_draws: int = 16) -> Check:
+def score_check(
+    cause: str, fit: FitResult, series: FollowerArrays, *, num_draws: int = 16
+) -> Check:
     """The score test of the ``cause`` extension against the fitted base model (module docstring)."""
     extended = extend(cause, fit.model.base)
-    if extended.filter is not None or len(extended.new_params) != 1:
+    if extended.model.filter is not None or len(extended.new_params) != 1:
         raise ValueError(f"no score test for {extended.name}")
+    steps = step_inputs(series, extended.model)
     draws = np.linspace(0, fit.theta.shape[1] - 1, min(num_draws, fit.theta.shape[1])).astype(int)
     theta = jnp.asarray(fit.theta[:, draws], dtype=steps.v.dtype)
     scores = np.asarray(_vehicle_scores(extended, theta, steps)[:, 0], np.float64)
@@ -545,14 +549,14 @@ def multistep_check(rollouts: Rollouts, dt: float) -> Check:
 def run_checks(
     key: Array,
     fit: FitResult,
-    series: ExtendedSeries,
-    steps: VehicleSteps,
+    series: FollowerArrays,
     *,
     causes: tuple[str, ...],
 ) -> tuple[Residuals, list[Check]]:
-    """Every check of the base fit ``fit``, with a score test for each of ``causes`` that scores
-    steps on their own (the hidden-state ones rely on the residual checks)."""
-    res = predictive_residuals(key, fit, steps)
+    """Every check of the base fit ``fit`` on ``series`` (a :func:`~bayesdrive.data.views.scored_series`),
+    with a score test for each of ``causes`` that scores steps on their own (the hidden-state ones
+    rely on the residual checks)."""
+    res = predictive_residuals(key, fit, step_inputs(series, fit.model.model))
     checks = [
         calibration_check(res),
         autocorrelation_check(res),
@@ -561,10 +565,10 @@ def run_checks(
         *covariate_checks(res, series),
         change_point_check(res),
         *(
-            score_check(cause, fit, steps)
+            score_check(cause, fit, series)
             for cause in causes
             # A hidden-state model's slope at "off" is zero (a variance at its boundary).
-            if extend(cause, fit.model.base).filter is None
+            if extend(cause, fit.model.base).model.filter is None
         ),
     ]
     return res, checks

@@ -4,9 +4,9 @@ and keep the one whose held-out gain is largest, if it is significant.
 Steps (``criticize``):
 
 1. Build the per-step arrays with the history the extensions need
-   (:func:`~bayesdrive.drivers.extensions.inputs.extended_series`; same split rule as every engine).
+   (:func:`~bayesdrive.data.views.scored_series`; same split rule as every engine).
 2. Fit the base model to every vehicle's fitting window and continue over its held-out window
-   (:mod:`bayesdrive.criticism.tempering`).
+   (:mod:`bayesdrive.inference.tempering`).
 3. Run the checks on the held-out windows (:mod:`bayesdrive.criticism.checks`), including
    closed-loop rollouts of the base model.
 4. **Screening**: a cause is a candidate when one of the screening checks that point to it (score
@@ -15,7 +15,7 @@ Steps (``criticize``):
    (Bonferroni within the cause's checks); lenient on purpose, since the verdict is decided by the
    gain, whose multiplicity correction covers every cause whether screened in or not.
 5. Fit each candidate extension, starting from the base posterior (the extension nests the base
-   model; see :func:`~bayesdrive.criticism.tempering.fit_model`), continue it over the held-out
+   model; see :func:`~bayesdrive.inference.tempering.fit_model`), continue it over the held-out
    window the same way, and compute its gain, significance (Holm over all causes) and rollout RMSE
    change (:mod:`bayesdrive.criticism.gain`).
 6. Verdict: the significant cause with the largest gain, else "none".
@@ -44,21 +44,19 @@ import numpy as np
 
 from bayesdrive.criticism.checks import Check, Residuals, multistep_check, run_checks
 from bayesdrive.criticism.gain import ALPHA, Gain, elpd_gain, holm, rmse_change
-from bayesdrive.criticism.rollout import Rollouts, heldout_windows, rollout
-from bayesdrive.criticism.tempering import (
+from bayesdrive.data.errors import DataError
+from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.views import SPLIT_RULE, FollowerArrays, follower_arrays, scored_series
+from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, as_extended, extend
+from bayesdrive.drivers.idm import IDM
+from bayesdrive.inference.tempering import (
     DEFAULT_CONFIG,
     FitConfig,
     FitResult,
     fit_model,
-    vehicle_steps,
 )
-from bayesdrive.data.errors import DataError
-from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.views import SPLIT_RULE, follower_arrays
-from bayesdrive.drivers.base import DriverModel
-from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, as_extended, extend
-from bayesdrive.drivers.extensions.inputs import ExtendedSeries, extended_series
-from bayesdrive.drivers.idm import IDM
+from bayesdrive.simulation.follower_rollout import Rollouts, heldout_windows, rollout
 
 __all__ = [
     "DETECTION_CONFIG",
@@ -105,20 +103,20 @@ class CriticizeConfig(NamedTuple):
     num_particles: int = DEFAULT_CONFIG.num_particles
     num_moves: int = DEFAULT_CONFIG.num_moves
     # Moves per tempering stage continue past num_moves until a particle has moved with
-    # probability 1 - this (bayesdrive.criticism.tempering, "How many moves"); 0: num_moves only.
+    # probability 1 - this (bayesdrive.inference.tempering, "How many moves"); 0: num_moves only.
     unmoved_tolerance: float = DEFAULT_CONFIG.unmoved_tolerance
     screen_p: float = SCREEN_P
     alpha: float = ALPHA
     horizon_s: float = 5.0
     num_rollouts: int = 32  # per held-out window; 0 skips the rollouts (no RMSE, no multistep)
     causes: tuple[str, ...] = CAUSES
-    vehicle_batch: int = 1  # see bayesdrive.criticism.tempering.fit_model
+    vehicle_batch: int = 1  # see bayesdrive.inference.tempering.fit_model
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
 # trafficgen, the independent generator at the repository root): the default sampler (moves until every particle has moved with
 # probability 0.99, Drovandi & Pettitt 2011's c = 0.01, since 4 fixed moves let the speed-noise
-# posterior collapse: bayesdrive.criticism.tempering), without rollouts, to keep CI fast.
+# posterior collapse: bayesdrive.inference.tempering), without rollouts, to keep CI fast.
 DETECTION_CONFIG = CriticizeConfig(num_rollouts=0)
 
 
@@ -128,7 +126,7 @@ class CriticismResult(NamedTuple):
     report: dict[str, Any]
     checks: list[Check]
     residuals: Residuals
-    series: ExtendedSeries
+    series: FollowerArrays
     fits: dict[str, FitResult]
     gains: dict[str, Gain]
     rollouts: dict[str, Rollouts]
@@ -188,12 +186,12 @@ def _finite_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
-def criticized_series(traj: Trajectories, max_vehicles: int | None = None) -> ExtendedSeries:
+def criticized_series(traj: Trajectories, max_vehicles: int | None = None) -> FollowerArrays:
     """The per-step arrays criticism scores: every follower with scored steps in both windows;
     with ``max_vehicles``, the first N of them in the order ``fit`` takes vehicles (its
     fitting-window followers), their leaders read from all of ``traj``."""
     if max_vehicles is None:
-        return extended_series(traj)
+        return scored_series(traj)
     if max_vehicles < 1:
         raise ValueError(f"the number of vehicles must be positive, got {max_vehicles}")
     candidates = list(follower_arrays(traj, window="fit").vehicle_ids)
@@ -201,7 +199,7 @@ def criticized_series(traj: Trajectories, max_vehicles: int | None = None) -> Ex
     while True:
         # Some candidates lack held-out steps; take more until N are scored or none are left.
         try:
-            series = extended_series(traj, vehicle_ids=candidates[:taken])
+            series = scored_series(traj, vehicle_ids=candidates[:taken])
             found = len(series.vehicle_ids)
         except DataError:
             if taken >= len(candidates):
@@ -254,7 +252,6 @@ def criticize(
     started = time.perf_counter()
 
     series = criticized_series(traj, max_vehicles)
-    steps = vehicle_steps(series)
     windows = heldout_windows(series, config.horizon_s)
     if config.num_rollouts == 0:
         windows = windows._replace(row=windows.row[:0], start=windows.start[:0])
@@ -266,7 +263,6 @@ def criticize(
             series,
             extended,
             config=fit_config,
-            steps=steps,
             start=start,
             vehicle_batch=config.vehicle_batch,
         )
@@ -279,9 +275,7 @@ def criticize(
     base_model = as_extended(model)
     base, base_rollouts = fit_and_roll(base_model, None)
     say("running the checks")
-    residuals, checks = run_checks(
-        named_key(key, "checks"), base, series, steps, causes=config.causes
-    )
+    residuals, checks = run_checks(named_key(key, "checks"), base, series, causes=config.causes)
     checks.append(multistep_check(base_rollouts, series.dt))
 
     fits = {NO_CAUSE: base}
@@ -349,8 +343,8 @@ def criticize(
             "source": str(traj.source),
             "format": traj.format,
             "vehicles": len(series.vehicle_ids),
-            "scored_steps_fit": int(series.fit.sum()),
-            "scored_steps_heldout": int(series.heldout.sum()),
+            "scored_steps_fit": int(series.windows.fit.sum()),
+            "scored_steps_heldout": int(series.windows.heldout.sum()),
             "dt_s": series.dt,
             "split_rule": SPLIT_RULE,
             "history_s": series.history * series.dt,

@@ -10,6 +10,7 @@ fit has seen, whichever chain a copy came from.
 from __future__ import annotations
 
 import logging
+import math
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -20,12 +21,17 @@ from bayesdrive.data.trajectories import Trajectories
 
 __all__ = [
     "FIT_FRACTION",
+    "HISTORY_SECONDS",
     "SPLIT_RULE",
+    "AheadArrays",
     "FollowerArrays",
     "MergeArrays",
+    "ScoredWindows",
     "follower_arrays",
+    "history_steps",
     "leader_follower_pairs",
     "pooled_series",
+    "scored_series",
     "split_time",
 ]
 
@@ -38,6 +44,15 @@ SPLIT_RULE = (
 )
 # Pad step counts up to a multiple of this, so JAX compiles once per bucket, not per vehicle length.
 LENGTH_BUCKET = 64
+# The longest reaction delay the models consider (the delay prior's upper bound) sets the history
+# a model may read behind each step.
+HISTORY_SECONDS = 1.5
+
+
+def history_steps(dt: float) -> int:
+    """K: how many past steps a history of :data:`HISTORY_SECONDS` holds at sampling interval dt."""
+    return math.ceil(HISTORY_SECONDS / dt - 1e-9)
+
 
 Window = Literal["fit", "heldout", "all"]
 
@@ -58,14 +73,43 @@ class MergeArrays(NamedTuple):
     merge_present: np.ndarray
 
 
+class AheadArrays(NamedTuple):
+    """What lies ahead of the leader, beside each step of :class:`FollowerArrays` (N, T).
+
+    lead_acc: the leader's acceleration, backward difference of its observed speed (m/s^2; 0
+        where the leader has no previous sample).
+    gap2: bumper gap to the leader plus the leader's bumper gap to its own leader (m).
+    lead2_v: speed of the second vehicle ahead (m/s).
+    has_leader2: 1.0 where a second vehicle ahead is known, else 0.0 (gap2, lead2_v then padded).
+    """
+
+    lead_acc: np.ndarray
+    gap2: np.ndarray
+    lead2_v: np.ndarray
+    has_leader2: np.ndarray
+
+
+class ScoredWindows(NamedTuple):
+    """Which steps a model comparison scores (N, T): ``fit`` and ``heldout`` are the usable steps
+    of the fitting and the held-out window that have a full :data:`HISTORY_SECONDS` of usable
+    steps before them, so every model, with or without memory, is scored on the same steps."""
+
+    fit: np.ndarray
+    heldout: np.ndarray
+
+
 class FollowerArrays(NamedTuple):
-    """Per-step arrays of N vehicles, padded to T steps (numpy, float64; engines cast).
+    """The one per-vehicle series: per-step arrays of N vehicles, padded to T steps (numpy,
+    float64; engines cast). Every driver model builds its inputs from it (``model.inputs_at``).
 
     Step t scores the transition from sample t to sample t+1 of vehicle n. ``mask[n, t]`` is 1
     where that transition is real and usable (both samples present, one dt apart, no flagged
     sample, inside the chosen window), else 0; padded entries hold harmless finite values.
     ``dx`` is the position increment x[t+1] - x[t], computed in float64 before any cast.
-    ``merge`` holds the merge scene for merging models (None for plain car following).
+    The scene parts a model may read beyond its leader are None where the data have none:
+    ``merge`` the merge scene (merging models), ``ahead`` the second vehicle ahead and the
+    leader's acceleration (filled from trajectories), ``windows`` the scored fitting and held-out
+    steps of a model comparison (:func:`scored_series`).
     """
 
     vehicle_ids: tuple[str, ...]
@@ -79,10 +123,32 @@ class FollowerArrays(NamedTuple):
     t: np.ndarray
     dt: float
     merge: MergeArrays | None = None
+    ahead: AheadArrays | None = None
+    windows: ScoredWindows | None = None
 
     @property
     def num_steps(self) -> np.ndarray:
         return self.mask.sum(axis=1).astype(int)
+
+    @property
+    def history(self) -> int:
+        """Steps of history a model may read behind each step (:func:`history_steps`)."""
+        return history_steps(self.dt)
+
+    def subset(self, rows) -> FollowerArrays:
+        """The same series restricted to some vehicle rows (an index array or slice)."""
+        index = np.arange(len(self.vehicle_ids))[rows]
+
+        def pick(value):
+            if isinstance(value, np.ndarray):
+                return value[index]
+            if isinstance(value, tuple) and value and isinstance(value[0], np.ndarray):
+                return type(value)(*(a[index] for a in value))
+            return value
+
+        picked = {name: pick(value) for name, value in self._asdict().items()}
+        picked["vehicle_ids"] = tuple(self.vehicle_ids[i] for i in index)
+        return self._replace(**picked)
 
 
 def split_time(times: np.ndarray) -> float:
@@ -185,7 +251,7 @@ def follower_arrays(
             out[row, : len(values)] = np.where(np.isfinite(values), values, fill)
         return out
 
-    return FollowerArrays(
+    arrays = FollowerArrays(
         vehicle_ids=tuple(p[0] for p in kept),
         t=stack(1, 0.0),
         v=stack(2, 1.0),
@@ -197,6 +263,136 @@ def follower_arrays(
         mask=stack(8, 0.0),
         dt=float(traj.dt),
     )
+    return arrays._replace(ahead=_ahead_arrays(traj, arrays))
+
+
+def _second_vehicle_and_leader_acc(traj: Trajectories) -> pd.DataFrame:
+    """Per sample: the second vehicle ahead (gap2, lead2_v) and the leader's acceleration."""
+    tracks = traj.tracks
+    frame = np.round(tracks["t"].to_numpy() / traj.dt).astype(np.int64)
+    own = pd.DataFrame(
+        {
+            "vehicle_id": tracks["vehicle_id"].to_numpy(),
+            "frame": frame,
+            "v": tracks["v"].to_numpy(dtype=np.float64),
+            "gap": tracks["gap"].to_numpy(dtype=np.float64),
+            "leader_id": tracks["leader_id"].to_numpy(),
+        }
+    )
+    previous = own[["vehicle_id", "frame", "v"]].assign(frame=own["frame"] + 1)
+    own = own.merge(
+        previous.rename(columns={"v": "v_before"}), on=["vehicle_id", "frame"], how="left"
+    )
+    leader_rows = own.rename(
+        columns={
+            "vehicle_id": "leader_id",
+            "v": "lead_v",
+            "gap": "lead_gap",
+            "leader_id": "lead2_id",
+            "v_before": "lead_v_before",
+        }
+    )
+    joined = own[["vehicle_id", "frame", "gap", "leader_id"]].merge(
+        leader_rows, on=["leader_id", "frame"], how="left"
+    )
+    lead_acc = (joined["lead_v"] - joined["lead_v_before"]) / traj.dt
+    second = leader_rows[["leader_id", "frame", "lead_v"]].rename(
+        columns={"leader_id": "lead2_id", "lead_v": "lead2_v"}
+    )
+    joined = joined.merge(second, on=["lead2_id", "frame"], how="left")
+    has2 = joined["lead2_v"].notna() & joined["lead_gap"].notna() & joined["gap"].notna()
+    return pd.DataFrame(
+        {
+            "vehicle_id": joined["vehicle_id"],
+            "frame": joined["frame"],
+            "lead_acc": lead_acc,
+            "gap2": np.where(has2, joined["gap"] + joined["lead_gap"], np.nan),
+            "lead2_v": np.where(has2, joined["lead2_v"], np.nan),
+            "has_leader2": has2.astype(float),
+        }
+    )
+
+
+def _ahead_arrays(traj: Trajectories, arrays: FollowerArrays) -> AheadArrays:
+    """The scene ahead of each step of ``arrays``, read from ``traj`` (padding as documented)."""
+    dt = arrays.dt
+    extras = _second_vehicle_and_leader_acc(traj).set_index(["vehicle_id", "frame"])
+    shape = arrays.mask.shape
+    out = {name: np.zeros(shape) for name in AheadArrays._fields}
+    no_lead_acc = 0
+    for row, vid in enumerate(arrays.vehicle_ids):
+        frames = np.round(traj.vehicle(vid)["t"].to_numpy()[:-1] / dt).astype(np.int64)
+        rows = extras.loc[[(vid, f) for f in frames]]
+        n = len(frames)
+        lead_acc = rows["lead_acc"].to_numpy()
+        no_lead_acc += int((~np.isfinite(lead_acc) & (arrays.mask[row, :n] > 0)).sum())
+        out["lead_acc"][row, :n] = np.nan_to_num(lead_acc, nan=0.0)
+        known = rows["has_leader2"].to_numpy() > 0
+        out["gap2"][row, :n] = np.where(known, rows["gap2"], 100.0)
+        out["lead2_v"][row, :n] = np.where(known, rows["lead2_v"], 1.0)
+        out["has_leader2"][row, :n] = known
+    if no_lead_acc:
+        log.info(
+            "%d usable step(s) have no previous leader sample; their leader acceleration is "
+            "taken as 0",
+            no_lead_acc,
+        )
+    return AheadArrays(**out)
+
+
+def scored_series(traj: Trajectories, *, vehicle_ids: list[str] | None = None) -> FollowerArrays:
+    """Every usable step (``mask``: the ``window="all"`` view) with the steps a model comparison
+    scores in each window (``windows``, see :class:`ScoredWindows`).
+
+    The first :data:`HISTORY_SECONDS` of every vehicle and of every stretch after a gap in the
+    data are left out of scoring for every model alike (how many steps that removes is logged);
+    vehicles without a scored step in both windows are left out, and the count is logged.
+    """
+    views = {
+        name: follower_arrays(traj, window=name, vehicle_ids=vehicle_ids)
+        for name in ("all", "fit", "heldout")
+    }
+    every = views["all"]
+    shape = every.mask.shape
+
+    def window_mask(name: str) -> np.ndarray:
+        arrays = views[name]
+        out = np.zeros(shape)
+        row_of = {vid: i for i, vid in enumerate(arrays.vehicle_ids)}
+        for row, vid in enumerate(every.vehicle_ids):
+            if vid in row_of:
+                width = min(shape[1], arrays.mask.shape[1])
+                out[row, :width] = arrays.mask[row_of[vid], :width]
+        return out
+
+    usable = every.mask > 0
+    full_history = usable.copy()
+    for k in range(1, every.history + 1):
+        full_history[:, k:] &= usable[:, :-k]
+        full_history[:, :k] = False
+    lost = int(usable.sum() - full_history.sum())
+    if lost:
+        log.info(
+            "%d step(s) without a full %.1f s history left out of scoring (all models alike)",
+            lost,
+            HISTORY_SECONDS,
+        )
+    windows = ScoredWindows(
+        fit=window_mask("fit") * full_history, heldout=window_mask("heldout") * full_history
+    )
+    keep = (windows.fit.sum(axis=1) > 0) & (windows.heldout.sum(axis=1) > 0)
+    if not keep.any():
+        raise DataError(
+            f"{traj.source}: no vehicle has scored steps in both the fitting and the held-out "
+            "window (each needs a leader and a full history)"
+        )
+    if not keep.all():
+        log.warning(
+            "%d vehicle(s) without scored steps in both windows left out: %s",
+            int((~keep).sum()),
+            [vid for vid, k in zip(every.vehicle_ids, keep, strict=True) if not k],
+        )
+    return every._replace(windows=windows).subset(np.flatnonzero(keep))
 
 
 def pooled_series(
@@ -216,7 +412,9 @@ def pooled_series(
         pad = np.repeat(picked[-1:], width - count, axis=0)
         return np.concatenate([picked, pad])[None]
 
-    merge = None if arrays.merge is None else MergeArrays(*map(pool, arrays.merge))
+    def pool_part(part):
+        return None if part is None else type(part)(*map(pool, part))
+
     mask = np.zeros((1, width))
     mask[0, :count] = 1.0
     return arrays._replace(
@@ -226,5 +424,7 @@ def pooled_series(
             for f in ("v", "next_v", "dx", "gap", "lead_v", "has_leader", "t")
         },
         mask=mask,
-        merge=merge,
+        merge=pool_part(arrays.merge),
+        ahead=pool_part(arrays.ahead),
+        windows=None,
     )

@@ -10,6 +10,15 @@ ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and
 * ``observation_logpdf(params, state, obs) -> log p``: the observation model. For the base models
   the state is observed exactly (a point mass); the measurement-noise extension replaces it.
 * ``initial_sample(key, params, obs) -> state``: the first latent state given the first observation.
+* ``inputs_at(series, j, history) -> inputs``: the model's own per-step inputs, read from step ``j``
+  of one vehicle's :class:`Series` (the device form of the one series representation,
+  :class:`~bayesdrive.data.views.FollowerArrays`); ``history`` is the number of past steps a model
+  may read. Engines, the criticism and its rollouts get inputs only through it, so a model that
+  reads the merge scene, the second vehicle ahead or its own past needs no engine to know.
+* ``lift(params, state, inputs) -> state``: the model's full state at an exactly observed step
+  (identity unless the state remembers more than position and speed, e.g. the last noise).
+* ``filter(params, steps) -> (T,)``: for a model with a hidden state, the one-step predictive log
+  densities of one vehicle's steps from a state filter; None when each step is scored on its own.
 
 States are kept *relative to the current step*: engines pass ``x = 0`` and the observed increment
 ``dx = x[t+1] - x[t]`` (computed in float64 by the data layer), so float32 never subtracts two
@@ -28,13 +37,19 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from bayesdrive.data.views import AheadArrays, FollowerArrays, MergeArrays
+
 __all__ = [
     "CarFollowingInputs",
     "DriverModel",
     "EgoState",
     "ParamSpec",
     "PriorBox",
+    "Series",
+    "car_following_at",
+    "device_series",
     "fill_params",
+    "observed_lift",
 ]
 
 
@@ -58,6 +73,58 @@ class CarFollowingInputs(NamedTuple):
     lead_v: Array
     has_leader: Array
     dt: Array
+
+
+class Series(NamedTuple):
+    """The one series (:class:`~bayesdrive.data.views.FollowerArrays`) as JAX arrays, what
+    ``inputs_at`` reads: fields (vehicle, step), or (step,) for one vehicle; ``dt`` is broadcast
+    to the same shape, the scene parts carry their own trailing axes (None where absent)."""
+
+    v: Array
+    next_v: Array
+    dx: Array
+    gap: Array
+    lead_v: Array
+    has_leader: Array
+    mask: Array
+    dt: Array
+    merge: MergeArrays | None = None
+    ahead: AheadArrays | None = None
+
+
+def device_series(arrays: FollowerArrays, dtype: Any = float) -> Series:
+    """``arrays`` cast to JAX arrays of ``dtype`` (the default float type unless given)."""
+
+    def cast(values) -> Array:
+        return jnp.asarray(values, dtype=dtype)
+
+    def part(values):
+        return None if values is None else type(values)(*map(cast, values))
+
+    return Series(
+        v=cast(arrays.v),
+        next_v=cast(arrays.next_v),
+        dx=cast(arrays.dx),
+        gap=cast(arrays.gap),
+        lead_v=cast(arrays.lead_v),
+        has_leader=cast(arrays.has_leader),
+        mask=cast(arrays.mask),
+        dt=jnp.full(arrays.mask.shape, arrays.dt, dtype=dtype),
+        merge=part(arrays.merge),
+        ahead=part(arrays.ahead),
+    )
+
+
+def car_following_at(series: Series, j: Array, history: int) -> CarFollowingInputs:
+    """The base models' inputs: step ``j``'s gap, leader speed and leader flag."""
+    del history
+    return CarFollowingInputs(series.gap[j], series.lead_v[j], series.has_leader[j], series.dt[j])
+
+
+def observed_lift(params: Any, state: EgoState, inputs: Any) -> EgoState:
+    """The observed state is the whole state (no extra state to recover)."""
+    del params, inputs
+    return state
 
 
 class ParamSpec(NamedTuple):
@@ -97,7 +164,11 @@ class PriorBox(NamedTuple):
 
 
 class DriverModel(NamedTuple):
-    """A driver model: parameter layout, prior and the pure per-vehicle functions."""
+    """A driver model: parameter layout, prior and the pure per-vehicle functions.
+
+    ``reads_history``: its density reads the steps before the scored one (a delay, a memory of the
+    last noise), so engines score only steps with a full history of usable steps behind them.
+    """
 
     name: str
     params_type: type
@@ -107,6 +178,10 @@ class DriverModel(NamedTuple):
     transition_logpdf: Callable[..., Array]
     observation_logpdf: Callable[..., Array]
     initial_sample: Callable[..., Any]
+    inputs_at: Callable[[Series, Array, int], Any] = car_following_at
+    lift: Callable[[Any, EgoState, Any], Any] = observed_lift
+    filter: Callable[[Any, Any], Array] | None = None
+    reads_history: bool = False
 
     @property
     def param_names(self) -> tuple[str, ...]:

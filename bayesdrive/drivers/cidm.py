@@ -66,7 +66,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
-from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec
+from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec, Series
 from bayesdrive.drivers.idm import IDM, execution_noise_model, idm_acceleration
 
 __all__ = [
@@ -74,6 +74,7 @@ __all__ = [
     "CIDMParams",
     "MergeInputs",
     "cidm_acceleration",
+    "merge_inputs_at",
     "time_to_merge",
     "yield_target",
 ]
@@ -178,4 +179,23 @@ def _mean_acceleration(params: CIDMParams, state: EgoState, inputs: MergeInputs)
     return cidm_acceleration(params, state.v, inputs)
 
 
-CIDM = execution_noise_model("cidm", CIDMParams, CIDM_SPECS, _mean_acceleration)
+def merge_inputs_at(series: Series, j: Array, history: int) -> MergeInputs:
+    """Step ``j``'s car-following inputs and merge scene (the series must carry one)."""
+    del history
+    if series.merge is None:
+        raise ValueError(
+            "the Cooperative IDM reads the merge scene, and these data have none: fit it to "
+            "merge episodes (simulation.scenarios.merge_follower_arrays)"
+        )
+    return MergeInputs(
+        series.gap[j],
+        series.lead_v[j],
+        series.has_leader[j],
+        series.dt[j],
+        *(part[j] for part in series.merge),
+    )
+
+
+CIDM = execution_noise_model(
+    "cidm", CIDMParams, CIDM_SPECS, _mean_acceleration, inputs_at=merge_inputs_at
+)

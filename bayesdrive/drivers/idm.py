@@ -62,7 +62,13 @@ import jax.numpy as jnp
 from jax import Array
 from jax.scipy.stats import norm
 
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.base import (
+    CarFollowingInputs,
+    DriverModel,
+    EgoState,
+    ParamSpec,
+    car_following_at,
+)
 
 __all__ = [
     "DELTA",
@@ -175,11 +181,13 @@ def execution_noise_model(
     specs: tuple[ParamSpec, ...],
     mean_acceleration,
     noise_sd=execution_noise_sd,
+    inputs_at=car_following_at,
 ) -> DriverModel:
     """A driver model that applies ``mean_acceleration`` with Gaussian execution noise of sd
     ``noise_sd(params, state)`` (:func:`noisy_step`, scored exactly by :func:`step_logpdf`), state
-    observed exactly. The IDM, the Cooperative IDM and the criticism's Gaussian extensions differ
-    only in their mean acceleration (and, for speed-dependent noise, the sd)."""
+    observed exactly, reading the inputs ``inputs_at`` builds. The IDM, the Cooperative IDM and the
+    criticism's Gaussian extensions differ only in their mean acceleration and inputs (and, for
+    speed-dependent noise, the sd)."""
 
     def transition_sample(key: Array, params, state: EgoState, inputs) -> EgoState:
         mean_acc = mean_acceleration(params, state, inputs)
@@ -198,6 +206,7 @@ def execution_noise_model(
         transition_logpdf=transition_logpdf,
         observation_logpdf=exact_observation_logpdf,
         initial_sample=exact_initial_sample,
+        inputs_at=inputs_at,
     )
 
 

@@ -1,4 +1,13 @@
-"""Driver models by name, as the CLI and result metadata spell them."""
+"""Driver models by name, as the CLI and result metadata spell them.
+
+A name is a base model (``idm``, ``cidm``) optionally joined by ``+`` to one extension named by the
+cause it answers (``idm+reaction_delay``, ``idm+autocorrelated_noise``; the causes of
+:data:`~bayesdrive.drivers.extensions.CAUSES`). The parts may come in any order; a model's
+canonical name puts the base first, so a result written under one spelling is recognised under
+another. ``idm+measurement_noise`` is the one measurement-noise model
+(:mod:`bayesdrive.drivers.measurement_noise`), for speeds recorded exactly and for the latent-state
+engine alike; results saved under its former name ``idm+obs_noise`` are refused with a message.
+"""
 
 from __future__ import annotations
 
@@ -6,21 +15,49 @@ from types import MappingProxyType
 
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.cidm import CIDM
+from bayesdrive.drivers.extensions import CAUSES, extend
 from bayesdrive.drivers.gipps import GIPPS
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.drivers.measurement_noise import with_measurement_noise
+from bayesdrive.drivers.measurement_noise import CAUSE as MEASUREMENT_NOISE
+from bayesdrive.drivers.measurement_noise import OLD_NAME_SUFFIX
 
-__all__ = ["MODELS", "get_model"]
+__all__ = ["MODELS", "canonical_name", "get_model"]
 
-# The measurement-noise variant is the latent-state engine's (pmmh) model of noisy positions.
-MODELS = MappingProxyType(
-    {model.name: model for model in (IDM, CIDM, GIPPS, with_measurement_noise(IDM))}
-)
+MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM, GIPPS)})
+
+
+def canonical_name(name: str) -> str:
+    """``name`` with its base model first ("reaction_delay+idm" -> "idm+reaction_delay");
+    a KeyError names the unknown or missing part."""
+    parts = [part.strip() for part in name.split("+")]
+    if OLD_NAME_SUFFIX in parts:
+        raise KeyError(
+            f"model {name!r} is a former name: the two measurement-noise models are now one, "
+            f"{name.replace(OLD_NAME_SUFFIX, MEASUREMENT_NOISE)!r}, whose sigma_obs prior is "
+            "[0, 0.5] m (was [0.005, 1]); results saved under the old name cannot be read, refit them"
+        )
+    bases = [part for part in parts if part in MODELS]
+    unknown = [part for part in parts if part not in MODELS and part not in CAUSES]
+    if unknown or len(bases) != 1:
+        raise KeyError(
+            f"unknown driver model {name!r}: "
+            + (f"unknown part(s) {unknown}; " if unknown else "")
+            + f"a name is one base model of {sorted(MODELS)} joined by '+' to at most one "
+            f"extension of {list(CAUSES)}"
+        )
+    causes = [part for part in parts if part in CAUSES]
+    if len(causes) > 1:
+        raise KeyError(
+            f"driver model {name!r} joins {len(causes)} extensions; composing extensions is not "
+            "supported yet (one extension per model)"
+        )
+    return "+".join(bases + causes)
 
 
 def get_model(name: str) -> DriverModel:
-    """The driver model called ``name`` ("idm", "cidm", "gipps"); a KeyError lists the known names."""
-    try:
-        return MODELS[name]
-    except KeyError:
-        raise KeyError(f"unknown driver model {name!r}; known models: {sorted(MODELS)}") from None
+    """The driver model called ``name`` (module docstring); a KeyError says what is unknown."""
+    canonical = canonical_name(name)
+    if canonical in MODELS:
+        return MODELS[canonical]
+    base, cause = canonical.split("+")
+    return extend(cause, MODELS[base]).model

@@ -245,7 +245,7 @@ def grid_posterior(
     """
     spec = model.spec(name)
     grid = np.linspace(spec.lower, spec.upper, points)
-    series = jax.tree.map(lambda a: a[vehicle], step_inputs(arrays))
+    series = jax.tree.map(lambda a: a[vehicle], step_inputs(arrays, model))
     base = fixed_params(model, fixed)
     log_lik = jax.jit(
         jax.vmap(lambda th: series_loglik(model, (name,), base, th[None], series).sum())

@@ -99,7 +99,7 @@ def run(
     ``kept_draws`` (before the common truncation), ``autocorr_reliable``, ``acceptance_fraction``
     (mean over walkers) and the numpy ``seed`` of its ensemble.
     """
-    check_model(model)
+    check_model(model, "emcee", whole_series=True)
     names = param_names(model, params)
     dim = len(names)
     walkers = num_walkers_for(dim) if num_walkers is None else num_walkers
@@ -114,7 +114,7 @@ def run(
     fixed_values = fixed_params(model, fixed)
     lower, upper = np.asarray(box.lower, np.float64), np.asarray(box.upper, np.float64)
     width = upper - lower
-    series = step_inputs(arrays)
+    series = step_inputs(arrays, model)
     num_vehicles = series.mask.shape[0]
 
     def log_posterior(thetas: Array, vehicle: Any) -> Array:

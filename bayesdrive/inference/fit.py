@@ -22,12 +22,12 @@ import xarray as xr
 from jax import Array
 
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.views import FollowerArrays, MergeArrays, Window, follower_arrays
+from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import ensemble, latent, lm, nuts, pf, population, smc
 from bayesdrive.inference.convergence import check_convergence, log_problems
-from bayesdrive.inference.likelihood import param_names
+from bayesdrive.inference.likelihood import check_model, param_names
 from bayesdrive.inference.output import EngineResult, build_tree, metadata, set_metadata
 
 __all__ = [
@@ -36,6 +36,7 @@ __all__ = [
     "MCMC_OPTIONS",
     "PARTICLE_ENGINES",
     "Engine",
+    "check_engine_model",
     "first_vehicles",
     "fit",
     "get_engine",
@@ -91,6 +92,21 @@ MCMC_OPTIONS = {
 }
 
 
+# Engines that score each vehicle's whole series at once (a model with a state filter fits them).
+WHOLE_SERIES = frozenset({"nuts", "emcee", "hierarchical"})
+
+
+def check_engine_model(engine: str, model: DriverModel) -> None:
+    """Refuse, in one line and before any work, an engine-model pair that cannot work: pmmh needs
+    a model with an observation model; the other engines need exactly observed states, and those
+    that score one step at a time (smc, pf, lm) need a model without a state filter."""
+    get_engine(engine)
+    if engine == "pmmh":
+        latent.check_model(model)
+    else:
+        check_model(model, engine, whole_series=engine in WHOLE_SERIES)
+
+
 def get_engine(name: str) -> Engine:
     """The engine called ``name``; a ValueError lists the known ones."""
     if name not in ENGINES:
@@ -139,6 +155,7 @@ def fit(
     as warnings.
     """
     run_engine = get_engine(engine)
+    check_engine_model(engine, model)
     size, sizes = _sizes(engine, num_particles, draws, chains, warmup)
     names = param_names(model, params)
     fixed = dict(fixed or {})
@@ -238,13 +255,7 @@ def first_vehicles(arrays: FollowerArrays, count: int) -> FollowerArrays:
     """The first ``count`` vehicles of ``arrays`` (all of them when there are fewer)."""
     if count < 1:
         raise ValueError(f"the number of vehicles must be positive, got {count}")
-    per_vehicle = {
-        name: value[:count]
-        for name, value in arrays._asdict().items()
-        if isinstance(value, np.ndarray)
-    }
-    merge = None if arrays.merge is None else MergeArrays(*(a[:count] for a in arrays.merge))
-    return arrays._replace(vehicle_ids=arrays.vehicle_ids[:count], merge=merge, **per_vehicle)
+    return arrays.subset(slice(0, count))
 
 
 def _describe(values: np.ndarray) -> dict[str, float]:

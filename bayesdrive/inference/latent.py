@@ -49,7 +49,7 @@ from jax import Array
 from jax.scipy.special import logsumexp
 
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.idm import exact_observation_logpdf
 from bayesdrive.drivers.measurement_noise import shift_ego
 from bayesdrive.inference.likelihood import (
@@ -71,6 +71,7 @@ __all__ = [
     "FilterInfo",
     "PMMHResult",
     "PositionObservations",
+    "check_model",
     "latent_data",
     "noisy_readings",
     "pmmh",
@@ -134,19 +135,24 @@ class PMMHResult(NamedTuple):
     wall_time_s: float
 
 
-def latent_data(arrays: FollowerArrays) -> tuple[PositionObservations, CarFollowingInputs]:
-    """Readings and inputs for the latent engine from the padded (vehicle, step) arrays.
+def check_model(model: DriverModel) -> None:
+    """Refuse, in one line, a model whose states are observed exactly (nothing to filter)."""
+    if model.observation_logpdf is exact_observation_logpdf:
+        raise ValueError(
+            f"engine 'pmmh' filters hidden states, but model {model.name!r} observes them exactly; "
+            "use its '+measurement_noise' variant (bayesdrive.drivers.measurement_noise)"
+        )
+
+
+def latent_data(arrays: FollowerArrays, model: DriverModel) -> tuple[PositionObservations, Any]:
+    """Readings and ``model``'s own inputs for the latent engine from the padded (vehicle, step)
+    arrays.
 
     The data layer's bumper gap, leader rear minus observed ego front, is exactly the leader's rear
     on each step's local axis (module docstring); arrays are cast to the default float type.
     """
-    steps = step_inputs(arrays)
-    return (
-        PositionObservations(dx=steps.dx, v=steps.v, mask=steps.mask),
-        CarFollowingInputs(
-            gap=steps.gap, lead_v=steps.lead_v, has_leader=steps.has_leader, dt=steps.dt
-        ),
-    )
+    steps = step_inputs(arrays, model)
+    return PositionObservations(dx=steps.dx, v=steps.v, mask=steps.mask), steps.inputs
 
 
 def _check_series(observations: PositionObservations, inputs: Any, leading: tuple[int, ...]):
@@ -494,11 +500,7 @@ def run(
     estimate each draw carries) and ``filter_ess`` [vehicle, step] (the state filter's effective
     sample size, averaged over the draws).
     """
-    if model.observation_logpdf is exact_observation_logpdf:
-        raise ValueError(
-            f"engine 'pmmh' filters hidden states, but model {model.name!r} observes them exactly; "
-            "use with_measurement_noise(model) (bayesdrive.drivers.measurement_noise)"
-        )
+    check_model(model)
     if prior is not None:
         raise ValueError("engine 'pmmh' samples under the model's uniform prior box; prior=None")
     if isinstance(init, str) and init not in ("prior", "defaults"):
@@ -506,7 +508,7 @@ def run(
     names = param_names(model, params)
     fixed_values = fixed_params(model, fixed)
     num_draws = -(-num_particles // max(num_chains, 1))
-    observations, inputs = latent_data(arrays)
+    observations, inputs = latent_data(arrays, model)
     chains_key, score_key = jax.random.split(key)
     result = pmmh(
         chains_key,

@@ -6,6 +6,8 @@ one-step density ``model.transition_logpdf`` (states relative to the current ste
 float64-computed increment dx). Masked steps contribute exactly 0, so padding and flagged samples
 never move a posterior. The engines here assume exactly observed states (the base models'
 point-mass observation model); a model with measurement noise needs a latent-state filter instead.
+Inputs come from the model itself (``model.inputs_at`` on the one series), so no engine knows
+which scene parts a model reads.
 """
 
 from __future__ import annotations
@@ -20,9 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.data.views import FollowerArrays, MergeArrays
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
-from bayesdrive.drivers.cidm import MergeInputs
+from bayesdrive.data.views import FollowerArrays
+from bayesdrive.drivers.base import DriverModel, EgoState, device_series, fill_params
 from bayesdrive.drivers.idm import exact_observation_logpdf
 
 __all__ = [
@@ -30,6 +31,7 @@ __all__ = [
     "check_model",
     "clear_compiled",
     "fixed_params",
+    "full_history",
     "map_vehicles",
     "param_names",
     "particles_loglik",
@@ -38,44 +40,57 @@ __all__ = [
     "static_key",
     "step_inputs",
     "step_loglik",
+    "step_logpdfs",
 ]
 
 
 class StepInputs(NamedTuple):
     """What one step's likelihood needs, as JAX arrays of any common leading shape.
 
-    (vehicle, step) for a data set, (step,) for one vehicle's series, () for one step. ``dt`` is
-    broadcast to the same shape so every field can be scanned over steps alike. ``merge`` (the
-    merge scene, for merging models; None otherwise) has one trailing merge-slot axis more.
+    (vehicle, step) for a data set, (step,) for one vehicle's series, () for one step. ``inputs``
+    are the model's own (built by its ``inputs_at``); ``mask`` marks the usable steps (a state
+    filter runs through them and restarts after a gap), ``fit`` and ``heldout`` the steps a model
+    comparison scores (None outside one).
     """
 
     v: Array
     next_v: Array
     dx: Array
-    gap: Array
-    lead_v: Array
-    has_leader: Array
     mask: Array
-    dt: Array
-    merge: MergeArrays | None = None
+    inputs: Any
+    fit: Array | None = None
+    heldout: Array | None = None
 
 
-def step_inputs(arrays: FollowerArrays) -> StepInputs:
-    """The (vehicle, step) arrays as JAX arrays in the default float type (float32 unless x64)."""
+def full_history(mask: Array, history: int) -> Array:
+    """``mask`` where each of the ``history`` steps before a step is usable too, else 0."""
+    usable = mask > 0
+    kept = usable
+    for k in range(1, history + 1):
+        kept = kept & jnp.pad(usable[..., :-k], [(0, 0)] * (usable.ndim - 1) + [(k, 0)])
+    return kept.astype(mask.dtype)
 
-    def cast(values) -> Array:
-        return jnp.asarray(values, dtype=float)
 
+def step_inputs(arrays: FollowerArrays, model: DriverModel) -> StepInputs:
+    """Every step of ``arrays`` with the inputs ``model`` reads, as JAX arrays in the default float
+    type (float32 unless x64). A model that reads its past is scored only on steps with a full
+    history behind them (:meth:`FollowerArrays.history` steps)."""
+    series = device_series(arrays)
+    history = arrays.history
+    index = jnp.arange(arrays.mask.shape[1])
+    inputs = jax.vmap(lambda one: jax.vmap(lambda j: model.inputs_at(one, j, history))(index))(
+        series
+    )
+    mask = full_history(series.mask, history) if model.reads_history else series.mask
+    windows = arrays.windows
     return StepInputs(
-        v=cast(arrays.v),
-        next_v=cast(arrays.next_v),
-        dx=cast(arrays.dx),
-        gap=cast(arrays.gap),
-        lead_v=cast(arrays.lead_v),
-        has_leader=cast(arrays.has_leader),
-        mask=cast(arrays.mask),
-        dt=jnp.full(arrays.mask.shape, arrays.dt, dtype=float),
-        merge=None if arrays.merge is None else MergeArrays(*map(cast, arrays.merge)),
+        v=series.v,
+        next_v=series.next_v,
+        dx=series.dx,
+        mask=mask,
+        inputs=inputs,
+        fit=None if windows is None else jnp.asarray(windows.fit, dtype=series.v.dtype),
+        heldout=None if windows is None else jnp.asarray(windows.heldout, dtype=series.v.dtype),
     )
 
 
@@ -108,30 +123,52 @@ def fixed_params(model: DriverModel, fixed: Mapping[str, float] | None) -> Any:
     )
 
 
-def check_model(model: DriverModel) -> None:
-    """Refuse models whose states are observed with noise: these engines condition on exact states."""
-    if model.observation_logpdf is not exact_observation_logpdf:
+def check_model(model: DriverModel, engine: str, *, whole_series: bool = False) -> None:
+    """Refuse, in one line and before any work, a model ``engine`` cannot evaluate: one whose
+    density needs a state filter over the series unless the engine scores whole series
+    (``whole_series``; such a filter handles the model's hidden state, noisy readings included),
+    and one with an observation model but no filter (these engines condition on exactly observed
+    states and would ignore it)."""
+    if model.filter is not None:
+        if not whole_series:
+            raise NotImplementedError(
+                f"engine {engine!r} cannot fit {model.name!r}: its density needs a state filter "
+                "over the whole series and the engine scores one step at a time (use 'nuts' or "
+                "'emcee')"
+            )
+    elif model.observation_logpdf is not exact_observation_logpdf:
         raise NotImplementedError(
-            f"model {model.name!r} has its own observation model; the particle engines score exactly "
-            "observed states and would ignore it"
+            f"engine {engine!r} cannot fit {model.name!r}: its states are observed with noise and "
+            "the engine scores exactly observed states (use engine 'pmmh')"
         )
 
 
 def step_loglik(
     model: DriverModel, names: Sequence[str], fixed: Any, theta: Array, step: StepInputs
 ) -> Array:
-    """Log-density of one observed step for one parameter vector ``theta`` (0 where masked)."""
+    """Log-density of one observed step for one parameter vector ``theta`` (0 where masked).
+
+    The model's full state is lifted from the observed one (identity for memoryless models)."""
     params = fill_params(model, names, theta, fixed)
-    state = EgoState(x=jnp.zeros_like(step.v), v=step.v)
-    next_state = EgoState(x=step.dx, v=step.next_v)
-    following = (step.gap, step.lead_v, step.has_leader, step.dt)
-    inputs = (
-        CarFollowingInputs(*following)
-        if step.merge is None
-        else MergeInputs(*following, *step.merge)
-    )
-    logp = model.transition_logpdf(params, state, next_state, inputs)
+    observed = EgoState(x=jnp.zeros_like(step.v), v=step.v)
+    state = model.lift(params, observed, step.inputs)
+    logp = model.transition_logpdf(params, state, EgoState(x=step.dx, v=step.next_v), step.inputs)
     return jnp.where(step.mask > 0, logp, 0.0)
+
+
+def step_logpdfs(model: DriverModel, params: Any, steps: StepInputs) -> Array:
+    """One-step log predictive density of every step of one vehicle's (T,) series -> (T,).
+
+    Exactly observed models score each step on its own (from the lifted state); models with a
+    hidden state run their filter over the vehicle's steps in order. Nothing is masked here."""
+    if model.filter is not None:
+        return model.filter(params, steps)
+
+    def one(v, next_v, dx, inputs):
+        state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
+        return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs)
+
+    return jax.vmap(one)(steps.v, steps.next_v, steps.dx, steps.inputs)
 
 
 def particles_loglik(
@@ -144,7 +181,11 @@ def particles_loglik(
 def series_loglik(
     model: DriverModel, names: Sequence[str], fixed: Any, theta: Array, series: StepInputs
 ) -> Array:
-    """Every step of one vehicle's series scored for one parameter vector: -> (T,)."""
+    """Every step of one vehicle's series scored for one parameter vector: -> (T,) (0 where
+    masked; through the model's state filter where it has one)."""
+    if model.filter is not None:
+        logp = model.filter(fill_params(model, names, theta, fixed), series)
+        return jnp.where(series.mask > 0, logp, 0.0)
     return jax.vmap(lambda step: step_loglik(model, names, fixed, theta, step))(series)
 
 

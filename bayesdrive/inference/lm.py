@@ -67,7 +67,7 @@ from scipy.optimize import least_squares
 from scipy.special import expit
 
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.idm import STOP_SPEED
 from bayesdrive.inference.likelihood import (
     StepInputs,
@@ -101,31 +101,27 @@ class ResidualSeries(NamedTuple):
 
     implied: implied acceleration (dx - v dt) / (dt^2/2), computed in float64 (m/s^2).
     used: 1 on the steps that enter the least squares (masked in and moving), else 0.
+    steps: the steps with the model's own inputs (:func:`~bayesdrive.inference.likelihood.step_inputs`).
     """
 
     implied: Array
-    v: Array
-    gap: Array
-    lead_v: Array
-    has_leader: Array
-    dt: Array
     used: Array
+    steps: StepInputs
 
 
-def residual_series(arrays: FollowerArrays) -> tuple[ResidualSeries, np.ndarray]:
+def residual_series(
+    arrays: FollowerArrays, model: DriverModel
+) -> tuple[ResidualSeries, np.ndarray]:
     """The residual inputs of every vehicle, and the number of censored (stopped) steps of each."""
     dt = arrays.dt
     implied = (arrays.dx - arrays.v * dt) / (0.5 * dt**2)
-    usable = arrays.mask > 0
+    steps = step_inputs(arrays, model)
+    usable = np.asarray(steps.mask) > 0
     moving = arrays.next_v > STOP_SPEED
     series = ResidualSeries(
         implied=jnp.asarray(implied, dtype=float),
-        v=jnp.asarray(arrays.v, dtype=float),
-        gap=jnp.asarray(arrays.gap, dtype=float),
-        lead_v=jnp.asarray(arrays.lead_v, dtype=float),
-        has_leader=jnp.asarray(arrays.has_leader, dtype=float),
-        dt=jnp.full(arrays.mask.shape, dt, dtype=float),
         used=jnp.asarray(usable & moving, dtype=float),
+        steps=steps,
     )
     return series, (usable & ~moving).sum(axis=1)
 
@@ -150,13 +146,11 @@ def _residuals(
     # The map of _box, in JAX.
     params = fill_params(model, names, lower + width * jax.nn.sigmoid(z), fixed)
 
-    def mean_acceleration(v, gap, lead_v, has_leader, dt):
-        inputs = CarFollowingInputs(gap=gap, lead_v=lead_v, has_leader=has_leader, dt=dt)
-        return model.mean_acceleration(params, EgoState(jnp.zeros_like(v), v), inputs)
+    def mean_acceleration(v, inputs):
+        state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
+        return model.mean_acceleration(params, state, inputs)
 
-    predicted = jax.vmap(mean_acceleration)(
-        series.v, series.gap, series.lead_v, series.has_leader, series.dt
-    )
+    predicted = jax.vmap(mean_acceleration)(series.steps.v, series.steps.inputs)
     return jnp.where(series.used > 0, series.implied - predicted, 0.0)
 
 
@@ -242,7 +236,7 @@ def run(
     ``seed``, the numpy seed of the vehicle's draws (split from ``key``, which is used for the
     posterior draws only).
     """
-    check_model(model)
+    check_model(model, "lm")
     noise = model.execution_noise_param
     if noise is None:
         raise ValueError(
@@ -269,7 +263,7 @@ def run(
         [np.log((defaults - lower) / (lower + width - defaults)), np.zeros(len(fitted))]
     )
 
-    series, censored = residual_series(arrays)
+    series, censored = residual_series(arrays, model)
     num_vehicles = len(arrays.vehicle_ids)
     num_residuals = np.asarray(series.used).sum(axis=1).astype(int)
     too_short = {
@@ -286,13 +280,13 @@ def run(
     # Compiled once per padded shape (and cached across runs with the same model and names).
     bounds = (jnp.asarray(lower, dtype=float), jnp.asarray(width, dtype=float))
     static = {"model": model, "names": fitted}
-    steps = step_inputs(arrays)
+    steps = series.steps
     started = time.perf_counter()
     first = jax.tree.map(lambda a: a[0], series)
-    z_example = jnp.zeros(len(fitted), dtype=first.v.dtype)
+    z_example = jnp.zeros(len(fitted), dtype=first.implied.dtype)
     for compiled in (_residuals, _jacobian):
         compiled.lower(z_example, first, fixed_values, *bounds, **static).compile()
-    draws_example = jnp.zeros((num_vehicles, num_particles, len(names)), dtype=first.v.dtype)
+    draws_example = jnp.zeros((num_vehicles, num_particles, len(names)), dtype=first.implied.dtype)
     _score_draws.lower(draws_example, steps, fixed_values, model=model, names=names).compile()
     compile_time = time.perf_counter() - started
 

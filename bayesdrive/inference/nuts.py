@@ -245,7 +245,7 @@ def run(
     ``tree_depth``, ``n_steps``, ``acceptance_rate``, ``energy`` and ``lp`` (the log density on the
     unconstrained scale), and the adapted ``step_size`` per vehicle and chain.
     """
-    check_model(model)
+    check_model(model, "nuts", whole_series=True)
     names = param_names(model, params)
     num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
@@ -272,7 +272,7 @@ def run(
         prior=prior,
         config=config,
     )
-    series = step_inputs(arrays)
+    series = step_inputs(arrays, model)
     keys = jax.random.split(key, series.mask.shape[0])
     out, compile_time, run_time = map_vehicles(
         per_vehicle, (keys, series), chunk=vehicle_chunk, batch=vehicle_batch, progress=progress

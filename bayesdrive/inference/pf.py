@@ -224,7 +224,7 @@ def run(
     (default the model's uniform box) gives epoch 0's particles, snapped to the grid; those draws,
     before snapping, are the result's ``prior`` group.
     """
-    check_model(model)
+    check_model(model, "pf")
     names = param_names(model, params)
     if len(names) > MAX_DITHERED:
         raise ValueError(f"pf dithers at most {MAX_DITHERED} parameters, got {len(names)}")
@@ -243,7 +243,7 @@ def run(
         width=box.upper - box.lower,
     )
     cache_key = ("pf", model, names, static_key(fixed_values), static_key(tuple(grid)))
-    series = step_inputs(arrays)
+    series = step_inputs(arrays, model)
     num_vehicles = series.mask.shape[0]
     key_prior, key_epochs = jax.random.split(key)
     # Longest series first, then data-free copies of the shortest to fill the last chunk.

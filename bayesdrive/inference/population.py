@@ -150,11 +150,11 @@ def run(
     if prior is not None:
         raise ValueError("the hierarchical model has its own population prior; prior must be None")
     num_samples = -(-num_particles // max(num_chains, 1))
-    check_model(model)
+    check_model(model, "hierarchical", whole_series=True)
     names = param_names(model, params)
     box = model.prior(names)
     fixed_values = fixed_params(model, fixed)
-    series = step_inputs(arrays)
+    series = step_inputs(arrays, model)
     num_vehicles = series.mask.shape[0]
     if num_vehicles < 2:
         raise ValueError("a population model needs at least 2 vehicles")

@@ -27,7 +27,8 @@ favoured from the start, so tempering finds it in every seed tried. Its log-evid
 (``log_evidence``, the product of the stages' mean incremental weights) is unbiased as well; a
 sequential one far below it flags such a switch.
 
-**Moves** (both stages) are random walks on u = logit((theta - lower) / (upper - lower)) where
+**Moves** (both stages) are the sampler core's (:mod:`bayesdrive.inference.kernels`, shared with
+the criticism's held-out continuation): random walks on u = logit((theta - lower) / (upper - lower)) where
 the prior has finite bounds (theta itself elsewhere), the target on u carrying the Jacobian, so
 parameters piled against a prior bound move freely. The proposal is Gaussian with the particles'
 weighted covariance of u times :math:`s^2`, starting from :math:`s = 2.38/\sqrt d` (Roberts,
@@ -66,6 +67,15 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.inference.kernels import (
+    Box,
+    WalkState,
+    fixed_moves,
+    moves_until_decorrelated,
+    next_temperature,
+    to_free,
+    walk_step,
+)
 from bayesdrive.inference.likelihood import (
     StepInputs,
     check_model,
@@ -95,6 +105,8 @@ __all__ = ["SCORE_BLOCK", "SMCConfig", "run"]
 
 # Steps per block when a move re-scores the series seen so far (the data's length bucket).
 SCORE_BLOCK = 64
+# Bisection steps of the temperature search (2^-40: far below any temperature increment used).
+BISECTION_STEPS = 40
 
 
 class SMCConfig(NamedTuple):
@@ -135,26 +147,6 @@ class _VehicleOutput(NamedTuple):
     final_correlation: Array  # () largest |corr| between closing draws and their start
 
 
-def _next_power(log_lik: Array, power: Array, ess_fraction: float) -> Array:
-    """The largest power in (power, 1] whose reweighting by (new - power) * log_lik keeps an ESS of
-    ``ess_fraction * N`` (bisection; 1 if that keeps it already)."""
-    target = ess_fraction * log_lik.shape[0]
-
-    def halve(_, bracket):
-        keeps, breaks = bracket
-        middle = 0.5 * (keeps + breaks)
-        fine = effective_sample_size((middle - power) * log_lik) >= target
-        return jnp.where(fine, middle, keeps), jnp.where(fine, breaks, middle)
-
-    keeps, _ = jax.lax.fori_loop(0, 40, halve, (power, jnp.ones_like(power)))
-    # A stage always advances, so a cloud the bisection cannot split still reaches power 1.
-    return jnp.where(
-        effective_sample_size((1.0 - power) * log_lik) >= target,
-        1.0,
-        jnp.maximum(keeps, power + 1e-6),
-    )
-
-
 def _smc_vehicle(
     key: Array,
     series: StepInputs,
@@ -176,20 +168,10 @@ def _smc_vehicle(
     # Moves act on u = logit((theta - lower) / (upper - lower)) where the prior has finite bounds
     # (theta itself elsewhere): parameters piled against a bound move as freely as any other, and
     # a random walk never proposes outside the support. The target on u carries the Jacobian.
-    lower = jnp.broadcast_to(getattr(prior, "lower", -jnp.inf), width.shape)
-    upper = jnp.broadcast_to(getattr(prior, "upper", jnp.inf), width.shape)
-    bounded = jnp.isfinite(lower) & jnp.isfinite(upper)
-
-    def to_free(th: Array) -> Array:
-        return jnp.where(bounded, jax.scipy.special.logit((th - lower) / (upper - lower)), th)
-
-    def from_free(u: Array) -> Array:
-        return jnp.where(bounded, lower + (upper - lower) * jax.nn.sigmoid(u), u)
-
-    def log_jacobian(u: Array) -> Array:
-        """log |d theta / d u|, summed over parameters."""
-        per_param = jnp.log(upper - lower) + jax.nn.log_sigmoid(u) + jax.nn.log_sigmoid(-u)
-        return jnp.sum(jnp.where(bounded, per_param, 0.0), axis=-1)
+    box = Box(
+        jnp.broadcast_to(getattr(prior, "lower", -jnp.inf), width.shape),
+        jnp.broadcast_to(getattr(prior, "upper", jnp.inf), width.shape),
+    )
 
     # A floor on the proposal covariance keeps moves alive when resampling leaves one survivor.
     jitter = jnp.diag(jnp.full(width.shape, 1e-6, width.dtype))
@@ -216,46 +198,36 @@ def _smc_vehicle(
         zero = jnp.zeros(particles.shape[0], particles.dtype)
         return jax.lax.fori_loop(0, last_step // SCORE_BLOCK + 1, add_block, zero)
 
+    def walker(chol: Array, last_step: Array, power=1.0):
+        """The kernels' random walk targeting p(theta) p(y_1..last_step | theta)^power."""
+
+        def loglik(theta: Array) -> tuple[Array, Array]:
+            return jnp.zeros(theta.shape[0], theta.dtype), log_lik_up_to(theta, last_step)
+
+        return functools.partial(
+            walk_step,
+            loglik=loglik,
+            prior_logpdf=log_prior_of,
+            power=power,
+            chol=chol,
+            box=box,
+            target_acceptance=config.target_acceptance,
+        )
+
+    def as_walk(state: _Particles) -> WalkState:
+        zero = jnp.zeros_like(state.log_lik)
+        return WalkState(state.theta, state.log_prior, zero, state.log_lik, state.log_scale)
+
+    def from_walk(walk: WalkState, log_weight: Array) -> _Particles:
+        return _Particles(walk.theta, log_weight, walk.tempered, walk.log_prior, walk.log_scale)
+
     def moves(key: Array, state: _Particles, chol: Array, last_step: Array, count, power=1.0):
         """``count`` MH moves targeting p(theta) p(y_1..last_step | theta)^power; mean acceptance."""
-
-        def move(carry, key):
-            theta, log_lik, log_prior, log_scale = carry
-            key_step, key_accept = jax.random.split(key)
-            noise = jax.random.normal(key_step, theta.shape, dtype=theta.dtype) @ chol.T
-            free = to_free(theta)
-            prop_free = free + jnp.exp(log_scale) * noise
-            proposal = from_free(prop_free)
-            prop_prior = log_prior_of(proposal)
-            prop_lik = log_lik_up_to(proposal, last_step)
-            log_ratio = (
-                prop_prior
-                + power * prop_lik
-                + log_jacobian(prop_free)
-                - (log_prior + power * log_lik + log_jacobian(free))
-            )
-            # Outside the prior support the likelihood may be NaN; the finite check rejects it.
-            accept = jnp.isfinite(prop_prior) & (
-                jnp.log(jax.random.uniform(key_accept, (n,))) < log_ratio
-            )
-            rate = jnp.mean(accept)
-            carry = (
-                jnp.where(accept[:, None], proposal, theta),
-                jnp.where(accept, prop_lik, log_lik),
-                jnp.where(accept, prop_prior, log_prior),
-                log_scale + rate - config.target_acceptance,
-            )
-            return carry, rate
-
-        (theta, log_lik, log_prior, log_scale), rates = jax.lax.scan(
-            move,
-            (state.theta, state.log_lik, state.log_prior, state.log_scale),
-            jax.random.split(key, count),
-        )
-        return _Particles(theta, state.log_weight, log_lik, log_prior, log_scale), jnp.mean(rates)
+        walk, rate = fixed_moves(key, as_walk(state), walker(chol, last_step, power), count)
+        return from_walk(walk, state.log_weight), rate
 
     def proposal_chol(state: _Particles) -> Array:
-        _, cov = weighted_mean_cov(to_free(state.theta), state.log_weight)
+        _, cov = weighted_mean_cov(to_free(state.theta, box), state.log_weight)
         return jnp.linalg.cholesky(cov + jitter)
 
     def resample_move(
@@ -276,48 +248,20 @@ def _smc_vehicle(
         return moved, rate, count_distinct_sorted(parents).astype(state.theta.dtype)
 
     def decorrelate(key: Array, state: _Particles, last_step: Array):
-        """Moves under the full posterior, in blocks of ``final_moves``, until no parameter's draws
-        correlate with their starting values beyond ``decorrelation`` (or ``max_final_moves``).
-
-        A fixed number of moves is not enough on a curved ridge: on NGSIM vehicle 140 the long
-        v_des tail left by the tempering path kept 80 moves' worth of excess mass. The correlation
-        across particles between start and current position is the kernel's autocorrelation at
-        that lag, measured on the target itself.
-        """
-        chol = proposal_chol(state)
-        start = to_free(state.theta)
-        start = start - start.mean(axis=0)  # centred once; every block compares against it
-        start_sq = jnp.sum(start * start, axis=0)
-        # Below about 3.5 / sqrt(N) the largest of d sample correlations is noise, not mixing.
-        threshold = jnp.maximum(config.decorrelation, 3.5 / jnp.sqrt(n))
-
-        def largest_correlation(theta: Array) -> Array:
-            now = to_free(theta)
-            now = now - now.mean(axis=0)
-            corr = jnp.sum(start * now, axis=0) / jnp.sqrt(start_sq * jnp.sum(now * now, axis=0))
-            return jnp.max(jnp.abs(corr))
-
-        def block(carry):
-            state, key, done, accepted, _ = carry
-            key, key_block = jax.random.split(key)
-            state, rate = moves(key_block, state, chol, last_step, config.final_moves)
-            return (
-                state,
-                key,
-                done + config.final_moves,
-                accepted + rate * config.final_moves,
-                largest_correlation(state.theta),
-            )
-
-        def more(carry):
-            _, _, done, _, corr = carry
-            return (done < config.max_final_moves) & (corr > threshold)
-
-        zero = jnp.zeros((), state.theta.dtype)
-        state, _, done, accepted, corr = jax.lax.while_loop(
-            more, block, block((state, key, jnp.zeros((), jnp.int32), zero, zero))
+        """Moves under the full posterior until the draws decorrelate from their start (module
+        docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess mass
+        in the long v_des tail. Below about 3.5 / sqrt(N) the largest of d sample correlations
+        is noise, not mixing."""
+        walk, acceptance, done, corr = moves_until_decorrelated(
+            key,
+            as_walk(state),
+            walker(proposal_chol(state), last_step),
+            box=box,
+            block=config.final_moves,
+            max_moves=config.max_final_moves,
+            threshold=jnp.maximum(config.decorrelation, 3.5 / jnp.sqrt(n)),
         )
-        return state, accepted / done, done, corr
+        return from_walk(walk, state.log_weight), acceptance, done, corr
 
     def step(carry, xs):
         state, log_evidence = carry
@@ -356,7 +300,7 @@ def _smc_vehicle(
         """One tempering stage: the next power by bisection, reweight, resample and move."""
         state, power, log_z, key, stages, accepted = carry
         key, key_move = jax.random.split(key)
-        new_power = _next_power(state.log_lik, power, config.ess_threshold)
+        new_power = next_temperature(state.log_lik, power, config.ess_threshold, BISECTION_STEPS)
         increment = (new_power - power) * state.log_lik
         state, rate, _ = resample_move(
             key_move,
@@ -434,7 +378,7 @@ def run(
     moves work on their logit scale. ``replicates`` independent runs of ``num_particles`` each
     become the posterior's chains. The log-likelihood group scores every final particle.
     """
-    check_model(model)
+    check_model(model, "smc")
     names = param_names(model, params)
     if not 0.0 < ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold must be in (0, 1], got {ess_threshold}")
@@ -477,7 +421,7 @@ def run(
         if prior_key is None
         else ("smc", model, names, config, prior_key, static_key(fixed_values))
     )
-    series = step_inputs(arrays)
+    series = step_inputs(arrays, model)
     num_vehicles = series.mask.shape[0]
     # Replicates are whole independent runs (own keys), laid out replicate-major as extra vehicles.
     # Repeat along the vehicle axis only (merge scenes carry a trailing merge-slot axis).

@@ -3,7 +3,10 @@
 One rollout: the head (and, in merge scenes, the merging car) replays the data; every simulated
 vehicle starts from its observed state at t0 (through ``model.initial_sample``) and then moves by
 ``model.transition_sample`` only, fed the *simulated* gap to its leader:
-``gap = x_leader - x - length_leader`` and the leader's simulated (or replayed) speed. Nothing
+``gap = x_leader - x - length_leader`` and the leader's simulated (or replayed) speed. The inputs
+come from the model itself (``model.inputs_at``) on a buffer of the simulated vehicles' series
+written step by step, so any model runs, extensions included; a model that reads its past sees,
+before the rollout's start, its initial state held. Nothing
 here knows the IDM: any :class:`~bayesdrive.drivers.base.DriverModel` runs. ``lax.scan`` runs the
 steps, ``vmap`` the vehicles within a step and the rollouts; one compilation serves every scenario
 of the same shape.
@@ -32,8 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
-from bayesdrive.drivers.cidm import MergeInputs
+from bayesdrive.data.views import AheadArrays, MergeArrays, history_steps
+from bayesdrive.drivers.base import DriverModel, EgoState, Series, fill_params
 from bayesdrive.simulation.scenarios import Scenario
 
 __all__ = [
@@ -171,47 +174,81 @@ def _from_leaders(head: Array, followers: Array) -> Array:
     return jnp.concatenate([jnp.asarray(head)[None], followers[:-1]])
 
 
-def _inputs(scene: SceneArrays, t: Array, state: EgoState):
-    """The model inputs of every simulated vehicle at step t."""
+def _start_buffer(scene: SceneArrays) -> Series:
+    """The simulated vehicles' series (N, T + 1), to be written step by step; the replayed merge
+    lane is known in advance."""
+    num_vehicles, length = scene.x0.shape[0], scene.head_x.shape[0]
+    zeros = jnp.zeros((num_vehicles, length), jnp.float32)
+    merge = None
+    if scene.merge_x.shape[0] > 0:
+
+        def per_vehicle(values: Array) -> Array:
+            return jnp.broadcast_to(values, (num_vehicles, *values.shape))
+
+        # Distances to the merge point (x = 0) are measured from the front bumper.
+        merge = MergeArrays(
+            ego_to_merge=zeros,
+            merge_to_merge=per_vehicle(-scene.merge_x.T),
+            merge_v=per_vehicle(scene.merge_v.T),
+            merge_length=per_vehicle(jnp.broadcast_to(scene.merge_length, scene.merge_x.T.shape)),
+            merge_present=per_vehicle(scene.merge_present.T),
+        )
+    return Series(
+        *(zeros for _ in range(7)),
+        dt=jnp.broadcast_to(scene.dt, zeros.shape),
+        merge=merge,
+        ahead=AheadArrays(zeros, zeros, zeros, zeros),
+    )
+
+
+def _written(buffer: Series, scene: SceneArrays, t: Array, state) -> Series:
+    """``buffer`` with every simulated vehicle's step t written: its speed, the *simulated* gap
+    to its leader and the leader's speed, the second vehicle ahead, the leader's acceleration,
+    and (in merge scenes) its distance to the merge point."""
     gap = _from_leaders(scene.head_x[t], state.x) - state.x - scene.lead_length
-    following = CarFollowingInputs(
-        gap=gap,
-        lead_v=_from_leaders(scene.head_v[t], state.v),
-        has_leader=_from_leaders(scene.head_present[t], jnp.ones_like(state.x)),
-        dt=jnp.broadcast_to(scene.dt, state.x.shape),
+    lead_v = _from_leaders(scene.head_v[t], state.v)
+    has_leader = _from_leaders(scene.head_present[t], jnp.ones_like(state.x))
+    # The head's own leader is not replayed: the first vehicle sees no second vehicle ahead.
+    has_leader2 = _from_leaders(0.0, has_leader) * has_leader
+    earlier = jnp.where(t > 0, buffer.lead_v[:, jnp.maximum(t - 1, 0)], lead_v)
+    column = {"v": state.v, "gap": gap, "lead_v": lead_v, "has_leader": has_leader}
+    ahead = {
+        "lead_acc": (lead_v - earlier) / scene.dt,
+        "gap2": jnp.where(has_leader2 > 0, gap + _from_leaders(0.0, gap), 100.0),
+        "lead2_v": jnp.where(has_leader2 > 0, _from_leaders(1.0, lead_v), 1.0),
+        "has_leader2": has_leader2,
+    }
+    buffer = buffer._replace(
+        **{k: getattr(buffer, k).at[:, t].set(c) for k, c in column.items()},
+        ahead=buffer.ahead._replace(
+            **{k: getattr(buffer.ahead, k).at[:, t].set(c) for k, c in ahead.items()}
+        ),
     )
-    if scene.merge_x.shape[0] == 0:
-        return following
-    num_vehicles = state.x.shape[0]
-
-    def per_vehicle(values: Array) -> Array:
-        return jnp.broadcast_to(values, (num_vehicles, *values.shape))
-
-    # Distances to the merge point (x = 0) are measured from the front bumper, positive before it.
-    return MergeInputs(
-        *following,
-        ego_to_merge=-state.x,
-        merge_to_merge=per_vehicle(-scene.merge_x[:, t]),
-        merge_v=per_vehicle(scene.merge_v[:, t]),
-        merge_length=per_vehicle(scene.merge_length),
-        merge_present=per_vehicle(scene.merge_present[:, t]),
-    )
+    if buffer.merge is not None:
+        merge = buffer.merge._replace(ego_to_merge=buffer.merge.ego_to_merge.at[:, t].set(-state.x))
+        buffer = buffer._replace(merge=merge)
+    return buffer
 
 
-def _one_rollout(key: Array, model: DriverModel, params: Any, scene: SceneArrays) -> Rollout:
+def _one_rollout(
+    key: Array, model: DriverModel, params: Any, scene: SceneArrays, history: int
+) -> Rollout:
     num_steps = scene.step_mask.shape[0]
     num_vehicles = scene.x0.shape[0]
     keys = rollout_keys(key, num_steps, num_vehicles)
     observed = EgoState(x=scene.x0, v=scene.v0)
     start = jax.vmap(model.initial_sample)(keys.init, params, observed)
 
-    def step(state: EgoState, scan_in):
+    def step(carry, scan_in):
+        state, buffer = carry
         t, step_keys = scan_in
-        inputs = _inputs(scene, t, state)
+        buffer = _written(buffer, scene, t, state)
+        inputs = jax.vmap(lambda row: model.inputs_at(row, t, history))(buffer)
         moved = jax.vmap(model.transition_sample)(step_keys, params, state, inputs)
-        return moved, moved
+        buffer = buffer._replace(dx=buffer.dx.at[:, t].set(moved.x - state.x))
+        return (moved, buffer), moved
 
-    _, path = jax.lax.scan(step, start, (jnp.arange(num_steps), keys.steps))
+    _, path = jax.lax.scan(step, (start, _start_buffer(scene)), (jnp.arange(num_steps), keys.steps))
     x = jnp.concatenate([start.x[:, None], path.x.T], axis=1)
     v = jnp.concatenate([start.v[:, None], path.v.T], axis=1)
     gap = _from_leaders(scene.head_x, x) - x - scene.lead_length[:, None]
@@ -228,7 +265,6 @@ def _one_rollout(key: Array, model: DriverModel, params: Any, scene: SceneArrays
     )
 
 
-@partial(jax.jit, static_argnames=("model", "num_rollouts"))
 def rollout(
     key: Array, model: DriverModel, params: Any, scene: SceneArrays, *, num_rollouts: int
 ) -> Rollout:
@@ -238,8 +274,16 @@ def rollout(
     parameter set per rollout and simulated vehicle (see :func:`broadcast_params` and
     :func:`draw_particles`). Keys follow :func:`rollout_keys` after one split per rollout.
     """
+    history = history_steps(float(scene.dt)) if model.reads_history else 0
+    return _rollouts(key, model, params, scene, num_rollouts=num_rollouts, history=history)
+
+
+@partial(jax.jit, static_argnames=("model", "num_rollouts", "history"))
+def _rollouts(key, model, params, scene, *, num_rollouts, history):
     keys = jax.random.split(key, num_rollouts)
-    return jax.vmap(_one_rollout, in_axes=(0, None, 0, None))(keys, model, params, scene)
+    return jax.vmap(_one_rollout, in_axes=(0, None, 0, None, None))(
+        keys, model, params, scene, history
+    )
 
 
 def broadcast_params(params: Any, num_rollouts: int, num_vehicles: int) -> Any:

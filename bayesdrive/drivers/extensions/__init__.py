@@ -11,21 +11,30 @@ import functools
 from collections.abc import Callable
 from types import MappingProxyType
 
+from bayesdrive.drivers import measurement_noise
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.extensions import (
     autocorrelated_noise,
     cut_in,
     drifting_parameters,
-    position_noise,
     reaction_delay,
     second_leader,
     speed_dependent_noise,
 )
-from bayesdrive.drivers.extensions.compose import ExtendedModel, observed_lift
+from bayesdrive.drivers.extensions.compose import ExtendedModel
 
-__all__ = ["CAUSES", "EXTENSIONS", "NO_CAUSE", "as_extended", "extend"]
+__all__ = ["CAUSES", "EXTENSIONS", "NO_CAUSE", "as_extended", "extend", "with_measurement_noise"]
 
 NO_CAUSE = "none"
+
+
+@functools.cache
+def with_measurement_noise(base: DriverModel) -> ExtendedModel:
+    """The one measurement-noise model (:mod:`bayesdrive.drivers.measurement_noise`) as the
+    extension for its cause; it keeps the base model's inputs, so it wraps any base model."""
+    model = measurement_noise.with_measurement_noise(base)
+    return ExtendedModel(measurement_noise.CAUSE, base, model, (measurement_noise.SIGMA_OBS.name,))
+
 
 EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = MappingProxyType(
     {
@@ -35,7 +44,7 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
         second_leader.CAUSE: second_leader.with_second_leader_anticipation,
         cut_in.CAUSE: cut_in.with_cut_in_heuristic,
         drifting_parameters.CAUSE: drifting_parameters.with_drifting_time_gap,
-        position_noise.CAUSE: position_noise.with_position_noise,
+        measurement_noise.CAUSE: with_measurement_noise,
     }
 )
 CAUSES = tuple(EXTENSIONS)
@@ -44,7 +53,7 @@ CAUSES = tuple(EXTENSIONS)
 @functools.cache
 def as_extended(base: DriverModel) -> ExtendedModel:
     """The base model itself in the :class:`ExtendedModel` form (cause "none", nothing added)."""
-    return ExtendedModel(NO_CAUSE, base, base, (), observed_lift)
+    return ExtendedModel(NO_CAUSE, base, base, ())
 
 
 def extend(cause: str, base: DriverModel) -> ExtendedModel:

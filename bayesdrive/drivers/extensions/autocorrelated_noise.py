@@ -42,10 +42,11 @@ from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, P
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
     base_params,
+    check_base,
     extended_specs,
     params_type,
 )
-from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs, inputs_at
 from bayesdrive.drivers.idm import STOP_SPEED, noisy_step, step_logpdf
 
 __all__ = [
@@ -88,6 +89,7 @@ def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:
 @functools.cache
 def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
     """``base`` with AR(1) execution noise of correlation ``rho`` (module docstring)."""
+    check_base(base, CAUSE)
     specs = extended_specs(base, AR_SPECS)
 
     def base_mean(params, v: Array, inputs: CarFollowingInputs) -> Array:
@@ -140,5 +142,8 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
         transition_logpdf=transition_logpdf,
         observation_logpdf=base.observation_logpdf,
         initial_sample=initial_sample,
+        inputs_at=inputs_at,
+        lift=lift,
+        reads_history=True,
     )
-    return ExtendedModel(CAUSE, base, model, ("rho",), lift)
+    return ExtendedModel(CAUSE, base, model, ("rho",))

@@ -7,11 +7,14 @@ car-following part of :class:`~bayesdrive.drivers.extensions.inputs.ExtendedInpu
 model's parameters are the base model's, in the same order, followed by the extension's own (with
 defaults that switch the extension off, so the base model is nested in every extension).
 
-Some extensions keep more in the state than the observed position and speed (the autocorrelated
-noise keeps the last acceleration residual). With exactly observed data that extra state is a
-function of the parameters and the observed past: :attr:`ExtendedModel.lift` computes it, so the
-likelihood stays exact and a step can be scored on its own. Extensions whose extra state is
-*hidden* (drifting parameters, measurement noise) bring their own state ``filter``.
+Every extension reads :class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs`, built by its
+model's ``inputs_at`` from the one series, so only base models that read car-following inputs
+alone can be extended (:func:`check_base`). Some extensions keep more in the state than the
+observed position and speed (the autocorrelated noise keeps the last acceleration residual). With
+exactly observed data that extra state is a function of the parameters and the observed past: the
+model's ``lift`` computes it, so the likelihood stays exact and a step can be scored on its own.
+Extensions whose extra state is *hidden* (drifting parameters, measurement noise) bring their own
+state ``filter``.
 """
 
 from __future__ import annotations
@@ -21,15 +24,16 @@ from typing import Any, NamedTuple
 
 from jax import Array
 
-from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, car_following_at
+from bayesdrive.drivers.extensions.inputs import inputs_at
 from bayesdrive.drivers.idm import execution_noise_model, execution_noise_sd
 
 __all__ = [
     "ExtendedModel",
     "base_params",
+    "check_base",
     "extended_specs",
     "gaussian_extension",
-    "observed_lift",
     "params_type",
 ]
 
@@ -41,31 +45,29 @@ class ExtendedModel(NamedTuple):
     base: the wrapped base model.
     model: the wrapped :class:`~bayesdrive.drivers.base.DriverModel` (what engines fit).
     new_params: the parameters the extension adds.
-    lift: ``(params, EgoState, ExtendedInputs) -> state``, the model's full state at an exactly
-        observed step (identity on the observed state for most extensions; for a model with a
-        hidden state, its value at the start of a simulation).
-    filter: for a model with a hidden state, ``(params, steps) -> (T,)`` the one-step predictive
-        log densities of one vehicle's steps from a state filter (``steps`` is a
-        :class:`~bayesdrive.criticism.tempering.VehicleSteps`); None when each step can be scored
-        on its own from the lifted state.
+
+    The model's full state at an exactly observed step is ``model.lift``; a model with a hidden
+    state brings ``model.filter`` (:class:`~bayesdrive.drivers.base.DriverModel`).
     """
 
     cause: str
     base: DriverModel
     model: DriverModel
     new_params: tuple[str, ...]
-    lift: Callable[[Any, EgoState, Any], Any]
-    filter: Callable[[Any, Any], Array] | None = None
 
     @property
     def name(self) -> str:
         return self.model.name
 
 
-def observed_lift(params: Any, state: EgoState, inputs: Any) -> EgoState:
-    """The observed state is the whole state (no extra state to recover)."""
-    del params, inputs
-    return state
+def check_base(base: DriverModel, cause: str) -> None:
+    """Refuse a base model whose inputs are more than car following (the extensions would drop
+    them: a Cooperative IDM extended so would silently forget the merge scene)."""
+    if base.inputs_at is not car_following_at:
+        raise ValueError(
+            f"extension {cause!r} needs a base model that reads car-following inputs only; "
+            f"{base.name!r} reads more (its inputs would be lost)"
+        )
 
 
 def extended_specs(base: DriverModel, new: Sequence[ParamSpec]) -> tuple[ParamSpec, ...]:
@@ -95,12 +97,14 @@ def gaussian_extension(
     mean_acceleration: Callable[[Any, EgoState, Any], Array],
     *,
     noise_sd: Callable[[Any, Any], Array] = execution_noise_sd,
+    reads_history: bool = False,
 ) -> ExtendedModel:
     """An extension whose step is ``mean_acceleration`` plus Gaussian noise of sd ``noise_sd``.
 
     Sampling and density are the base models' own :func:`~bayesdrive.drivers.idm.noisy_step` and
     :func:`~bayesdrive.drivers.idm.step_logpdf`, so the extension changes only the mean (or the sd).
     """
+    check_base(base, cause)
     specs = extended_specs(base, new_specs)
     type_name = "".join(part.title() for part in cause.split("_")) + "Params"
     model = execution_noise_model(
@@ -109,5 +113,10 @@ def gaussian_extension(
         specs,
         mean_acceleration,
         noise_sd,
-    )._replace(observation_logpdf=base.observation_logpdf, initial_sample=base.initial_sample)
-    return ExtendedModel(cause, base, model, tuple(s.name for s in new_specs), observed_lift)
+        inputs_at,
+    )._replace(
+        observation_logpdf=base.observation_logpdf,
+        initial_sample=base.initial_sample,
+        reads_history=reads_history,
+    )
+    return ExtendedModel(cause, base, model, tuple(s.name for s in new_specs))

@@ -41,10 +41,11 @@ from bayesdrive.drivers.extensions.autocorrelated_noise import implied_accelerat
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
     base_params,
+    check_base,
     extended_specs,
     params_type,
 )
-from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+from bayesdrive.drivers.extensions.inputs import ExtendedInputs, inputs_at
 from bayesdrive.drivers.idm import STOP_SPEED, noisy_step, step_logpdf
 
 __all__ = ["CAUSE", "DRIFT_SPECS", "DriftState", "with_drifting_time_gap"]
@@ -74,6 +75,7 @@ class DriftState(NamedTuple):
 @functools.cache
 def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
     """``base`` whose time gap ``tau`` drifts as a random walk (module docstring)."""
+    check_base(base, CAUSE)
     specs = extended_specs(base, DRIFT_SPECS)
     tau_spec = base.spec("tau")
 
@@ -140,7 +142,7 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         _, logp = jax.lax.scan(
             step,
             (zero, zero),
-            (steps.inputs, steps.v, steps.next_v, steps.dx, steps.usable),
+            (steps.inputs, steps.v, steps.next_v, steps.dx, steps.mask),
             unroll=8,  # the step is tiny: unrolling cuts the loop overhead that dominates it
         )
         return logp
@@ -154,5 +156,8 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         transition_logpdf=transition_logpdf,
         observation_logpdf=base.observation_logpdf,
         initial_sample=initial_sample,
+        inputs_at=inputs_at,
+        lift=lift,
+        filter=ekf,
     )
-    return ExtendedModel(CAUSE, base, model, ("tau_drift",), lift, filter=ekf)
+    return ExtendedModel(CAUSE, base, model, ("tau_drift",))

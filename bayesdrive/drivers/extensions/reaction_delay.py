@@ -76,4 +76,4 @@ def with_reaction_delay(base: DriverModel) -> ExtendedModel:
         past_self = EgoState(x=state.x, v=delayed(inputs.lag_v, steps))
         return base.mean_acceleration(base_params(base, params), past_self, perceived)
 
-    return gaussian_extension(base, CAUSE, DELAY_SPECS, mean_acceleration)
+    return gaussian_extension(base, CAUSE, DELAY_SPECS, mean_acceleration, reads_history=True)

@@ -9,8 +9,8 @@ observed gap minus the accumulated position offset of the simulated follower,
     gap_sim[j] = gap_obs[j] - (x_sim[j] - x_obs[j]),
 
 (the same for the gap to the second vehicle ahead), so only increments are ever added and float32
-never holds a kilometre-sized position. The inputs come from
-:func:`~bayesdrive.drivers.extensions.inputs.inputs_at` on a local buffer that holds the observed
+never holds a kilometre-sized position. The inputs come from the model's own ``inputs_at`` on a
+local buffer of the one series that holds the observed
 history before the window and the simulated values inside it, so a reaction delay sees the data
 before the window and its own simulation after.
 
@@ -31,14 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.data.views import FollowerArrays
+from bayesdrive.drivers.base import EgoState, Series, device_series, fill_params
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.drivers.extensions.inputs import (
-    ExtendedSeries,
-    VehicleSeries,
-    inputs_at,
-    vehicle_series,
-)
 
 __all__ = ["RolloutWindows", "Rollouts", "heldout_windows", "rollout"]
 
@@ -69,11 +64,11 @@ class Rollouts(NamedTuple):
         return out
 
 
-def heldout_windows(series: ExtendedSeries, horizon_s: float) -> RolloutWindows:
+def heldout_windows(series: FollowerArrays, horizon_s: float) -> RolloutWindows:
     """Consecutive non-overlapping held-out windows whose every step is scored (module docstring)."""
     horizon = round(horizon_s / series.dt)
     rows, starts = [], []
-    for row, scored in enumerate(series.heldout > 0):
+    for row, scored in enumerate(series.windows.heldout > 0):
         steps = np.flatnonzero(scored)
         if len(steps) == 0:
             continue
@@ -85,7 +80,7 @@ def heldout_windows(series: ExtendedSeries, horizon_s: float) -> RolloutWindows:
     return RolloutWindows(np.asarray(rows, int), np.asarray(starts, int), horizon)
 
 
-def _window_buffer(data: VehicleSeries, start: Array, history: int, horizon: int) -> VehicleSeries:
+def _window_buffer(data: Series, start: Array, history: int, horizon: int) -> Series:
     """The vehicle's arrays from ``history`` steps before ``start`` to the end of the window."""
     first = start - history
     return jax.tree.map(
@@ -97,22 +92,21 @@ def _one_rollout(
     key: Array,
     extended: ExtendedModel,
     params,
-    buffer: VehicleSeries,
-    dt: float,
+    buffer: Series,
     history: int,
     horizon: int,
 ) -> tuple[Array, Array]:
     """Simulate ``horizon`` steps from local index ``history``; returns offsets and a collision."""
     model = extended.model
     zero = jnp.zeros_like(buffer.v[0])
-    first_inputs = inputs_at(buffer, history, dt, history)
-    state = extended.lift(params, EgoState(zero, buffer.v[history]), first_inputs)
+    first_inputs = model.inputs_at(buffer, history, history)
+    state = model.lift(params, EgoState(zero, buffer.v[history]), first_inputs)
     observed = buffer
 
     def step(carry, k):
         state, buf, offset = carry
         j = history + k
-        inputs = inputs_at(buf, j, dt, history)
+        inputs = model.inputs_at(buf, j, history)
         moved = model.transition_sample(
             jax.random.fold_in(key, k), params, state._replace(x=zero), inputs
         )
@@ -121,8 +115,11 @@ def _one_rollout(
             v=buf.v.at[j + 1].set(moved.v),
             dx=buf.dx.at[j].set(moved.x),
             gap=buf.gap.at[j + 1].set(observed.gap[j + 1] - offset),
-            gap2=buf.gap2.at[j + 1].set(observed.gap2[j + 1] - offset),
         )
+        if buf.ahead is not None:
+            ahead = buf.ahead
+            gap2 = ahead.gap2.at[j + 1].set(observed.ahead.gap2[j + 1] - offset)
+            buf = buf._replace(ahead=ahead._replace(gap2=gap2))
         return (moved, buf, offset), offset
 
     _, offsets = jax.lax.scan(step, (state, buffer, zero), jnp.arange(horizon))
@@ -130,15 +127,15 @@ def _one_rollout(
     return offsets, crashed
 
 
-@functools.partial(jax.jit, static_argnames=("extended", "dt", "history", "horizon"))
-def _rollout_windows(keys, thetas, buffers, *, extended, dt, history, horizon):
+@functools.partial(jax.jit, static_argnames=("extended", "history", "horizon"))
+def _rollout_windows(keys, thetas, buffers, *, extended, history, horizon):
     """(window, rollout) keys and parameter draws, (window,) buffers -> offsets, collisions."""
     names = extended.model.param_names
 
     def per_window(window_keys, window_thetas, buffer):
         def per_draw(key, theta):
             params = fill_params(extended.model, names, theta)
-            return _one_rollout(key, extended, params, buffer, dt, history, horizon)
+            return _one_rollout(key, extended, params, buffer, history, horizon)
 
         return jax.vmap(per_draw)(window_keys, window_thetas)
 
@@ -149,7 +146,7 @@ def rollout(
     key: Array,
     extended: ExtendedModel,
     theta: np.ndarray,
-    series: ExtendedSeries,
+    series: FollowerArrays,
     windows: RolloutWindows,
     *,
     num_rollouts: int = 32,
@@ -166,10 +163,10 @@ def rollout(
             windows, np.zeros((0, num_rollouts, windows.horizon)), np.zeros((0, num_rollouts), bool)
         )
     history = series.history
-    data = vehicle_series(series)
+    data = device_series(series)
     # Pad the step axis so every window's buffer slice stays inside the arrays.
-    pad = ((0, 0), (history, windows.horizon + 1))
-    data = jax.tree.map(lambda a: jnp.pad(a, pad, mode="edge"), data)
+    pad = [(0, 0), (history, windows.horizon + 1)]
+    data = jax.tree.map(lambda a: jnp.pad(a, pad + [(0, 0)] * (a.ndim - 2), mode="edge"), data)
     key_draw, key_noise = jax.random.split(key)
     picks = jax.random.randint(key_draw, (num_windows, num_rollouts), 0, theta.shape[1])
     rows = jnp.asarray(windows.row)
@@ -184,7 +181,6 @@ def rollout(
         thetas,
         buffers,
         extended=extended,
-        dt=series.dt,
         history=history,
         horizon=windows.horizon,
     )

@@ -1,22 +1,21 @@
 r"""Fitting any (extended) driver model and scoring its held-out predictive density, per vehicle.
 
-**Why not the ``smc`` engine directly.** ``bayesdrive.inference.smc`` builds every step from the
-base inputs (:class:`~bayesdrive.drivers.base.CarFollowingInputs` and an exactly observed
-:class:`~bayesdrive.drivers.base.EgoState`); the extensions need
-:class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs` and, for the autocorrelated noise, a
-state lifted from the observed past. So the criticism scores steps through the extension's own
-``lift`` and ``transition_logpdf`` and runs the sampler below on that per-step log-density. It uses
-the engines' weights and resampling primitives (:mod:`bayesdrive.inference.weights`,
-:mod:`bayesdrive.inference.resampling`). For the base model its log-evidence is
-checked against ``smc``'s in the tests.
+**Why a second assembly beside ``smc``.** The engines fit one window; the criticism needs the
+fitting-window posterior *and* its continuation into the held-out window (phase 2 below), whose
+normalising constant is the held-out predictive density. Both are assembled from the sampler
+core (:mod:`bayesdrive.inference.kernels`: the temperature search, the random-walk move on the
+logit scale and the stopping rules), and every model's steps come from the model itself
+(:func:`~bayesdrive.inference.likelihood.step_inputs`, :func:`~bayesdrive.inference.likelihood.step_logpdfs`).
+For the base model its log-evidence is checked against ``smc``'s in the tests.
 
 **The sampler.** Adaptive-tempering SMC (Del Moral, Doucet & Jasra 2006; Jasra et al. 2011) for
 each vehicle. Phase 1 bridges from the prior to the fitting-window posterior through
 :math:`\pi_\lambda \propto p(\theta)\, p(y_{fit} \mid \theta)^\lambda`, each temperature chosen by
 bisection so that the incremental weights keep an effective sample size of ``ess_target * N``;
 after each reweighting the particles are resampled (systematic) and moved by ``num_moves``
-random-walk Metropolis-Hastings steps invariant for :math:`\pi_\lambda` (Gaussian proposal with the
-particle covariance scaled by :math:`s`, :math:`s` adapted towards acceptance 0.234). The product
+random-walk Metropolis-Hastings steps invariant for :math:`\pi_\lambda` (on the logit scale of the
+prior box, Gaussian proposal with the particles' covariance there scaled by :math:`s`, :math:`s`
+adapted towards acceptance 0.234). The product
 of the mean incremental weights estimates :math:`p(y_{fit})` (``log_z_fit``).
 
 **How many moves.** A fixed handful of moves at acceptance ~0.23 leaves about a third of the
@@ -69,25 +68,27 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.data.views import FollowerArrays
+from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.drivers.extensions.inputs import (
-    ExtendedInputs,
-    ExtendedSeries,
-    series_inputs,
-    vehicle_series,
+from bayesdrive.inference.kernels import (
+    Box,
+    WalkState,
+    fixed_moves,
+    moves_until_moved,
+    next_temperature,
+    to_free,
+    walk_step,
 )
+from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
 from bayesdrive.inference.resampling import systematic
-from bayesdrive.inference.weights import effective_sample_size, log_mean_weight
+from bayesdrive.inference.weights import log_mean_weight
 
 __all__ = [
     "DEFAULT_CONFIG",
     "FitConfig",
     "FitResult",
-    "VehicleSteps",
     "fit_model",
-    "step_logpdfs",
-    "vehicle_steps",
 ]
 
 
@@ -107,22 +108,8 @@ class FitConfig(NamedTuple):
 
 
 DEFAULT_CONFIG = FitConfig()
-
-
-class VehicleSteps(NamedTuple):
-    """Everything one vehicle's likelihood reads, as JAX arrays with a leading step axis (T,).
-
-    ``usable`` marks real car-following steps (a state filter runs through them and restarts after
-    a gap); ``fit`` and ``heldout`` mark the scored ones.
-    """
-
-    inputs: ExtendedInputs
-    v: Array
-    next_v: Array
-    dx: Array
-    usable: Array
-    fit: Array
-    heldout: Array
+# Bisection steps of the temperature search.
+BISECTION_STEPS = 50
 
 
 class FitResult(NamedTuple):
@@ -152,44 +139,11 @@ class FitResult(NamedTuple):
     run_time_s: float
 
 
-def vehicle_steps(series: ExtendedSeries) -> VehicleSteps:
-    """The (vehicle, step) arrays of ``series`` with every step's inputs precomputed."""
-    data = vehicle_series(series)
-    history = series.history
-    inputs = jax.vmap(lambda one: series_inputs(one, series.dt, history))(data)
-    return VehicleSteps(
-        inputs=inputs,
-        v=data.v,
-        next_v=data.next_v,
-        dx=data.dx,
-        usable=jnp.asarray(series.usable, dtype=data.v.dtype),
-        fit=jnp.asarray(series.fit, dtype=data.v.dtype),
-        heldout=jnp.asarray(series.heldout, dtype=data.v.dtype),
-    )
-
-
-def step_logpdfs(extended: ExtendedModel, params: Any, steps: VehicleSteps) -> Array:
-    """One-step log predictive density of every step of one vehicle under ``params`` -> (T,).
-
-    Exactly observed models score each step on its own (from the lifted state); models with a
-    hidden state run their filter over the vehicle's steps in order.
-    """
-    if extended.filter is not None:
-        return extended.filter(params, steps)
-    model = extended.model
-
-    def one(inputs, v, next_v, dx):
-        state = extended.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
-        return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs)
-
-    return jax.vmap(one)(steps.inputs, steps.v, steps.next_v, steps.dx)
-
-
 def _window_logliks(
-    extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: VehicleSteps
+    extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: StepInputs
 ) -> tuple[Array, Array]:
     """(fit, held-out) log-likelihood sums for one parameter vector; unscored steps give 0."""
-    logp = step_logpdfs(extended, fill_params(extended.model, names, theta), steps)
+    logp = step_logpdfs(extended.model, fill_params(extended.model, names, theta), steps)
     fit = jnp.sum(jnp.where(steps.fit > 0, logp, 0.0))
     held = jnp.sum(jnp.where(steps.heldout > 0, logp, 0.0))
     return fit, held
@@ -209,25 +163,6 @@ class _Cloud(NamedTuple):
     moves: Array  # () number of move sweeps
 
 
-def _next_temperature(tempered: Array, lam: Array, ess_target: float) -> Array:
-    """The largest temperature <= 1 whose incremental weights keep ESS >= ess_target * N."""
-    n = tempered.shape[0]
-
-    def ess_at(new_lam):
-        return effective_sample_size((new_lam - lam) * tempered)
-
-    def bisect(_, bounds):
-        low, high = bounds
-        middle = 0.5 * (low + high)
-        ok = ess_at(middle) >= ess_target * n
-        return jnp.where(ok, middle, low), jnp.where(ok, high, middle)
-
-    low, _ = jax.lax.fori_loop(0, 50, bisect, (lam, jnp.ones_like(lam)))
-    one_is_fine = ess_at(jnp.ones_like(lam)) >= ess_target * n
-    # Always move forward by a hair so a vehicle never stalls on a pathological cloud.
-    return jnp.where(one_is_fine, 1.0, jnp.maximum(low, lam + 1e-6))
-
-
 def _temper(
     key: Array,
     cloud: _Cloud,
@@ -235,68 +170,63 @@ def _temper(
     prior: Any,
     config: FitConfig,
 ) -> _Cloud:
-    """Temper ``cloud.tempered`` in from lam = 0 to 1 (module docstring); anchor stays at 1."""
-    n, d = cloud.theta.shape
-    jitter = jnp.diag((1e-6 * (prior.upper - prior.lower)) ** 2)
+    """Temper ``cloud.tempered`` in from lam = 0 to 1 (module docstring); anchor stays at 1.
+
+    Each stage is the sampler core's (:mod:`bayesdrive.inference.kernels`): the next temperature
+    by bisection, systematic resampling, then random-walk moves on the logit scale of the prior
+    box with the resampled cloud's covariance, until every particle has likely moved."""
+    d = cloud.theta.shape[1]
+    box = Box(prior.lower, prior.upper)
+    prior_logpdf = jax.vmap(prior.logpdf)
+    # A floor on the proposal covariance keeps moves alive when resampling leaves one survivor.
+    jitter = jnp.diag(jnp.full(d, 1e-6, cloud.theta.dtype))
 
     def stage(carry):
         cloud, key = carry
         key, key_resample, key_moves = jax.random.split(key, 3)
-        new_lam = _next_temperature(cloud.tempered, cloud.lam, config.ess_target)
+        new_lam = next_temperature(cloud.tempered, cloud.lam, config.ess_target, BISECTION_STEPS)
         increment = (new_lam - cloud.lam) * cloud.tempered
         log_z = cloud.log_z + log_mean_weight(increment)
         parents = systematic(key_resample, increment)
-        theta = cloud.theta[parents]
-        log_prior, anchor, tempered = (
-            cloud.log_prior[parents],
-            cloud.anchor[parents],
-            cloud.tempered[parents],
+        walk = WalkState(
+            theta=cloud.theta[parents],
+            log_prior=cloud.log_prior[parents],
+            anchor=cloud.anchor[parents],
+            tempered=cloud.tempered[parents],
+            log_scale=cloud.log_scale,
         )
-        chol = jnp.linalg.cholesky(jnp.cov(theta, rowvar=False).reshape(d, d) + jitter)
-
-        def move(state, key):
-            theta, log_prior, anchor, tempered, log_scale = state
-            key_step, key_accept = jax.random.split(key)
-            step = jax.random.normal(key_step, theta.shape, dtype=theta.dtype) @ chol.T
-            proposal = theta + jnp.exp(log_scale) * step
-            prop_prior = jax.vmap(prior.logpdf)(proposal)
-            prop_anchor, prop_tempered = loglik(proposal)
-            log_ratio = (
-                prop_prior
-                + prop_anchor
-                + new_lam * prop_tempered
-                - (log_prior + anchor + new_lam * tempered)
-            )
-            # Outside the prior box the likelihood may be NaN: the finite check rejects it.
-            accept = (
-                jnp.isfinite(prop_prior)
-                & jnp.isfinite(log_ratio)
-                & (jnp.log(jax.random.uniform(key_accept, (n,))) < log_ratio)
-            )
-            rate = jnp.mean(accept)
-            return (
-                jnp.where(accept[:, None], proposal, theta),
-                jnp.where(accept, prop_prior, log_prior),
-                jnp.where(accept, prop_anchor, anchor),
-                jnp.where(accept, prop_tempered, tempered),
-                log_scale + rate - config.target_acceptance,
-            ), rate
-
-        state = (theta, log_prior, anchor, tempered, cloud.log_scale)
+        free = to_free(walk.theta, box)
+        chol = jnp.linalg.cholesky(jnp.cov(free, rowvar=False).reshape(d, d) + jitter)
+        move = functools.partial(
+            walk_step,
+            loglik=loglik,
+            prior_logpdf=prior_logpdf,
+            power=new_lam,
+            chol=chol,
+            box=box,
+            target_acceptance=config.target_acceptance,
+        )
         if config.unmoved_tolerance > 0:
-            state, (num_moves, rate_sum) = _move_until_moved(move, state, key_moves, config)
+            walk, num_moves, rate_sum = moves_until_moved(
+                key_moves,
+                walk,
+                move,
+                num_moves=config.num_moves,
+                unmoved_tolerance=config.unmoved_tolerance,
+                max_moves=config.max_moves,
+            )
         else:
-            state, rates = jax.lax.scan(move, state, jax.random.split(key_moves, config.num_moves))
-            num_moves, rate_sum = jnp.asarray(config.num_moves, theta.dtype), jnp.sum(rates)
-        theta, log_prior, anchor, tempered, log_scale = state
+            walk, rate = fixed_moves(key_moves, walk, move, config.num_moves)
+            num_moves = jnp.asarray(config.num_moves, walk.theta.dtype)
+            rate_sum = rate * num_moves
         moved = _Cloud(
-            theta=theta,
-            log_prior=log_prior,
-            anchor=anchor,
-            tempered=tempered,
+            theta=walk.theta,
+            log_prior=walk.log_prior,
+            anchor=walk.anchor,
+            tempered=walk.tempered,
             lam=new_lam,
             log_z=log_z,
-            log_scale=log_scale,
+            log_scale=walk.log_scale,
             stages=cloud.stages + 1,
             max_stages=cloud.max_stages,
             accepted=cloud.accepted + rate_sum,
@@ -312,30 +242,6 @@ def _temper(
     return cloud
 
 
-def _move_until_moved(move, state, key: Array, config: FitConfig):
-    """Apply ``move`` at least ``num_moves`` times, then until prod(1 - acceptance) is at most
-    ``unmoved_tolerance`` or ``max_moves`` is reached (module docstring); returns the state and
-    (number of moves, sum of acceptance rates)."""
-    dtype = state[0].dtype
-
-    def unfinished(carry):
-        _, count, unmoved, _ = carry
-        return (count < config.num_moves) | (
-            (unmoved > config.unmoved_tolerance) & (count < config.max_moves)
-        )
-
-    def body(carry):
-        state, count, unmoved, rate_sum = carry
-        state, rate = move(state, jax.random.fold_in(key, count))
-        return state, count + 1, unmoved * (1.0 - rate), rate_sum + rate
-
-    one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
-    state, count, _, rate_sum = jax.lax.while_loop(
-        unfinished, body, (state, jnp.zeros((), jnp.int32), one, zero)
-    )
-    return state, (count.astype(dtype), rate_sum)
-
-
 class _VehicleFit(NamedTuple):
     theta: Array
     log_z_fit: Array
@@ -348,7 +254,7 @@ class _VehicleFit(NamedTuple):
 
 def _fit_vehicle(
     key: Array,
-    steps: VehicleSteps,
+    steps: StepInputs,
     start_theta: Array | None,
     from_prior: Array,
     *,
@@ -448,7 +354,7 @@ def _compiled_batch(
     extended: ExtendedModel,
     config: FitConfig,
     keys: Array,
-    steps: VehicleSteps,
+    steps: StepInputs,
     start_theta: Array | None,
     from_prior: Array,
 ):
@@ -467,11 +373,10 @@ def _compiled_batch(
 
 def fit_model(
     key: Array,
-    series: ExtendedSeries,
+    series: FollowerArrays,
     extended: ExtendedModel,
     *,
     config: FitConfig = DEFAULT_CONFIG,
-    steps: VehicleSteps | None = None,
     start: FitResult | None = None,
     vehicle_batch: int = 1,
     progress: Callable[[int, int], None] | None = None,
@@ -481,8 +386,8 @@ def fit_model(
     All the model's parameters are inferred under its uniform prior box. Vehicles are vectorised
     ``vehicle_batch`` at a time (the last batch is padded by repeating its last vehicle, so one
     program serves every batch: one compile per model and padded shape, cached for the process).
-    ``steps`` may pass precomputed :func:`vehicle_steps` of ``series``; ``progress(done, total)``
-    is called after each batch. Batching changes only the speed, not the algorithm: under ``vmap``
+    ``series`` comes from :func:`~bayesdrive.data.views.scored_series` (its ``windows`` are the
+    scored steps); ``progress(done, total)`` is called after each batch. Batching changes only the speed, not the algorithm: under ``vmap``
     the tempering and move loops run until the batch's slowest vehicle is done, so one vehicle
     at a time (the default) was 1.6-2.2x faster at fixed moves and 1.7-2.3x at moves until moved
     (20 vehicles x 60 s, 256 particles; a single vehicle's 256 particles x steps already fill
@@ -500,7 +405,7 @@ def fit_model(
     posteriors are far apart, which is exactly when the prior start works). The choice uses the
     fitting window only. ``from_prior`` records it per vehicle.
     """
-    steps = vehicle_steps(series) if steps is None else steps
+    steps = step_inputs(series, extended.model)
     num_vehicles = len(series.vehicle_ids)
     # Batches are multiples of 8 vehicles, so data sets of similar size share one compiled program.
     batch = max(1, min(vehicle_batch, 8 * math.ceil(num_vehicles / 8)))

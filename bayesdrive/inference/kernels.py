@@ -1,0 +1,248 @@
+r"""The sampler core: pure kernels that the tempered samplers are assembled from.
+
+``smc`` (the default engine) and the held-out continuation of the criticism
+(:mod:`bayesdrive.inference.tempering`) are both built from these pieces, so there is one
+temperature search, one random-walk move and one set of stopping rules:
+
+* :func:`next_temperature`: the largest temperature whose reweighting keeps a target effective
+  sample size (bisection; Jasra et al. 2011);
+* :func:`walk_step`: one random-walk Metropolis-Hastings move of a particle cloud on the logit
+  scale of the prior box (key first, :class:`WalkState` in, ``(state, info)`` out), its scale
+  adapted towards a target acceptance rate;
+* the stopping rules of a run of moves: :func:`moves_until_moved` (move until every particle has
+  likely moved, Drovandi & Pettitt 2011) and :func:`moves_until_decorrelated` (move until the
+  draws no longer correlate with where they started).
+
+**The move.** Where the prior has finite bounds the walk acts on
+:math:`u = \mathrm{logit}((\theta - l)/(h - l))` (on :math:`\theta` itself elsewhere) and the
+target on :math:`u` carries the Jacobian, so parameters piled against a bound move as freely as any
+other and no proposal leaves the support. The proposal is Gaussian, ``chol`` (a Cholesky factor
+of the cloud's covariance of u) times :math:`e^{s}`; after each move :math:`s` moves by
+acceptance minus ``target_acceptance``. The target is
+:math:`\log p(\theta) + \ell_a(\theta) + \lambda\, \ell_t(\theta)`: an *anchor* log-likelihood
+fully included and a *tempered* one at power :math:`\lambda` (plain tempering has anchor 0).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from bayesdrive.inference.weights import effective_sample_size
+
+__all__ = [
+    "Box",
+    "WalkInfo",
+    "WalkState",
+    "fixed_moves",
+    "from_free",
+    "log_jacobian",
+    "moves_until_decorrelated",
+    "moves_until_moved",
+    "next_temperature",
+    "to_free",
+    "walk_step",
+]
+
+
+class Box(NamedTuple):
+    """Prior bounds per parameter (-inf / inf where unbounded): the logit map's domain."""
+
+    lower: Array
+    upper: Array
+
+    @property
+    def bounded(self) -> Array:
+        return jnp.isfinite(self.lower) & jnp.isfinite(self.upper)
+
+
+def to_free(theta: Array, box: Box) -> Array:
+    """u = logit((theta - lower) / (upper - lower)) where bounded, theta elsewhere."""
+    scaled = (theta - box.lower) / (box.upper - box.lower)
+    return jnp.where(box.bounded, jax.scipy.special.logit(scaled), theta)
+
+
+def from_free(u: Array, box: Box) -> Array:
+    """The inverse of :func:`to_free`."""
+    return jnp.where(box.bounded, box.lower + (box.upper - box.lower) * jax.nn.sigmoid(u), u)
+
+
+def log_jacobian(u: Array, box: Box) -> Array:
+    """log |d theta / d u|, summed over parameters."""
+    per_param = jnp.log(box.upper - box.lower) + jax.nn.log_sigmoid(u) + jax.nn.log_sigmoid(-u)
+    return jnp.sum(jnp.where(box.bounded, per_param, 0.0), axis=-1)
+
+
+def next_temperature(log_lik: Array, lam: Array, ess_fraction: float, iterations: int) -> Array:
+    """The largest temperature in (lam, 1] whose reweighting by (new - lam) * log_lik keeps an
+    ESS of ``ess_fraction * N``, by ``iterations`` bisection steps (1 if that keeps it already).
+
+    A stage always advances by at least 1e-6, so a cloud the bisection cannot split still
+    reaches 1."""
+    target = ess_fraction * log_lik.shape[0]
+
+    def halve(_, bracket):
+        keeps, breaks = bracket
+        middle = 0.5 * (keeps + breaks)
+        fine = effective_sample_size((middle - lam) * log_lik) >= target
+        return jnp.where(fine, middle, keeps), jnp.where(fine, breaks, middle)
+
+    keeps, _ = jax.lax.fori_loop(0, iterations, halve, (lam, jnp.ones_like(lam)))
+    return jnp.where(
+        effective_sample_size((1.0 - lam) * log_lik) >= target,
+        1.0,
+        jnp.maximum(keeps, lam + 1e-6),
+    )
+
+
+class WalkState(NamedTuple):
+    """A particle cloud under a random walk: theta (N, d), its log prior, anchor and tempered
+    log-likelihoods (N,), and the log of the proposal scale ()."""
+
+    theta: Array
+    log_prior: Array
+    anchor: Array
+    tempered: Array
+    log_scale: Array
+
+
+class WalkInfo(NamedTuple):
+    """acceptance: the fraction of particles whose proposal was accepted ()."""
+
+    acceptance: Array
+
+
+def walk_step(
+    key: Array,
+    state: WalkState,
+    *,
+    loglik: Callable[[Array], tuple[Array, Array]],
+    prior_logpdf: Callable[[Array], Array],
+    power: Array,
+    chol: Array,
+    box: Box,
+    target_acceptance: float,
+) -> tuple[WalkState, WalkInfo]:
+    """One random-walk MH move of every particle, invariant for
+    p(theta) exp(anchor(theta) + power * tempered(theta)) (module docstring).
+
+    ``loglik(theta) -> (anchor, tempered)`` and ``prior_logpdf(theta) -> log p`` take (N, d)."""
+    key_step, key_accept = jax.random.split(key)
+    theta = state.theta
+    noise = jax.random.normal(key_step, theta.shape, dtype=theta.dtype) @ chol.T
+    free = to_free(theta, box)
+    prop_free = free + jnp.exp(state.log_scale) * noise
+    proposal = from_free(prop_free, box)
+    prop_prior = prior_logpdf(proposal)
+    prop_anchor, prop_tempered = loglik(proposal)
+    log_ratio = (
+        prop_prior
+        + prop_anchor
+        + power * prop_tempered
+        + log_jacobian(prop_free, box)
+        - (state.log_prior + state.anchor + power * state.tempered + log_jacobian(free, box))
+    )
+    # Outside the prior support the likelihood may be NaN: the comparison rejects it.
+    accept = jnp.isfinite(prop_prior) & (
+        jnp.log(jax.random.uniform(key_accept, (theta.shape[0],))) < log_ratio
+    )
+    rate = jnp.mean(accept)
+    moved = WalkState(
+        theta=jnp.where(accept[:, None], proposal, theta),
+        log_prior=jnp.where(accept, prop_prior, state.log_prior),
+        anchor=jnp.where(accept, prop_anchor, state.anchor),
+        tempered=jnp.where(accept, prop_tempered, state.tempered),
+        log_scale=state.log_scale + rate - target_acceptance,
+    )
+    return moved, WalkInfo(acceptance=rate)
+
+
+Move = Callable[[Array, WalkState], tuple[WalkState, WalkInfo]]
+
+
+def moves_until_moved(
+    key: Array,
+    state: WalkState,
+    move: Move,
+    *,
+    num_moves: int,
+    unmoved_tolerance: float,
+    max_moves: int,
+) -> tuple[WalkState, Array, Array]:
+    """Apply ``move`` at least ``num_moves`` times, then until the estimated probability that a
+    particle has not moved at all, prod(1 - acceptance), is at most ``unmoved_tolerance``, at most
+    ``max_moves`` times. Returns the state, the number of moves and the sum of acceptance rates."""
+    dtype = state.theta.dtype
+
+    def unfinished(carry):
+        _, count, unmoved, _ = carry
+        return (count < num_moves) | ((unmoved > unmoved_tolerance) & (count < max_moves))
+
+    def body(carry):
+        state, count, unmoved, rate_sum = carry
+        state, info = move(jax.random.fold_in(key, count), state)
+        return state, count + 1, unmoved * (1.0 - info.acceptance), rate_sum + info.acceptance
+
+    one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
+    state, count, _, rate_sum = jax.lax.while_loop(
+        unfinished, body, (state, jnp.zeros((), jnp.int32), one, zero)
+    )
+    return state, count.astype(dtype), rate_sum
+
+
+def fixed_moves(key: Array, state: WalkState, move: Move, count: int) -> tuple[WalkState, Array]:
+    """Apply ``move`` exactly ``count`` times; returns the state and the mean acceptance."""
+
+    def scanned(state, key):
+        state, info = move(key, state)
+        return state, info.acceptance
+
+    state, rates = jax.lax.scan(scanned, state, jax.random.split(key, count))
+    return state, jnp.mean(rates)
+
+
+def moves_until_decorrelated(
+    key: Array,
+    state: WalkState,
+    move: Move,
+    *,
+    box: Box,
+    block: int,
+    max_moves: int,
+    threshold: Array,
+) -> tuple[WalkState, Array, Array, Array]:
+    """Apply ``move`` in blocks of ``block`` until no parameter's draws (on the free scale)
+    correlate with their values at the start by more than ``threshold`` (or ``max_moves``).
+
+    The correlation across particles between start and current position is the kernel's
+    autocorrelation at that lag, measured on the target itself. Returns the state, the mean
+    acceptance, the number of moves and the final largest |correlation|."""
+    start = to_free(state.theta, box)
+    start = start - start.mean(axis=0)  # centred once; every block compares against it
+    start_sq = jnp.sum(start * start, axis=0)
+
+    def largest_correlation(theta: Array) -> Array:
+        now = to_free(theta, box)
+        now = now - now.mean(axis=0)
+        corr = jnp.sum(start * now, axis=0) / jnp.sqrt(start_sq * jnp.sum(now * now, axis=0))
+        return jnp.max(jnp.abs(corr))
+
+    def run_block(carry):
+        state, key, done, accepted, _ = carry
+        key, key_block = jax.random.split(key)
+        state, rate = fixed_moves(key_block, state, move, block)
+        return (state, key, done + block, accepted + rate * block, largest_correlation(state.theta))
+
+    def more(carry):
+        _, _, done, _, corr = carry
+        return (done < max_moves) & (corr > threshold)
+
+    zero = jnp.zeros((), state.theta.dtype)
+    state, _, done, accepted, corr = jax.lax.while_loop(
+        more, run_block, run_block((state, key, jnp.zeros((), jnp.int32), zero, zero))
+    )
+    return state, accepted / done, done, corr
