@@ -315,7 +315,7 @@ def criticize(path, *extra):
     [
         ("gipps", "drifting_parameters", "model 'gipps' has no parameter 'tau'"),
         ("cidm", "reaction_delay", "the Cooperative IDM needs MergeInputs"),
-        ("idm+obs_noise", "reaction_delay", "has its own observation model"),
+        ("idm+obs_noise", "reaction_delay", "is a former name"),
     ],
 )
 def test_criticize_refuses_what_cannot_work_before_any_fit(delayed_platoon, model, causes, message):

@@ -91,7 +91,7 @@ def criticize_command(
     except KeyError as error:
         raise fail(str(error.args[0])) from None
     try:
-        check_model(base)  # the criticism's samplers score exactly observed states
+        check_model(base, "criticize")  # the criticism's samplers score exactly observed states
         reads_car_following(base)
     except (NotImplementedError, TypeError) as error:
         raise fail(f"criticize fits car-following data; model {model!r}: {error}") from None
