@@ -15,18 +15,34 @@ import pandas as pd
 import xarray as xr
 from jax import Array
 
-from bayesdrive import API
 from bayesdrive.criticism.criticize import CriticismResult, CriticizeConfig
 from bayesdrive.criticism.criticize import criticize as _criticize
 from bayesdrive.data.readers.columns import read_dataframe
 from bayesdrive.data.registry import load
+from bayesdrive.data.registry import resolve as data_path
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import MODELS, get_model
 from bayesdrive.inference import fit as _fit
+from bayesdrive.inference.output import load_result, save_result
+from bayesdrive.simulation.evaluation import evaluate
+from bayesdrive.simulation.posterior import posterior_predictive
 from bayesdrive.simulation.scenarios import merge_fit_arrays
 
-__all__ = list(API)  # the names bayesdrive/__init__.py loads lazily
+__all__ = [
+    "criticize",
+    "data_path",
+    "evaluate",
+    "fit",
+    "from_dataframe",
+    "get_model",
+    "load",
+    "load_result",
+    "models",
+    "posterior_predictive",
+    "save_result",
+    "summary",
+]
 
 models = MODELS
 MERGE_FORMAT = "merge_episodes"
