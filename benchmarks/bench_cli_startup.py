@@ -24,7 +24,7 @@ from pathlib import Path
 from bayesdrive.data.atomic import write_text_atomic
 
 TARGET_S = 1.0
-HEAVY = ("jax", "pandas", "xarray", "arviz", "numpyro", "matplotlib")
+HEAVY = ("jax", "pandas", "xarray", "arviz", "numpyro", "matplotlib", "scipy")
 COMMANDS = (("--help",), ("--version",), ("fit", "--help"))
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,7 +41,7 @@ def _run(args: tuple[str, ...]) -> float:
     return time.perf_counter() - started
 
 
-def heavy_imports(args: tuple[str, ...]) -> list[str]:
+def heavy_imports(args: tuple[str, ...] | list[str]) -> list[str]:
     """The heavy libraries among the modules imported by the command ``args``."""
     probe = (
         "import sys; from bayesdrive.cli.main import app\n"

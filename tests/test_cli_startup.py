@@ -7,9 +7,6 @@ take seconds, and every command summary they list is the command's own help.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,36 +14,19 @@ from typer.testing import CliRunner
 
 from bayesdrive import __version__
 from bayesdrive.cli.main import COMMANDS, app, load_command
+from benchmarks.bench_cli_startup import heavy_imports
 
 ROOT = Path(__file__).resolve().parents[1]
-HEAVY = ("jax", "pandas", "xarray", "arviz", "numpyro", "matplotlib", "scipy")
-
-
-def _imported_by(args: list[str]) -> list[str]:
-    probe = (
-        "import sys; from bayesdrive.cli.main import app\n"
-        "try:\n    app(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
-        f"print(' '.join(m for m in {HEAVY!r} if m in sys.modules), file=sys.stderr)"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", probe, *args],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    return done.stderr.split()
 
 
 @pytest.mark.parametrize("args", [["--help"], ["--version"]])
 def test_top_level_imports_no_heavy_library(args):
-    assert _imported_by(args) == []
+    assert heavy_imports(args) == []
 
 
 def test_negative_control_a_command_does_import_them():
     # The probe sees imports at all: running a command's help loads JAX.
-    assert "jax" in _imported_by(["fit", "--help"])
+    assert "jax" in heavy_imports(["fit", "--help"])
 
 
 def test_version():
