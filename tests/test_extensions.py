@@ -14,13 +14,22 @@ from scipy import stats
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.validate import validate_tracks
 from bayesdrive.data.views import scored_series
-from bayesdrive.drivers.base import EgoState, device_series, fill_params
+from bayesdrive.drivers.base import (
+    CarFollowingInputs,
+    EgoState,
+    car_following_at,
+    device_series,
+    fill_params,
+)
 from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, extend
-from bayesdrive.drivers.extensions.autocorrelated_noise import implied_acceleration
+from bayesdrive.drivers.extensions.autocorrelated_noise import (
+    NoiseMemoryInputs,
+    implied_acceleration,
+)
 from bayesdrive.drivers.extensions.cut_in import cah_acceleration
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs, history_steps, inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
-from bayesdrive.inference.likelihood import StepInputs, step_inputs
+from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
 
 DT = 0.1
 K = history_steps(DT)
@@ -41,10 +50,25 @@ def make_inputs(**overrides) -> ExtendedInputs:
         "lag_v": 12.0 + 0.05 * lags,
         "lag_gap": 18.0 + 0.3 * lags,
         "lag_lead_v": 11.0 + 0.12 * lags,
-        "prev_dx": jnp.float32(1.215),
     }
     fields.update(overrides)
     return ExtendedInputs(**fields)
+
+
+def read_by(model, inputs: ExtendedInputs, previous_dx=1.215):
+    """``inputs`` as ``model`` reads them: the extensions that change the mean rule read all of
+    them, the white-noise IDM and its speed-dependent noise the current car following, the
+    autocorrelated noise the car following now and one step before (from the history window)."""
+    if model.inputs_at is car_following_at:
+        return inputs.car_following
+    if model.name.endswith("+autocorrelated_noise"):
+        previous = CarFollowingInputs(
+            inputs.lag_gap[1], inputs.lag_lead_v[1], inputs.has_leader, inputs.dt
+        )
+        return NoiseMemoryInputs(
+            inputs.car_following, previous, inputs.lag_v[1], jnp.float32(previous_dx)
+        )
+    return inputs
 
 
 STATE = EgoState(jnp.float32(0.0), jnp.float32(12.0))
@@ -78,14 +102,15 @@ def test_every_cause_has_a_lifted_or_filtered_extension():
 def test_extension_switched_off_is_the_base_model(cause):
     """At its default ("off") value every extension scores any step exactly like the IDM."""
     extended = extend(cause, IDM)
-    inputs = make_inputs()
+    every = make_inputs()
+    inputs = read_by(extended.model, every)
     params = params_for(extended)
     state = extended.model.lift(params, STATE, inputs)
     base_params = IDM.defaults()
     for dx, next_v in ((1.18, 11.6), (1.25, 12.9), (1.10, 10.2)):
         nxt = EgoState(jnp.float32(dx), jnp.float32(next_v))
         ours = extended.model.transition_logpdf(params, state, nxt, inputs)
-        base = IDM.transition_logpdf(base_params, STATE, nxt, inputs.car_following)
+        base = IDM.transition_logpdf(base_params, STATE, nxt, every.car_following)
         np.testing.assert_allclose(ours, base, rtol=1e-6, atol=1e-5)
 
 
@@ -109,7 +134,7 @@ def test_sampler_agrees_with_density(cause):
     """
     extended = extend(cause, IDM)
     params = params_for(extended, ON[cause])
-    inputs = make_inputs()
+    inputs = read_by(extended.model, make_inputs())
     # A known previous residual, so the AR(1) conditional is exercised too.
     state = extended.model.lift(params, STATE, inputs)
     keys = jax.random.split(jax.random.key(0), 4000)
@@ -171,13 +196,16 @@ def test_autocorrelated_noise_lift_recovers_the_drawn_residual():
     model = extended.model
     inputs0 = make_inputs()
     state0 = model.initial_sample(jax.random.key(1), params, STATE)
-    first = model.transition_sample(jax.random.key(2), params, state0, inputs0)
+    first = model.transition_sample(jax.random.key(2), params, state0, read_by(model, inputs0))
     # The observed second step: its history holds the first step's speed, gap and increment.
-    inputs1 = make_inputs(
-        lag_v=inputs0.lag_v.at[1].set(STATE.v),
-        lag_gap=inputs0.lag_gap.at[1].set(inputs0.gap),
-        lag_lead_v=inputs0.lag_lead_v.at[1].set(inputs0.lead_v),
-        prev_dx=first.x,
+    inputs1 = read_by(
+        model,
+        make_inputs(
+            lag_v=inputs0.lag_v.at[1].set(STATE.v),
+            lag_gap=inputs0.lag_gap.at[1].set(inputs0.gap),
+            lag_lead_v=inputs0.lag_lead_v.at[1].set(inputs0.lead_v),
+        ),
+        previous_dx=first.x,
     )
     lifted = extended.model.lift(params, EgoState(jnp.float32(0.0), first.v), inputs1)
     np.testing.assert_allclose(lifted.residual, first.residual, atol=2e-4)
@@ -195,7 +223,7 @@ def test_autocorrelated_noise_is_a_stationary_ar1():
     """
     extended = extend("autocorrelated_noise", IDM)
     params = params_for(extended, 0.8)
-    inputs = make_inputs()
+    inputs = read_by(extended.model, make_inputs())
     start = extended.model.initial_sample(jax.random.key(0), params, STATE)
 
     def step(state, key):
@@ -216,7 +244,7 @@ def test_speed_dependent_noise_sd_grows_with_speed():
     params = params_for(extended, 0.15)
     for v in (2.0, 12.0, 25.0):
         state = EgoState(jnp.float32(0.0), jnp.float32(v))
-        inputs = make_inputs()
+        inputs = read_by(extended.model, make_inputs())
 
         def logpdf_of_dx(dx, state=state, inputs=inputs):
             nxt = EgoState(jnp.float32(dx), state.v)
@@ -362,7 +390,6 @@ def test_inputs_at_reads_the_history_window():
     j = K + 3
     inputs = inputs_at(data, j, K)
     np.testing.assert_allclose(inputs.lag_gap, series.gap[1, j - np.arange(K + 1)], rtol=1e-6)
-    np.testing.assert_allclose(inputs.prev_dx, series.dx[1, j - 1], rtol=1e-6)
     np.testing.assert_allclose(inputs.gap2, series.ahead.gap2[1, j], rtol=1e-6)
 
 
@@ -412,7 +439,7 @@ def simulate_follower(cause: str, effect: float, seed: int, steps: int = 3000):
 
     def step(carry, t):
         state, gap = carry
-        inputs = make_inputs(gap=gap, lead_v=lead_v[t])
+        inputs = read_by(extended.model, make_inputs(gap=gap, lead_v=lead_v[t]))
         moved = extended.model.transition_sample(
             jax.random.fold_in(key, t), params, state._replace(x=jnp.float32(0.0)), inputs
         )
@@ -452,3 +479,67 @@ def test_drift_filter_prefers_the_true_drift():
 
     assert total(0.1) - total(0.0) > 20.0
     assert total(0.1) > total(0.4)
+
+
+@pytest.mark.parametrize(
+    ("composite", "off", "equals"),
+    [
+        ("idm+reaction_delay+autocorrelated_noise", {"rho": 0.0}, "idm+reaction_delay"),
+        (
+            "idm+reaction_delay+autocorrelated_noise",
+            {"reaction_time": 0.0},
+            "idm+autocorrelated_noise",
+        ),
+        (
+            "idm+second_leader_anticipation+speed_dependent_noise",
+            {"anticipation": 0.0},
+            "idm+speed_dependent_noise",
+        ),
+    ],
+)
+def test_a_composite_with_one_extension_off_scores_like_the_other(composite, off, equals):
+    """Composition nests: switching one extension off leaves the model with the other, step by
+    step on a recorded platoon (scored through each model's own inputs)."""
+    from bayesdrive.drivers.registry import get_model
+
+    series = scored_series(three_car_platoon())
+    joined, single = get_model(composite), get_model(equals)
+    on = {"reaction_time": 0.37, "rho": 0.6, "anticipation": 0.5, "noise_speed_slope": 0.1}
+    values = {name: on.get(name, getattr(joined.defaults(), name)) for name in joined.param_names}
+    values.update(off)
+    joined_params = joined.params_type(*(jnp.float32(values[n]) for n in joined.param_names))
+    single_params = single.params_type(*(jnp.float32(values[n]) for n in single.param_names))
+    scored = np.asarray(series.windows.fit + series.windows.heldout) > 0
+
+    def logpdfs(model, params):
+        return np.asarray(
+            jax.vmap(lambda steps: step_logpdfs(model, params, steps))(step_inputs(series, model))
+        )
+
+    ours, theirs = logpdfs(joined, joined_params), logpdfs(single, single_params)
+    np.testing.assert_allclose(ours[scored], theirs[scored], rtol=1e-5, atol=1e-4)
+    # Negative control: with both on, the composite differs from either alone.
+    both = joined.params_type(
+        *(jnp.float32(on.get(n, getattr(joined_params, n))) for n in joined.param_names)
+    )
+    differs = logpdfs(joined, both)
+    assert np.abs(differs[scored] - theirs[scored]).max() > 1e-2
+
+
+def test_composition_rules_refuse_in_one_line():
+    from bayesdrive.drivers.registry import canonical_name, get_model
+
+    assert canonical_name("autocorrelated_noise+idm+reaction_delay") == (
+        "idm+reaction_delay+autocorrelated_noise"
+    )
+    assert get_model("autocorrelated_noise+reaction_delay+idm") is get_model(
+        "idm+reaction_delay+autocorrelated_noise"
+    )
+    for name, words in (
+        ("idm+reaction_delay+second_leader_anticipation", "one of each kind"),
+        ("idm+drifting_parameters+autocorrelated_noise", "composes with no other"),
+        ("idm+speed_dependent_noise+measurement_noise", "white execution noise"),
+        ("cidm+reaction_delay", "car-following inputs only"),
+    ):
+        with pytest.raises(KeyError, match=words):
+            get_model(name)

@@ -50,8 +50,10 @@ HISTORY_SECONDS = 1.5
 
 
 def history_steps(dt: float) -> int:
-    """K: how many past steps a history of :data:`HISTORY_SECONDS` holds at sampling interval dt."""
-    return math.ceil(HISTORY_SECONDS / dt - 1e-9)
+    """K: how many past steps a model may read at sampling interval dt: a history of
+    :data:`HISTORY_SECONDS`, and one step more, so that a model remembering its previous step
+    (autocorrelated noise) can wrap one that reads the whole history (a reaction delay)."""
+    return math.ceil(HISTORY_SECONDS / dt - 1e-9) + 1
 
 
 Window = Literal["fit", "heldout", "all"]
@@ -344,7 +346,7 @@ def scored_series(traj: Trajectories, *, vehicle_ids: list[str] | None = None) -
     """Every usable step (``mask``: the ``window="all"`` view) with the steps a model comparison
     scores in each window (``windows``, see :class:`ScoredWindows`).
 
-    The first :data:`HISTORY_SECONDS` of every vehicle and of every stretch after a gap in the
+    The first :func:`history_steps` steps of every vehicle and of every stretch after a gap in the
     data are left out of scoring for every model alike (how many steps that removes is logged);
     vehicles without a scored step in both windows are left out, and the count is logged.
     """
@@ -375,7 +377,7 @@ def scored_series(traj: Trajectories, *, vehicle_ids: list[str] | None = None) -
         log.info(
             "%d step(s) without a full %.1f s history left out of scoring (all models alike)",
             lost,
-            HISTORY_SECONDS,
+            every.history * every.dt,
         )
     windows = ScoredWindows(
         fit=window_mask("fit") * full_history, heldout=window_mask("heldout") * full_history

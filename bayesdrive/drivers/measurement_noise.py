@@ -156,6 +156,11 @@ def with_measurement_noise(model: DriverModel) -> DriverModel:
             f"model {model.name!r} already has a {SIGMA_OBS.name!r} parameter; "
             "measurement noise is added once"
         )
+    if model.lift is not observed_lift or model.filter is not None:
+        raise ValueError(
+            f"measurement noise needs a model whose state is position and speed alone; "
+            f"{model.name!r} keeps or filters more"
+        )
     specs = (*model.specs, SIGMA_OBS)
     base_type = model.params_type
     params_type = NamedTuple(

@@ -1,10 +1,12 @@
 """Driver models by name, as the CLI and result metadata spell them.
 
-A name is a base model (``idm``, ``cidm``) optionally joined by ``+`` to one extension named by the
-cause it answers (``idm+reaction_delay``, ``idm+autocorrelated_noise``; the causes of
-:data:`~bayesdrive.drivers.extensions.CAUSES`). The parts may come in any order; a model's
-canonical name puts the base first, so a result written under one spelling is recognised under
-another. ``idm+measurement_noise`` is the one measurement-noise model
+A name is a base model (``idm``, ``cidm``, ``gipps``) optionally joined by ``+`` to extensions
+named by the causes they answer (``idm+reaction_delay``,
+``idm+reaction_delay+autocorrelated_noise``; the causes of
+:data:`~bayesdrive.drivers.extensions.CAUSES`, composed by the rules of
+:mod:`bayesdrive.drivers.extensions`). The parts may come in any order; a model's canonical name
+puts the base first and the extensions in the order they are applied, so a result written under
+one spelling is recognised under another. ``idm+measurement_noise`` is the one measurement-noise model
 (:mod:`bayesdrive.drivers.measurement_noise`), for speeds recorded exactly and for the latent-state
 engine alike; results saved under its former name ``idm+obs_noise`` are refused with a message.
 """
@@ -15,7 +17,7 @@ from types import MappingProxyType
 
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.cidm import CIDM
-from bayesdrive.drivers.extensions import CAUSES, extend
+from bayesdrive.drivers.extensions import CAUSES, compose, composition_problem, ordered_causes
 from bayesdrive.drivers.gipps import GIPPS
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.measurement_noise import CAUSE as MEASUREMENT_NOISE
@@ -42,22 +44,21 @@ def canonical_name(name: str) -> str:
         raise KeyError(
             f"unknown driver model {name!r}: "
             + (f"unknown part(s) {unknown}; " if unknown else "")
-            + f"a name is one base model of {sorted(MODELS)} joined by '+' to at most one "
-            f"extension of {list(CAUSES)}"
+            + f"a name is one base model of {sorted(MODELS)} joined by '+' to extensions of "
+            f"{list(CAUSES)}"
         )
     causes = [part for part in parts if part in CAUSES]
-    if len(causes) > 1:
-        raise KeyError(
-            f"driver model {name!r} joins {len(causes)} extensions; composing extensions is not "
-            "supported yet (one extension per model)"
-        )
-    return "+".join(bases + causes)
+    problem = composition_problem(causes)
+    if problem is not None:
+        raise KeyError(f"driver model {name!r} cannot be built: {problem}")
+    return "+".join(bases + list(ordered_causes(causes)))
 
 
 def get_model(name: str) -> DriverModel:
-    """The driver model called ``name`` (module docstring); a KeyError says what is unknown."""
-    canonical = canonical_name(name)
-    if canonical in MODELS:
-        return MODELS[canonical]
-    base, cause = canonical.split("+")
-    return extend(cause, MODELS[base]).model
+    """The driver model called ``name`` (module docstring); a KeyError says what is unknown or
+    which composition rule the name breaks."""
+    base, *causes = canonical_name(name).split("+")
+    try:
+        return compose(MODELS[base], tuple(causes))
+    except ValueError as error:
+        raise KeyError(str(error)) from None

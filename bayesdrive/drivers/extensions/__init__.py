@@ -1,14 +1,40 @@
-"""Model extensions, one cause of misfit each, and the registry the criticism uses.
+"""Model extensions, one cause of misfit each, how they compose, and the registry the criticism uses.
 
-Each extension wraps a car-following base model (see :mod:`.compose`) and adds parameters with
-documented priors whose defaults switch it off, so the base model is nested in every extension.
-:data:`EXTENSIONS` maps the cause name that ``bayesdrive criticize`` reports to the wrapper.
+Each extension wraps a model (see :mod:`.compose`) and adds parameters with documented priors
+whose defaults switch it off, so the model it wraps is nested in it. :data:`EXTENSIONS` maps the
+cause name that ``bayesdrive criticize`` reports to the wrapper.
+
+**Composition.** Every extension is of one kind (:data:`KINDS`), and a model joins at most one
+extension of each kind to its base, applied in the order of :data:`KIND_ORDER` (innermost first):
+
+==============  ==========================================================  =====================
+kind            extensions                                                  wraps
+==============  ==========================================================  =====================
+``mean``        reaction_delay, second_leader_anticipation,                 a base model that
+                cut_in_overreaction                                         reads car following
+``noise``       autocorrelated_noise, speed_dependent_noise                 any exactly observed
+                                                                            model with white noise
+``parameters``  drifting_parameters                                         the base model alone
+``observation`` measurement_noise                                           base or ``mean``
+==============  ==========================================================  =====================
+
+So ``idm+reaction_delay+autocorrelated_noise``, ``cidm+autocorrelated_noise`` and
+``gipps+second_leader_anticipation+measurement_noise`` exist, and :func:`compose` refuses the
+rest in one line naming the rule: two extensions of one kind (their mean rules or noise models
+would have to be merged); ``drifting_parameters`` with anything (its Kalman filter linearises the
+base rule alone); measurement noise over a noise extension (its filter assumes white execution
+noise of sd ``sigma``); a ``mean`` extension of a base that reads more than car following (the
+Cooperative IDM's merge scene has no history window to delay, and the extensions would drop it).
+The priors stay those of each extension. Confounded pairs keep them too: a reaction delay and
+autocorrelated noise both make consecutive residuals of the undelayed white-noise model
+correlated, so with both the posterior of (reaction_time, rho) is often a ridge; the held-out
+gain of the composite over either alone is what tells them apart (``bayesdrive criticize``).
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from types import MappingProxyType
 
 from bayesdrive.drivers import measurement_noise
@@ -23,7 +49,19 @@ from bayesdrive.drivers.extensions import (
 )
 from bayesdrive.drivers.extensions.compose import ExtendedModel
 
-__all__ = ["CAUSES", "EXTENSIONS", "NO_CAUSE", "as_extended", "extend", "with_measurement_noise"]
+__all__ = [
+    "CAUSES",
+    "EXTENSIONS",
+    "KINDS",
+    "KIND_ORDER",
+    "NO_CAUSE",
+    "as_extended",
+    "compose",
+    "composition_problem",
+    "extend",
+    "ordered_causes",
+    "with_measurement_noise",
+]
 
 NO_CAUSE = "none"
 
@@ -48,6 +86,62 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
     }
 )
 CAUSES = tuple(EXTENSIONS)
+KIND_ORDER = ("mean", "noise", "parameters", "observation")
+KINDS = MappingProxyType(
+    {
+        reaction_delay.CAUSE: "mean",
+        second_leader.CAUSE: "mean",
+        cut_in.CAUSE: "mean",
+        autocorrelated_noise.CAUSE: "noise",
+        speed_dependent_noise.CAUSE: "noise",
+        drifting_parameters.CAUSE: "parameters",
+        measurement_noise.CAUSE: "observation",
+    }
+)
+
+
+def ordered_causes(causes: Sequence[str]) -> tuple[str, ...]:
+    """``causes`` in the order they are applied (:data:`KIND_ORDER`); a KeyError names an unknown."""
+    unknown = [cause for cause in causes if cause not in KINDS]
+    if unknown:
+        raise KeyError(f"unknown cause(s) {unknown}; known causes: {list(CAUSES)}")
+    return tuple(sorted(causes, key=lambda cause: KIND_ORDER.index(KINDS[cause])))
+
+
+def composition_problem(causes: Sequence[str]) -> str | None:
+    """Why these extensions cannot be joined in one model (module docstring), or None."""
+    ordered = ordered_causes(causes)
+    if len(set(ordered)) < len(ordered):
+        return f"an extension is named twice in {list(causes)}"
+    kinds = [KINDS[cause] for cause in ordered]
+    for kind in KIND_ORDER:
+        same = [cause for cause in ordered if KINDS[cause] == kind]
+        if len(same) > 1:
+            return f"{same} are both {kind!r} extensions; a model takes one of each kind"
+    if "parameters" in kinds and len(ordered) > 1:
+        return (
+            f"{drifting_parameters.CAUSE} composes with no other extension (its Kalman filter "
+            "linearises the base rule alone)"
+        )
+    if "observation" in kinds and "noise" in kinds:
+        return (
+            f"{measurement_noise.CAUSE} does not compose with a noise extension (its filter "
+            "assumes white execution noise of sd sigma)"
+        )
+    return None
+
+
+@functools.cache
+def compose(base: DriverModel, causes: tuple[str, ...]) -> DriverModel:
+    """``base`` with every extension of ``causes`` applied, in :func:`ordered_causes` order (so any
+    spelling gives the same model object); a ValueError names the rule a combination breaks."""
+    problem = composition_problem(causes)
+    if problem is not None:
+        raise ValueError(f"cannot extend {base.name!r}: {problem}")
+    model = base
+    for cause in ordered_causes(causes):
+        model = EXTENSIONS[cause](model).model
+    return model
 
 
 @functools.cache
@@ -56,12 +150,15 @@ def as_extended(base: DriverModel) -> ExtendedModel:
     return ExtendedModel(NO_CAUSE, base, base, ())
 
 
-def extend(cause: str, base: DriverModel) -> ExtendedModel:
-    """``base`` extended for ``cause`` (or itself for "none"); a KeyError lists the causes."""
+def extend(cause: str, base: DriverModel, present: tuple[str, ...] = ()) -> ExtendedModel:
+    """``base`` with the extensions ``present`` (the model the criticism has so far), extended
+    for ``cause`` (or that model itself for "none"); a KeyError lists the causes, a ValueError
+    names a composition rule broken (module docstring)."""
+    current = compose(base, present)
     if cause == NO_CAUSE:
-        return as_extended(base)
-    try:
-        wrap = EXTENSIONS[cause]
-    except KeyError:
-        raise KeyError(f"unknown cause {cause!r}; known causes: {list(CAUSES)}") from None
-    return wrap(base)
+        return as_extended(current)
+    if cause not in EXTENSIONS:
+        raise KeyError(f"unknown cause {cause!r}; known causes: {list(CAUSES)}")
+    model = compose(base, (*present, cause))
+    new_params = tuple(name for name in model.param_names if name not in current.param_names)
+    return ExtendedModel(cause, current, model, new_params)

@@ -15,8 +15,10 @@ so each :math:`e_t` has the base model's marginal sd :math:`\sigma` and lag-k co
 residual is observed too: :math:`e_{t-1} = \hat a_{t-1} - a_{base,t-1}`, where
 :math:`\hat a = 2(\Delta x - v\,\Delta t)/\Delta t^2` is the acceleration implied by the observed
 position increment (the quantity the base likelihood scores) and the base rule is evaluated on
-the previous step's inputs from the history window. :func:`with_autocorrelated_noise`'s ``lift``
-recovers it, so each step is scored exactly given the observed past.
+the previous step's own inputs (:class:`NoiseMemoryInputs`: the wrapped model's inputs at this
+step and the one before, so any exactly observed model with white noise can be wrapped, a
+reaction delay included). :func:`with_autocorrelated_noise`'s ``lift`` recovers it, so each step
+is scored exactly given the observed past.
 
 **Stops.** A step that ends in a stop censors its acceleration (the speed is clipped at 0), so the
 residual is unknown afterwards; the process then restarts from its stationary distribution
@@ -33,25 +35,25 @@ rho       --    0.0      [0, 0.99]     lag-one-step correlation of the accelerat
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 from jax import Array
 
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, Series
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
     base_params,
-    check_base,
+    check_white_noise,
     extended_specs,
     params_type,
 )
-from bayesdrive.drivers.extensions.inputs import ExtendedInputs, inputs_at
 from bayesdrive.drivers.idm import STOP_SPEED, noisy_step, step_logpdf
 
 __all__ = [
     "AR_SPECS",
     "CAUSE",
+    "NoiseMemoryInputs",
     "NoiseMemoryState",
     "implied_acceleration",
     "with_autocorrelated_noise",
@@ -81,6 +83,21 @@ class NoiseMemoryState(NamedTuple):
     known: Array
 
 
+class NoiseMemoryInputs(NamedTuple):
+    """What the autocorrelated noise reads: the wrapped model's inputs at this step (``now``) and
+    at the step before (``previous``), the ego's speed then (m/s) and its position increment over
+    that step (m)."""
+
+    now: Any
+    previous: Any
+    previous_v: Array
+    previous_dx: Array
+
+    @property
+    def dt(self) -> Array:
+        return self.now.dt
+
+
 def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:
     """The acceleration that turns speed ``v`` into position increment ``dx`` over ``dt``."""
     return 2.0 * (dx - v * dt) / dt**2
@@ -88,30 +105,31 @@ def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:
 
 @functools.cache
 def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
-    """``base`` with AR(1) execution noise of correlation ``rho`` (module docstring)."""
-    check_base(base, CAUSE)
+    """``base`` (any exactly observed model with white noise of sd ``sigma``, a ``mean`` extension
+    included) with AR(1) execution noise of correlation ``rho`` (module docstring)."""
+    check_white_noise(base, CAUSE)
     specs = extended_specs(base, AR_SPECS)
 
-    def base_mean(params, v: Array, inputs: CarFollowingInputs) -> Array:
+    def base_mean(params, v: Array, inputs) -> Array:
         return base.mean_acceleration(
             base_params(base, params), EgoState(jnp.zeros_like(v), v), inputs
         )
 
-    def conditional(params, state: NoiseMemoryState, inputs: ExtendedInputs):
+    def conditional(params, state: NoiseMemoryState, inputs: NoiseMemoryInputs):
         """Mean and sd of this step's acceleration given the last residual."""
         memory = state.known * params.rho
-        mean_acc = base_mean(params, state.v, inputs.car_following) + memory * state.residual
+        mean_acc = base_mean(params, state.v, inputs.now) + memory * state.residual
         sd = params.sigma * jnp.sqrt(1.0 - state.known * params.rho**2)
         return mean_acc, sd
 
-    def mean_acceleration(params, state: NoiseMemoryState, inputs: ExtendedInputs) -> Array:
+    def mean_acceleration(params, state: NoiseMemoryState, inputs: NoiseMemoryInputs) -> Array:
         return conditional(params, state, inputs)[0]
 
-    def transition_sample(key: Array, params, state: NoiseMemoryState, inputs: ExtendedInputs):
+    def transition_sample(key: Array, params, state: NoiseMemoryState, inputs: NoiseMemoryInputs):
         mean_acc, sd = conditional(params, state, inputs)
         moved = noisy_step(key, EgoState(state.x, state.v), mean_acc, sd, inputs.dt)
         applied = implied_acceleration(state.v, moved.x - state.x, inputs.dt)
-        residual = applied - base_mean(params, state.v, inputs.car_following)
+        residual = applied - base_mean(params, state.v, inputs.now)
         known = (moved.v > STOP_SPEED).astype(moved.v.dtype)
         return NoiseMemoryState(moved.x, moved.v, known * residual, known)
 
@@ -119,19 +137,24 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
         mean_acc, sd = conditional(params, state, inputs)
         return step_logpdf(EgoState(state.x, state.v), next_state, mean_acc, sd, inputs.dt)
 
-    def lift(params, state: EgoState, inputs: ExtendedInputs) -> NoiseMemoryState:
-        previous = CarFollowingInputs(
-            inputs.lag_gap[1], inputs.lag_lead_v[1], inputs.has_leader, inputs.dt
-        )
-        previous_v = inputs.lag_v[1]
-        applied = implied_acceleration(previous_v, inputs.prev_dx, inputs.dt)
-        residual = applied - base_mean(params, previous_v, previous)
+    def lift(params, state: EgoState, inputs: NoiseMemoryInputs) -> NoiseMemoryState:
+        applied = implied_acceleration(inputs.previous_v, inputs.previous_dx, inputs.dt)
+        residual = applied - base_mean(params, inputs.previous_v, inputs.previous)
         known = (state.v > STOP_SPEED).astype(state.v.dtype)
         return NoiseMemoryState(state.x, state.v, known * residual, known)
 
     def initial_sample(key: Array, params, obs: EgoState) -> NoiseMemoryState:
         del key, params
         return NoiseMemoryState(obs.x, obs.v, jnp.zeros_like(obs.v), jnp.zeros_like(obs.v))
+
+    def inputs_at(series: Series, j: Array, history: int) -> NoiseMemoryInputs:
+        before = jnp.maximum(j - 1, 0)
+        return NoiseMemoryInputs(
+            now=base.inputs_at(series, j, history),
+            previous=base.inputs_at(series, before, history),
+            previous_v=series.v[before],
+            previous_dx=series.dx[before],
+        )
 
     model = DriverModel(
         name=f"{base.name}+{CAUSE}",

@@ -1,15 +1,18 @@
-"""How an extension wraps a base driver model: extra parameters, and lifting observed data to states.
+"""How an extension wraps a driver model: extra parameters, and lifting observed data to states.
 
-Every extension wraps a car-following base model whose step is "mean acceleration plus Gaussian
-execution noise of sd ``params.sigma``" (the IDM: :func:`~bayesdrive.drivers.idm.noisy_step` and
-:func:`~bayesdrive.drivers.idm.step_logpdf`), and reads the base model's inputs from the
-car-following part of :class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs`. The wrapped
-model's parameters are the base model's, in the same order, followed by the extension's own (with
-defaults that switch the extension off, so the base model is nested in every extension).
+Every extension wraps a model whose step is "mean acceleration plus Gaussian execution noise of sd
+``params.sigma``" (the IDM: :func:`~bayesdrive.drivers.idm.noisy_step` and
+:func:`~bayesdrive.drivers.idm.step_logpdf`). The wrapped model's parameters are the inner
+model's, in the same order, followed by the extension's own (with defaults that switch the
+extension off, so the inner model is nested in every extension).
 
-Every extension reads :class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs`, built by its
-model's ``inputs_at`` from the one series, so only base models that read car-following inputs
-alone can be extended (:func:`check_base`). Some extensions keep more in the state than the
+The extensions that change the mean rule read
+:class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs`, built by their model's
+``inputs_at`` from the one series, and hand its car-following part to the base model, so they wrap
+only base models that read car-following inputs alone (:func:`check_base`). The noise extensions
+read whatever the inner model reads and wrap any exactly observed model with white noise
+(:func:`check_white_noise`), a ``mean`` extension included: that is how extensions compose
+(:func:`~bayesdrive.drivers.extensions.compose`). Some extensions keep more in the state than the
 observed position and speed (the autocorrelated noise keeps the last acceleration residual). With
 exactly observed data that extra state is a function of the parameters and the observed past: the
 model's ``lift`` computes it, so the likelihood stays exact and a step can be scored on its own.
@@ -24,7 +27,13 @@ from typing import Any, NamedTuple
 
 from jax import Array
 
-from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, car_following_at
+from bayesdrive.drivers.base import (
+    DriverModel,
+    EgoState,
+    ParamSpec,
+    car_following_at,
+    observed_lift,
+)
 from bayesdrive.drivers.extensions.inputs import inputs_at
 from bayesdrive.drivers.idm import execution_noise_model, execution_noise_sd
 
@@ -32,6 +41,7 @@ __all__ = [
     "ExtendedModel",
     "base_params",
     "check_base",
+    "check_white_noise",
     "extended_specs",
     "gaussian_extension",
     "params_type",
@@ -70,6 +80,20 @@ def check_base(base: DriverModel, cause: str) -> None:
         )
 
 
+def check_white_noise(inner: DriverModel, cause: str) -> None:
+    """Refuse an inner model whose step is not white Gaussian noise of sd ``sigma`` around its mean
+    rule on an exactly observed state (a noise extension would misread its state or noise)."""
+    if inner.lift is not observed_lift or inner.filter is not None:
+        raise ValueError(
+            f"extension {cause!r} needs an inner model whose state is observed exactly; "
+            f"{inner.name!r} keeps or filters more"
+        )
+    if inner.execution_noise_param is None:
+        raise ValueError(
+            f"extension {cause!r} needs an execution-noise sd; {inner.name!r} has none"
+        )
+
+
 def extended_specs(base: DriverModel, new: Sequence[ParamSpec]) -> tuple[ParamSpec, ...]:
     """The base model's specs followed by the extension's; refuses a name clash."""
     clash = set(base.param_names) & {s.name for s in new}
@@ -98,13 +122,15 @@ def gaussian_extension(
     *,
     noise_sd: Callable[[Any, Any], Array] = execution_noise_sd,
     reads_history: bool = False,
+    reads: Callable[[Any, Array, int], Any] = inputs_at,
 ) -> ExtendedModel:
-    """An extension whose step is ``mean_acceleration`` plus Gaussian noise of sd ``noise_sd``.
+    """An extension whose step is ``mean_acceleration`` plus Gaussian noise of sd ``noise_sd``,
+    reading the inputs ``reads`` builds (default: :class:`ExtendedInputs`, for a base model that
+    reads car following alone; the caller checks ``base`` fits).
 
     Sampling and density are the base models' own :func:`~bayesdrive.drivers.idm.noisy_step` and
     :func:`~bayesdrive.drivers.idm.step_logpdf`, so the extension changes only the mean (or the sd).
     """
-    check_base(base, cause)
     specs = extended_specs(base, new_specs)
     type_name = "".join(part.title() for part in cause.split("_")) + "Params"
     model = execution_noise_model(
@@ -113,7 +139,7 @@ def gaussian_extension(
         specs,
         mean_acceleration,
         noise_sd,
-        inputs_at,
+        reads,
     )._replace(
         observation_logpdf=base.observation_logpdf,
         initial_sample=base.initial_sample,

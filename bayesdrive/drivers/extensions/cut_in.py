@@ -43,7 +43,12 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.extensions.compose import ExtendedModel, base_params, gaussian_extension
+from bayesdrive.drivers.extensions.compose import (
+    ExtendedModel,
+    base_params,
+    check_base,
+    gaussian_extension,
+)
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs
 from bayesdrive.drivers.idm import MIN_GAP
 
@@ -82,4 +87,5 @@ def with_cut_in_heuristic(base: DriverModel) -> ExtendedModel:
         relaxed = (inputs.has_leader > 0) & (rule < cah)
         return jnp.where(relaxed, blended, rule)
 
+    check_base(base, CAUSE)
     return gaussian_extension(base, CAUSE, CAH_SPECS, mean_acceleration)

@@ -9,8 +9,6 @@ what the driver sees:
 * a short **history window** of the ego's speed, its gap and its leader's speed, ``lag_k`` = the
   value k steps ago (k = 0 is now, k = 1..K the past, K = ``ceil(HISTORY_SECONDS / dt)``), for
   the reaction delay, which interpolates between samples for a continuous delay;
-* the ego's **previous position increment** ``prev_dx`` (x[t] - x[t-1]), from which the previous
-  step's acceleration residual is recovered exactly (autocorrelated noise);
 * the **second vehicle ahead** and the leader's **acceleration** (the series' ``ahead`` part).
 
 **Which steps are scored.** A model that reads its past is scored only on steps whose K steps
@@ -40,7 +38,6 @@ class ExtendedInputs(NamedTuple):
     lead2_v: speed of the second vehicle ahead (m/s).
     has_leader2: 1.0 when a second vehicle ahead is known, else 0.0.
     lag_v, lag_gap, lag_lead_v: (K + 1,) ego speed, gap and leader speed k steps ago (k = 0: now).
-    prev_dx: the ego's position increment over the previous step (m).
     """
 
     gap: Array
@@ -54,7 +51,6 @@ class ExtendedInputs(NamedTuple):
     lag_v: Array
     lag_gap: Array
     lag_lead_v: Array
-    prev_dx: Array
 
     @property
     def car_following(self) -> CarFollowingInputs:
@@ -87,5 +83,4 @@ def inputs_at(series: Series, j: Array, history: int) -> ExtendedInputs:
         lag_v=series.v[lags],
         lag_gap=series.gap[lags],
         lag_lead_v=series.lead_v[lags],
-        prev_dx=series.dx[jnp.maximum(j - 1, 0)],
     )

@@ -31,7 +31,12 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.extensions.compose import ExtendedModel, base_params, gaussian_extension
+from bayesdrive.drivers.extensions.compose import (
+    ExtendedModel,
+    base_params,
+    check_base,
+    gaussian_extension,
+)
 from bayesdrive.drivers.extensions.inputs import HISTORY_SECONDS, ExtendedInputs
 
 __all__ = ["CAUSE", "DELAY_SPECS", "delayed", "with_reaction_delay"]
@@ -76,4 +81,5 @@ def with_reaction_delay(base: DriverModel) -> ExtendedModel:
         past_self = EgoState(x=state.x, v=delayed(inputs.lag_v, steps))
         return base.mean_acceleration(base_params(base, params), past_self, perceived)
 
+    check_base(base, CAUSE)
     return gaussian_extension(base, CAUSE, DELAY_SPECS, mean_acceleration, reads_history=True)

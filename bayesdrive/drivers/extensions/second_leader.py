@@ -30,7 +30,12 @@ import functools
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.extensions.compose import ExtendedModel, base_params, gaussian_extension
+from bayesdrive.drivers.extensions.compose import (
+    ExtendedModel,
+    base_params,
+    check_base,
+    gaussian_extension,
+)
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs
 
 __all__ = ["ANTICIPATION_SPECS", "CAUSE", "with_second_leader_anticipation"]
@@ -57,4 +62,5 @@ def with_second_leader_anticipation(base: DriverModel) -> ExtendedModel:
         weight = params.anticipation * inputs.has_leader2 * inputs.has_leader
         return (1.0 - weight) * to_leader + weight * to_second
 
+    check_base(base, CAUSE)
     return gaussian_extension(base, CAUSE, ANTICIPATION_SPECS, mean_acceleration)

@@ -21,8 +21,12 @@ import functools
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.extensions.compose import ExtendedModel, base_params, gaussian_extension
-from bayesdrive.drivers.extensions.inputs import ExtendedInputs
+from bayesdrive.drivers.extensions.compose import (
+    ExtendedModel,
+    base_params,
+    check_white_noise,
+    gaussian_extension,
+)
 
 __all__ = ["CAUSE", "SPEED_NOISE_SPECS", "noise_sd", "with_speed_dependent_noise"]
 
@@ -47,9 +51,19 @@ def noise_sd(params, state) -> Array:
 
 @functools.cache
 def with_speed_dependent_noise(base: DriverModel) -> ExtendedModel:
-    """``base`` with execution noise sd sigma (1 + k v) (module docstring)."""
+    """``base`` (any exactly observed model with white noise, a ``mean`` extension included) with
+    execution noise sd sigma (1 + k v) (module docstring); it reads what ``base`` reads."""
+    check_white_noise(base, CAUSE)
 
-    def mean_acceleration(params, state: EgoState, inputs: ExtendedInputs) -> Array:
-        return base.mean_acceleration(base_params(base, params), state, inputs.car_following)
+    def mean_acceleration(params, state: EgoState, inputs) -> Array:
+        return base.mean_acceleration(base_params(base, params), state, inputs)
 
-    return gaussian_extension(base, CAUSE, SPEED_NOISE_SPECS, mean_acceleration, noise_sd=noise_sd)
+    return gaussian_extension(
+        base,
+        CAUSE,
+        SPEED_NOISE_SPECS,
+        mean_acceleration,
+        noise_sd=noise_sd,
+        reads_history=base.reads_history,
+        reads=base.inputs_at,
+    )
