@@ -62,6 +62,14 @@ def criticize_command(
     causes: Annotated[
         str | None, typer.Option("--causes", help="Comma-separated causes (default: all).")
     ] = None,
+    max_rounds: Annotated[
+        int,
+        typer.Option(
+            "--max-rounds",
+            help="Rounds of extending the model by the cause found and looking for the next "
+            "(1: the first cause only).",
+        ),
+    ] = 3,
     out: Annotated[
         Path | None, typer.Option("--out", help="Folder for the check pictures.")
     ] = None,
@@ -106,7 +114,7 @@ def criticize_command(
     for cause in chosen:
         try:
             extend(cause, base)
-        except KeyError as error:
+        except (KeyError, ValueError) as error:
             misfits[cause] = error.args[0]
     if misfits and causes:
         raise fail(f"cause(s) that cannot extend model {model!r}: {misfits}")
@@ -122,15 +130,21 @@ def criticize_command(
         leaders = set(tracks.loc[tracks["vehicle_id"].isin(chosen_ids), "leader_id"].dropna())
         second = set(tracks.loc[tracks["vehicle_id"].isin(leaders), "leader_id"].dropna())
         traj = traj.subset(chosen_ids | leaders | second)
-    config = CriticizeConfig(num_rollouts=rollouts, causes=chosen)
+    config = CriticizeConfig(num_rollouts=rollouts, causes=chosen, max_rounds=max_rounds)
     if particles is not None:
         config = config._replace(num_particles=particles)
     if unmoved_tolerance is not None:
         config = config._replace(unmoved_tolerance=unmoved_tolerance)
-    if config.num_particles < 2 or rollouts < 0 or not 0 <= config.unmoved_tolerance < 1:
+    if (
+        config.num_particles < 2
+        or rollouts < 0
+        or max_rounds < 1
+        or not 0 <= config.unmoved_tolerance < 1
+    ):
         raise fail(
-            "need --particles >= 2, --rollouts >= 0 and 0 <= --unmoved-tolerance < 1, got "
-            f"{config.num_particles}, {rollouts}, {config.unmoved_tolerance}"
+            "need --particles >= 2, --rollouts >= 0, --max-rounds >= 1 and 0 <= "
+            f"--unmoved-tolerance < 1, got {config.num_particles}, {rollouts}, {max_rounds}, "
+            f"{config.unmoved_tolerance}"
         )
 
     quiet = json_out == "-"
@@ -206,7 +220,7 @@ def print_report(report: dict[str, Any]) -> None:
     console.print(
         f"{data['source']} ({data['format']}): {data['vehicles']} vehicles, "
         f"{data['scored_steps_fit']} fitting and {data['scored_steps_heldout']} held-out steps; "
-        f"base model {report['model']}, seed {report['seed']}"
+        f"base model {report['base_model']}, seed {report['seed']}"
     )
     checks = Table(title="Checks on held-out windows (base model)")
     for column in ("check", "number", "p", "points to"):
@@ -220,24 +234,36 @@ def print_report(report: dict[str, Any]) -> None:
         )
     console.print(checks)
 
-    causes = Table(title="Causes (ordered by held-out gain)")
-    for column in ("cause", "screened", "elpd gain", "se", "p", "significant", "RMSE change (m)"):
-        causes.add_column(column)
-    for cause in report["causes"]:
-        gain = cause["gain"] or {}
-        causes.add_row(
-            cause["name"],
-            "yes" if cause["screened_in"] else "no",
-            _fmt(gain.get("elpd"), 4),
-            _fmt(gain.get("se")),
-            _fmt(gain.get("p_value")),
-            {True: "[green]yes[/green]", False: "no"}.get(gain.get("significant"), "-"),
-            _fmt(gain.get("rmse_position_change")),
+    for found in report["rounds"]:
+        causes = Table(
+            title=f"Round {found['round']}: what extends {found['model']} "
+            "(ordered by held-out gain)"
         )
-    console.print(causes)
+        for column in (
+            "cause",
+            "screened",
+            "elpd gain",
+            "se",
+            "p",
+            "significant",
+            "RMSE change (m)",
+        ):
+            causes.add_column(column)
+        for cause in found["causes"]:
+            gain = cause["gain"] or {}
+            causes.add_row(
+                cause["name"],
+                "yes" if cause["screened_in"] else "no",
+                _fmt(gain.get("elpd"), 4),
+                _fmt(gain.get("se")),
+                _fmt(gain.get("p_value")),
+                {True: "[green]yes[/green]", False: "no"}.get(gain.get("significant"), "-"),
+                _fmt(gain.get("rmse_position_change")),
+            )
+        console.print(causes)
     console.print(f"[dim]{report['settings']['significance']}[/dim]")
     verdict = report["verdict"]
-    console.print(f"[bold]Verdict:[/bold] {verdict}")
+    console.print(f"[bold]Verdict:[/bold] {verdict}; final model: {report['model']}")
     if report.get("power_warning"):
         console.print(f"[yellow]Low power:[/yellow] {escape(report['power_warning'])}")
     if report.get("verdict_is_possible_processing_artefact"):

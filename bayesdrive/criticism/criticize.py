@@ -19,6 +19,18 @@ Steps (``criticize``):
    window the same way, and compute its gain, significance (Holm over all causes) and rollout RMSE
    change (:mod:`bayesdrive.criticism.gain`).
 6. Verdict: the significant cause with the largest gain, else "none".
+7. **The loop.** With a verdict, the model is extended by it and the next round asks what the
+   extended model still gets wrong: every cause screened in at step 4 that composes with it
+   (:func:`~bayesdrive.drivers.extensions.composition_problem`) is added to it, fitted from its
+   posterior, and its held-out gain over it tested as in step 5; the significant cause with the
+   largest gain extends the model again, until a round finds none or ``max_rounds`` rounds ran.
+   The residual checks describe the base model's misfit, so they run once; later rounds decide
+   by the held-out (leave-future-out) gain alone.
+
+**Multiplicity across rounds.** Each round tests its family (every cause that still composes,
+unfitted ones counting as p = 1) with Holm at ``alpha``, and a round runs only after the round
+before named a cause: a fixed-sequence gate, so on data where no cause helps the loop's
+false-positive rate is the first round's, whatever ``max_rounds`` is.
 
 Randomness: one seed; each part draws from its own key, derived from the seed by name
 (``fold_in`` of a hash of the name), so adding a cause never changes another's draws. The rollouts
@@ -48,7 +60,14 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import SPLIT_RULE, FollowerArrays, follower_arrays, scored_series
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.drivers.extensions import CAUSES, NO_CAUSE, as_extended, extend
+from bayesdrive.drivers.extensions import (
+    CAUSES,
+    NO_CAUSE,
+    as_extended,
+    compose,
+    composition_problem,
+    extend,
+)
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.tempering import (
     DEFAULT_CONFIG,
@@ -111,6 +130,7 @@ class CriticizeConfig(NamedTuple):
     num_rollouts: int = 32  # per held-out window; 0 skips the rollouts (no RMSE, no multistep)
     causes: tuple[str, ...] = CAUSES
     vehicle_batch: int = 1  # see bayesdrive.inference.tempering.fit_model
+    max_rounds: int = 3  # rounds of the loop (module docstring, step 7); 1: the first cause only
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
@@ -121,7 +141,9 @@ DETECTION_CONFIG = CriticizeConfig(num_rollouts=0)
 
 
 class CriticismResult(NamedTuple):
-    """The JSON-ready report plus what the pictures need."""
+    """The JSON-ready report plus what the pictures need (``fits``, ``gains`` and ``rollouts``
+    of the first round, by cause; ``final`` the fit of the final model on the fitting windows and
+    its rollouts)."""
 
     report: dict[str, Any]
     checks: list[Check]
@@ -130,6 +152,7 @@ class CriticismResult(NamedTuple):
     fits: dict[str, FitResult]
     gains: dict[str, Gain]
     rollouts: dict[str, Rollouts]
+    final: FitResult
 
 
 def named_key(key: jax.Array, name: str) -> jax.Array:
@@ -179,6 +202,27 @@ def _posterior_summary(fit: FitResult, names: Sequence[str]) -> dict[str, dict[s
             "q95_vehicles": float(np.quantile(means, 0.95)),
         }
     return out
+
+
+def _gain_entry(gain: Gain, series: FollowerArrays, significant: bool) -> dict[str, Any]:
+    """A gain as the JSON report states it."""
+    return {
+        "elpd": _finite_or_none(gain.elpd),
+        "se": _finite_or_none(gain.se),
+        "t": _finite_or_none(gain.t),
+        "t_log_transformed": _finite_or_none(gain.t_transformed),
+        "non_finite_vehicles": [
+            series.vehicle_ids[i] for i in np.flatnonzero(~np.isfinite(gain.per_vehicle))
+        ],
+        "p_value": gain.p_value,
+        "significant": significant,
+        "vehicles_improved": int(np.sum(gain.per_vehicle > 0)),
+    }
+
+
+def composes(present: tuple[str, ...], cause: str) -> bool:
+    """Whether ``cause`` can join a model that has the extensions ``present``."""
+    return composition_problem((*present, cause)) is None
 
 
 def _finite_or_none(value: float) -> float | None:
@@ -258,8 +302,10 @@ def criticize(
     rollout_key = named_key(key, "rollouts")
 
     def fit_and_roll(extended, start: FitResult | None) -> tuple[FitResult, Rollouts]:
+        # Keys by the causes in the model, so round one's draws do not depend on later rounds.
+        causes_in = "+".join((*present, extended.cause)) if present else extended.cause
         fit = fit_model(
-            named_key(key, f"fit:{extended.cause}"),
+            named_key(key, f"fit:{causes_in}"),
             series,
             extended,
             config=fit_config,
@@ -271,74 +317,104 @@ def criticize(
         )
         return fit, rolled
 
+    present: tuple[str, ...] = ()
     say(f"fitting the base model ({model.name}) to {len(series.vehicle_ids)} vehicles")
-    base_model = as_extended(model)
-    base, base_rollouts = fit_and_roll(base_model, None)
+    base, base_rollouts = fit_and_roll(as_extended(model), None)
     say("running the checks")
     residuals, checks = run_checks(named_key(key, "checks"), base, series, causes=config.causes)
     checks.append(multistep_check(base_rollouts, series.dt))
-
-    fits = {NO_CAUSE: base}
-    rollouts = {NO_CAUSE: base_rollouts}
-    gains: dict[str, Gain] = {}
     screening = {cause: _screen(checks, cause, config.screen_p) for cause in config.causes}
-    for cause in config.causes:
-        if not screening[cause][0]:
-            continue
-        say(f"fitting the {cause} extension")
-        fits[cause], rollouts[cause] = fit_and_roll(extend(cause, model), base)
-        gains[cause] = elpd_gain(base, fits[cause])
-
-    significant = holm({c: g.p_value for c, g in gains.items()}, config.causes, config.alpha)
-    ranked = sorted(
-        gains, key=lambda c: gains[c].elpd if np.isfinite(gains[c].elpd) else -np.inf, reverse=True
-    )
-    verdict = next((c for c in ranked if c in significant), NO_CAUSE)
-    base_rmse = base_rollouts.rmse_per_vehicle(len(series.vehicle_ids))
+    screened = [cause for cause in config.causes if screening[cause][0]]
     artefacts = PROCESSING_ARTEFACTS.get(traj.format, {})
+    num_vehicles = len(series.vehicle_ids)
 
-    causes = []
-    for cause in [*ranked, *(c for c in config.causes if c not in gains)]:
-        screened, evidence = screening[cause]
-        extended = extend(cause, model)
-        entry: dict[str, Any] = {
-            "name": cause,
-            "extension": extended.name,
-            "new_params": list(extended.new_params),
-            "screened_in": screened,
-            "evidence": evidence,
-            "possible_processing_artefact": artefacts.get(cause),
-        }
-        if cause in gains:
-            gain = gains[cause]
-            change, change_se = rmse_change(
-                base_rmse, rollouts[cause].rmse_per_vehicle(len(series.vehicle_ids))
-            )
-            entry["gain"] = {
-                "elpd": _finite_or_none(gain.elpd),
-                "se": _finite_or_none(gain.se),
-                "t": _finite_or_none(gain.t),
-                "t_log_transformed": _finite_or_none(gain.t_transformed),
-                "non_finite_vehicles": [
-                    series.vehicle_ids[i] for i in np.flatnonzero(~np.isfinite(gain.per_vehicle))
-                ],
-                "p_value": gain.p_value,
-                "significant": cause in significant,
-                "vehicles_improved": int(np.sum(gain.per_vehicle > 0)),
-                "rmse_position_change": _finite_or_none(change),
-                "rmse_position_change_se": _finite_or_none(change_se),
+    def one_round(current: FitResult, current_rollouts: Rollouts) -> dict[str, Any]:
+        """Extend the current model by each composable screened cause; test the gains."""
+        family = [c for c in config.causes if c not in present and composes(present, c)]
+        fits: dict[str, FitResult] = {}
+        rolled: dict[str, Rollouts] = {}
+        gains: dict[str, Gain] = {}
+        for cause in (c for c in screened if c in family):
+            say(f"round {len(present) + 1}: fitting {extend(cause, model, present).name}")
+            fits[cause], rolled[cause] = fit_and_roll(extend(cause, model, present), current)
+            gains[cause] = elpd_gain(current, fits[cause])
+        significant = holm({c: g.p_value for c, g in gains.items()}, family, config.alpha)
+        ranked = sorted(
+            gains,
+            key=lambda c: gains[c].elpd if np.isfinite(gains[c].elpd) else -np.inf,
+            reverse=True,
+        )
+        current_rmse = current_rollouts.rmse_per_vehicle(num_vehicles)
+        entries = []
+        for cause in [*ranked, *(c for c in family if c not in gains)]:
+            extended = extend(cause, model, present)
+            entry: dict[str, Any] = {
+                "name": cause,
+                "extension": extended.name,
+                "new_params": list(extended.new_params),
+                "screened_in": screening[cause][0],
+                "evidence": screening[cause][1],
+                "possible_processing_artefact": artefacts.get(cause),
+                "gain": None,
             }
-            entry["posterior"] = _posterior_summary(fits[cause], extended.new_params)
-        else:
-            entry["gain"] = None
-        causes.append(entry)
+            if cause in gains:
+                change, change_se = rmse_change(
+                    current_rmse, rolled[cause].rmse_per_vehicle(num_vehicles)
+                )
+                entry["gain"] = _gain_entry(gains[cause], series, cause in significant)
+                entry["gain"]["rmse_position_change"] = _finite_or_none(change)
+                entry["gain"]["rmse_position_change_se"] = _finite_or_none(change_se)
+                entry["posterior"] = _posterior_summary(fits[cause], extended.new_params)
+            entries.append(entry)
+        return {
+            "verdict": next((c for c in ranked if c in significant), NO_CAUSE),
+            "family": family,
+            "entries": entries,
+            "fits": fits,
+            "gains": gains,
+            "rollouts": rolled,
+        }
+
+    current, current_rollouts = base, base_rollouts
+    rounds: list[dict[str, Any]] = []
+    while len(rounds) < config.max_rounds:
+        found = one_round(current, current_rollouts)
+        rounds.append(found)
+        cause = found["verdict"]
+        if cause == NO_CAUSE:
+            break
+        current, current_rollouts = found["fits"][cause], found["rollouts"][cause]
+        present = (*present, cause)
+    first = rounds[0]
+    verdict = first["verdict"]
+    final_model = compose(model, present)
+    fits = {NO_CAUSE: base, **first["fits"]}
+    rollouts = {NO_CAUSE: base_rollouts, **first["rollouts"]}
+    gains = first["gains"]
+    base_rmse = base_rollouts.rmse_per_vehicle(num_vehicles)
+    causes = first["entries"]
+    every_fit = {"none": base}
+    for number, found in enumerate(rounds, start=1):
+        for fit in found["fits"].values():
+            every_fit[f"round {number}: {fit.model.name}"] = fit
 
     report = {
         "verdict": verdict,
         "verdict_is_possible_processing_artefact": artefacts.get(verdict),
+        "model": final_model.name,
+        "rounds": [
+            {
+                "round": number,
+                "model": compose(model, tuple(r["verdict"] for r in rounds[: number - 1])).name,
+                "tested": found["family"],
+                "verdict": found["verdict"],
+                "causes": found["entries"],
+            }
+            for number, found in enumerate(rounds, start=1)
+        ],
         "power_warning": power_warning(len(series.vehicle_ids)),
         "seed": seed,
-        "model": model.name,
+        "base_model": model.name,
         "data": {
             "source": str(traj.source),
             "format": traj.format,
@@ -359,6 +435,10 @@ def criticize(
             f"{len(config.causes)} causes considered (unfitted causes count as p = 1)",
             "screening": f"a cause is fitted when a screening check (calibrated across "
             f"vehicles) pointing to it has p < {config.screen_p} (Bonferroni within the cause)",
+            "rounds": f"at most {config.max_rounds}; each extends the model by the round before's "
+            "verdict and tests every screened cause that composes with it, Holm at "
+            f"{config.alpha} over the causes that compose; a round runs only after a verdict "
+            "(fixed-sequence gate: on null data the first round's false-positive rate)",
         },
         "base": {
             "elpd": float(base.log_z_held.sum()),
@@ -380,8 +460,8 @@ def criticize(
         "causes": causes,
         "timing": {
             "total_s": time.perf_counter() - started,
-            "compile_s": {c: f.compile_time_s for c, f in fits.items()},
-            "run_s": {c: f.run_time_s for c, f in fits.items()},
+            "compile_s": {c: f.compile_time_s for c, f in every_fit.items()},
+            "run_s": {c: f.run_time_s for c, f in every_fit.items()},
         },
         "sampler": {
             c: {
@@ -390,7 +470,7 @@ def criticize(
                 "vehicles_bridged_from_base": int((~f.from_prior).sum()),
                 "acceptance": float(f.acceptance.mean()),
             }
-            for c, f in fits.items()
+            for c, f in every_fit.items()
         },
     }
-    return CriticismResult(report, checks, residuals, series, fits, gains, rollouts)
+    return CriticismResult(report, checks, residuals, series, fits, gains, rollouts, current)

@@ -242,6 +242,13 @@ def _temper(
     return cloud
 
 
+def _new_and_old_columns(extended: ExtendedModel) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of the extension's new parameters and of the model it extends, in its layout."""
+    names = extended.model.param_names
+    new = [names.index(name) for name in extended.new_params]
+    return np.array(new, int), np.array([i for i in range(len(names)) if i not in new], int)
+
+
 class _VehicleFit(NamedTuple):
     theta: Array
     log_z_fit: Array
@@ -276,8 +283,11 @@ def _fit_vehicle(
     theta = prior.sample(key_prior, (config.num_particles,))
     can_bridge = start_theta is not None
     if can_bridge:
+        # The new parameters may sit anywhere among the model's (composites keep kind order).
+        new_columns, old_columns = _new_and_old_columns(extended)
         new = extended.model.prior(extended.new_params).sample(key_new, (config.num_particles,))
-        theta = jnp.where(from_prior, theta, jnp.concatenate([start_theta, new], axis=-1))
+        bridged = theta.at[:, old_columns].set(start_theta).at[:, new_columns].set(new)
+        theta = jnp.where(from_prior, theta, bridged)
         off = jnp.asarray(
             [extended.model.spec(n).default for n in extended.new_params], theta.dtype
         )
@@ -289,7 +299,7 @@ def _fit_vehicle(
             fit, held = _window_logliks(extended, names, th, steps)
             return fit, held, jnp.zeros_like(fit)
         # On and off in one vectorised call, so the likelihood is traced (and compiled) once.
-        both = jnp.stack([th, th.at[th.shape[0] - off.shape[0] :].set(off)])
+        both = jnp.stack([th, th.at[new_columns].set(off)])
         fit, held = jax.vmap(lambda t: _window_logliks(extended, names, t, steps))(both)
         return fit[0], held[0], fit[1]
 
@@ -413,8 +423,9 @@ def fit_model(
     start_theta = None
     if start is not None:
         expected = (num_vehicles, config.num_particles)
+        _, old_columns = _new_and_old_columns(extended)
         if (
-            start.names != extended.model.param_names[: len(start.names)]
+            start.names != tuple(extended.model.param_names[i] for i in old_columns)
             or start.theta.shape[:2] != expected
         ):
             raise ValueError(
