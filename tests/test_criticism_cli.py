@@ -13,6 +13,7 @@ from bayesdrive.criticism.criticize import POWERED_VEHICLES, criticized_series, 
 from bayesdrive.data.readers import read
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.inference.fit import first_vehicles
+from bayesdrive.inference.output import load_result, metadata
 from trafficgen import DETECTION_SCENARIO, generate
 
 app = typer.Typer()
@@ -35,7 +36,8 @@ def small_file(tmp_path_factory):
 
 
 def test_json_on_stdout_and_pictures(small_file, tmp_path):
-    """--json - writes only JSON on stdout; --out writes the check pictures."""
+    """--json - writes only JSON on stdout; --out writes the check pictures and the final model
+    (a result file that loads, of the model the JSON names, with its model card)."""
     out = tmp_path / "figures"
     result = CliRunner().invoke(
         app,
@@ -66,6 +68,9 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
     assert report["settings"]["unmoved_tolerance"] == 0.05
     assert report["verdict"] in ("reaction_delay", "none")
     assert [c["name"] for c in report["causes"]] == ["reaction_delay"]
+    assert report["rounds"][0]["causes"] == report["causes"]
+    expected_model = "idm" if report["verdict"] == "none" else "idm+reaction_delay"
+    assert report["model"] == expected_model
     names = {p.name for p in out.iterdir()}
     assert {
         "calibration.png",
@@ -73,7 +78,13 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
         "causes.png",
         "multistep.png",
         "screening.png",
+        "final_model.nc",
+        "final_model.md",
     } <= names
+    final = metadata(load_result(out / "final_model.nc"))
+    assert final["model"] == expected_model and final["engine"] == "smc"
+    assert final["num_vehicles"] == report["data"]["vehicles"]
+    assert f"# {expected_model}" in (out / "final_model.md").read_text()
     assert all(p.stat().st_size > 10_000 for p in out.glob("*.png"))
     assert json.loads((out / "manifest.json").read_text())["files"] == sorted(
         names - {"manifest.json"}

@@ -172,11 +172,61 @@ def criticize_command(
         from bayesdrive.reports.criticism_plots import plot_criticism
 
         written = plot_criticism(result, results.path)
+        written += _write_final_model(result, traj, seed, results.path)
         results.commit()
         result.report["figures"] = [str(out / p.relative_to(results.path)) for p in written]
     if emit_json(result.report, json_out):
         return
     print_report(result.report)
+
+
+def _write_final_model(result, traj, seed: int, folder: Path) -> list[Path]:
+    """The final model fitted by smc (its defaults) to the criticized vehicles' fitting windows,
+    as a result file ``final_model.nc`` beside its model card ``final_model.md``."""
+    import jax
+
+    from bayesdrive.criticism.criticize import named_key
+    from bayesdrive.data.atomic import write_text_atomic
+    from bayesdrive.drivers.registry import get_model
+    from bayesdrive.inference.fit import fit
+    from bayesdrive.inference.output import save_result
+    from bayesdrive.reports.model_card import model_card
+
+    report = result.report
+    model = get_model(report["model"])
+    err_console.print(f"fitting the final model {model.name} with smc for final_model.nc")
+    tree = fit(
+        named_key(jax.random.key(seed), "final_model"),
+        traj,
+        model=model,
+        engine="smc",
+        window="fit",
+        seed=seed,
+        vehicle_ids=list(result.series.vehicle_ids),
+    )
+    path = save_result(tree, folder / "final_model.nc")
+    gains = [
+        f"round {r['round']}: {r['model']} + {r['verdict']}, held-out gain "
+        f"{c['gain']['elpd']:.1f} +- {c['gain']['se']:.1f} nats (p = {c['gain']['p_value']:.2g})"
+        for r in report["rounds"]
+        for c in r["causes"]
+        if c["name"] == r["verdict"] and c["gain"] and c["gain"]["elpd"] is not None
+    ]
+    card = model_card(
+        tree,
+        title=f"{model.name}: the final model of `bayesdrive criticize`",
+        description=f"base model {report['base_model']} extended by the causes criticize "
+        "found, in rounds",
+        label=f"{report['data']['vehicles']} criticized vehicles",
+        lines=[
+            f"criticism: seed {seed}, verdict {report['verdict']}, rounds "
+            f"{len(report['rounds'])} (settings in the criticism's JSON)",
+            *(gains or ["no cause gained significantly: the final model is the base model"]),
+        ],
+    )
+    card_path = folder / "final_model.md"
+    write_text_atomic(card_path, card)
+    return [path, card_path]
 
 
 def reads_car_following(model) -> None:
