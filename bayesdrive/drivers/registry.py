@@ -23,7 +23,7 @@ from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.measurement_noise import CAUSE as MEASUREMENT_NOISE
 from bayesdrive.drivers.measurement_noise import OLD_NAME_SUFFIX
 
-__all__ = ["MODELS", "canonical_name", "get_model"]
+__all__ = ["MODELS", "base_model", "canonical_name", "get_model"]
 
 MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM, GIPPS)})
 
@@ -62,3 +62,9 @@ def get_model(name: str) -> DriverModel:
         return compose(MODELS[base], tuple(causes))
     except ValueError as error:
         raise KeyError(str(error)) from None
+
+
+def base_model(model: DriverModel) -> DriverModel:
+    """The base model that ``model`` extends (``model`` itself for a base model). Its parameters
+    are the first fields of ``model``'s, and with every extension off ``model`` is it."""
+    return MODELS[canonical_name(model.name).split("+")[0]]

@@ -25,6 +25,7 @@ import numpy as np
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
+from bayesdrive.drivers.registry import base_model
 from bayesdrive.simulation.rollout import Rollout, SceneArrays, broadcast_params, rollout
 
 __all__ = [
@@ -119,16 +120,20 @@ def equilibrium_gap(model: DriverModel, params: Any, v: Array, dt: float) -> Arr
     """The bumper gap at which ``model``'s mean acceleration is zero at speed ``v`` behind a leader
     at the same speed, for every driver of ``params`` (leaves (N,)).
 
-    Found by bisection on the model's own rule, so no model needs a formula of its own: a
-    car-following rule brakes harder the shorter the gap, and below its desired speed it
-    accelerates on an open road, so the acceleration changes sign once in the gap.
+    Found by bisection on the base model's own rule (an extended model's base: in a steady state
+    a delay, a memory of past noise or a second leader change nothing), so no model needs a
+    formula of its own: a car-following rule brakes harder the shorter the gap, and below its
+    desired speed it accelerates on an open road, so the acceleration changes sign once in the
+    gap.
     """
+    base = base_model(model)
+    base_params = base.params_type(*params[: len(base.specs)])
     speed = jnp.broadcast_to(v, jnp.shape(jax.tree.leaves(params)[0]))
     state = EgoState(jnp.zeros_like(speed), speed)
 
     def mean_acceleration(gap):
         inputs = CarFollowingInputs(gap, speed, jnp.ones_like(speed), jnp.full_like(speed, dt))
-        return model.mean_acceleration(params, state, inputs)
+        return base.mean_acceleration(base_params, state, inputs)
 
     def halve(_, bracket):
         low, high = bracket
@@ -181,7 +186,7 @@ def generate_scenes(
     def one(scene_key, scene_params):
         scene = _steady_platoon(model, scene_params, num_steps, dt)
         single = jax.tree.map(lambda leaf: leaf[None], scene_params)
-        result = rollout(scene_key, model, single, scene, num_rollouts=1)
+        result = rollout(scene_key, model, single, scene, num_rollouts=1, dt=dt)
         return jax.tree.map(lambda leaf: leaf[0], result)
 
     return jax.vmap(one)(scene_keys, params)

@@ -266,15 +266,24 @@ def _one_rollout(
 
 
 def rollout(
-    key: Array, model: DriverModel, params: Any, scene: SceneArrays, *, num_rollouts: int
+    key: Array,
+    model: DriverModel,
+    params: Any,
+    scene: SceneArrays,
+    *,
+    num_rollouts: int,
+    dt: float | None = None,
 ) -> Rollout:
     """``num_rollouts`` closed-loop rollouts of ``model`` through ``scene``.
 
     ``params`` is the model's parameter NamedTuple with every leaf shaped (num_rollouts, N): one
     parameter set per rollout and simulated vehicle (see :func:`broadcast_params` and
     :func:`draw_particles`). Keys follow :func:`rollout_keys` after one split per rollout.
+    ``dt`` (the scene's step as a Python number) is needed where ``scene`` is traced (inside
+    ``jit``): it sets how much history a model that reads its past is given.
     """
-    history = history_steps(float(scene.dt)) if model.reads_history else 0
+    step = float(scene.dt) if dt is None else dt
+    history = history_steps(step) if model.reads_history else 0
     return _rollouts(key, model, params, scene, num_rollouts=num_rollouts, history=history)
 
 
