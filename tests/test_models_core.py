@@ -34,7 +34,7 @@ def test_a_name_is_recognised_in_any_order():
         ("idm+teleport", r"unknown part\(s\) \['teleport'\]"),
         ("reaction_delay", "one base model"),
         ("idm+cidm", "one base model"),
-        ("idm+reaction_delay+autocorrelated_noise", "joins 2 extensions"),
+        ("idm+reaction_delay+second_leader_anticipation", "one of each kind"),
         ("idm+obs_noise", r"former name.*'idm\+measurement_noise'.*refit"),
     ],
 )
@@ -44,7 +44,7 @@ def test_bad_names_are_refused_with_what_is_wrong(name, message):
 
 
 def test_an_extension_that_would_drop_the_merge_scene_is_refused():
-    with pytest.raises(ValueError, match="'cidm' reads more"):
+    with pytest.raises(KeyError, match="'cidm' reads more"):
         get_model("cidm+reaction_delay")
 
 
@@ -196,3 +196,27 @@ def test_the_simulator_runs_an_extension_through_its_own_inputs():
     assert float(late.gap[:, 0].min()) < float(base.gap[:, 0].min()) - 0.5
     noisy = run(get_model("idm+autocorrelated_noise"), rho=np.float32(0.9))
     assert np.isfinite(np.asarray(noisy.x)).all()
+    composite = get_model("idm+reaction_delay+autocorrelated_noise")
+    both_off = run(composite)
+    np.testing.assert_allclose(np.asarray(both_off.x), np.asarray(base.x), atol=1e-4)
+    late_and_noisy = run(composite, reaction_time=np.float32(1.0), rho=np.float32(0.9))
+    assert float(late_and_noisy.gap[:, 0].min()) < float(base.gap[:, 0].min()) - 0.5
+
+
+def test_generated_platoons_of_a_composite_model_start_in_equilibrium():
+    """simulate's scene generator starts a composite model's platoon at its base model's
+    equilibrium gap: with noise off the followers' first step keeps their speed (the free-road
+    first car accelerates; a delay reads the steady history, the noise memory starts unknown)."""
+    from bayesdrive.simulation.generate import generate_scenes
+    from bayesdrive.simulation.rollout import broadcast_params
+
+    composite = get_model("idm+reaction_delay+autocorrelated_noise")
+    params = composite.defaults()._replace(
+        sigma=np.float32(0.0), reaction_time=np.float32(0.6), rho=np.float32(0.5)
+    )
+    scenes = generate_scenes(
+        jax.random.key(2), composite, broadcast_params(params, 2, 4), num_steps=20, dt=DT
+    )
+    first_step_change = np.diff(np.asarray(scenes.v)[:, :, :2], axis=-1)[..., 0]
+    assert (first_step_change[:, 0] > 0.05).all()
+    np.testing.assert_allclose(first_step_change[:, 1:], 0.0, atol=1e-4)
