@@ -49,7 +49,13 @@ def series_with(lead_acc: np.ndarray, v: np.ndarray | None = None) -> FollowerAr
         has_leader=ones,
         mask=ones,
         dt=0.1,
-        ahead=AheadArrays(lead_acc=lead_acc, gap2=ones * 40, lead2_v=ones * 10, has_leader2=ones),
+        ahead=AheadArrays(
+            lead_acc=lead_acc,
+            gap2=ones * 40,
+            lead2_v=ones * 10,
+            has_leader2=ones,
+            lead_age=ones * 100,
+        ),
         windows=ScoredWindows(fit=0 * ones, heldout=ones),
     )
 

@@ -91,7 +91,13 @@ def simulate(seed: int, vehicles: int, steps: int, fit_steps: int) -> FollowerAr
         has_leader=ones,
         mask=ones,
         dt=DT,
-        ahead=AheadArrays(lead_acc=zeros, gap2=ones * 60.0, lead2_v=lead_v, has_leader2=zeros),
+        ahead=AheadArrays(
+            lead_acc=zeros,
+            gap2=ones * 60.0,
+            lead2_v=lead_v,
+            has_leader2=zeros,
+            lead_age=ones * 100.0,
+        ),
         windows=ScoredWindows(fit=fit, heldout=held),
     )
 

@@ -47,6 +47,7 @@ def make_inputs(**overrides) -> ExtendedInputs:
         "gap2": jnp.float32(42.0),
         "lead2_v": jnp.float32(8.0),
         "has_leader2": jnp.float32(1.0),
+        "lead_age": jnp.float32(100.0),
         "lag_v": 12.0 + 0.05 * lags,
         "lag_gap": 18.0 + 0.3 * lags,
         "lag_lead_v": 11.0 + 0.12 * lags,
@@ -166,6 +167,23 @@ def test_reaction_delay_at_whole_steps_reads_the_lagged_inputs(steps_back):
         1.0,
     )
     np.testing.assert_allclose(got, expected, rtol=2e-5)
+
+
+def test_a_leader_that_cut_in_is_perceived_from_its_entry_on():
+    """0.7 s of delay, but the leader cut in 2 steps ago: its gap and speed are perceived as on
+    entry (lag 2), the driver's own speed as 7 steps ago; an old leader would be lag 7."""
+    extended = extend("reaction_delay", IDM)
+    params = params_for(extended, 0.7)
+    inputs = make_inputs(lead_age=jnp.float32(2.0))
+    got = extended.model.mean_acceleration(params, STATE, inputs)
+    expected = idm_acceleration(
+        IDM.defaults(), inputs.lag_v[7], inputs.lag_gap[2], inputs.lag_lead_v[2], 1.0
+    )
+    np.testing.assert_allclose(got, expected, rtol=2e-5)
+    old_leader = idm_acceleration(
+        IDM.defaults(), inputs.lag_v[7], inputs.lag_gap[7], inputs.lag_lead_v[7], 1.0
+    )
+    assert abs(float(got) - float(old_leader)) > 0.05
 
 
 def test_reaction_delay_interpolates_between_samples():
@@ -543,3 +561,23 @@ def test_composition_rules_refuse_in_one_line():
     ):
         with pytest.raises(KeyError, match=words):
             get_model(name)
+
+
+def test_lead_age_restarts_exactly_where_a_vehicle_cuts_in(tmp_path):
+    """On data of the independent generator with cut-ins, the leader's age is 0 where the gap
+    jumps (a new leader) and counts up elsewhere (seed 4)."""
+    from bayesdrive.data.readers import read
+    from trafficgen import generate
+
+    path = tmp_path / "cut_ins.csv"
+    generate(4, path, {}, platoons=1, followers=4, duration_s=40.0, cut_ins=6)
+    series = scored_series(read(path, format="ngsim_raw"))
+    age, gap = series.ahead.lead_age, series.gap
+    usable = (series.mask[:, 1:] > 0) & (series.mask[:, :-1] > 0)
+    expected_change = (series.lead_v[:, :-1] - series.v[:, :-1]) * series.dt
+    jumps = np.abs(np.diff(gap, axis=1) - expected_change) > 1.0
+    restarts = age[:, 1:] == 0
+    assert restarts[usable].any()
+    np.testing.assert_array_equal(restarts[usable], jumps[usable])
+    counted = usable & ~restarts
+    np.testing.assert_array_equal(age[:, 1:][counted], age[:, :-1][counted] + 1)

@@ -115,7 +115,13 @@ def delayed_follower(seed: int, delay_steps: int, num_steps: int = 400) -> Follo
         mask=row,
         t=time[None, :-1],
         dt=DT,
-        ahead=AheadArrays(lead_acc=zeros, gap2=zeros + 100.0, lead2_v=row, has_leader2=zeros),
+        ahead=AheadArrays(
+            lead_acc=zeros,
+            gap2=zeros + 100.0,
+            lead2_v=row,
+            has_leader2=zeros,
+            lead_age=zeros + 100.0,
+        ),
     )
 
 

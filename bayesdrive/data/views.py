@@ -83,12 +83,16 @@ class AheadArrays(NamedTuple):
     gap2: bumper gap to the leader plus the leader's bumper gap to its own leader (m).
     lead2_v: speed of the second vehicle ahead (m/s).
     has_leader2: 1.0 where a second vehicle ahead is known, else 0.0 (gap2, lead2_v then padded).
+    lead_age: how many samples before this one the current leader has been the leader without a
+        break (0 on the sample a leader cuts in or appears; a model with a delay perceives a new
+        leader from its entry on).
     """
 
     lead_acc: np.ndarray
     gap2: np.ndarray
     lead2_v: np.ndarray
     has_leader2: np.ndarray
+    lead_age: np.ndarray
 
 
 class ScoredWindows(NamedTuple):
@@ -303,6 +307,15 @@ def _second_vehicle_and_leader_acc(traj: Trajectories) -> pd.DataFrame:
     )
     joined = joined.merge(second, on=["lead2_id", "frame"], how="left")
     has2 = joined["lead2_v"].notna() & joined["lead_gap"].notna() & joined["gap"].notna()
+    # Runs of consecutive frames with the same leader; the age counts samples into the run.
+    ordered = joined.sort_values(["vehicle_id", "frame"])
+    same_vehicle = ordered["vehicle_id"].eq(ordered["vehicle_id"].shift())
+    same_leader = (
+        ordered["leader_id"].eq(ordered["leader_id"].shift()) & ordered["leader_id"].notna()
+    )
+    consecutive = ordered["frame"].diff().eq(1)
+    run = (~(same_vehicle & same_leader & consecutive)).cumsum()
+    lead_age = ordered.groupby(run).cumcount().reindex(joined.index)
     return pd.DataFrame(
         {
             "vehicle_id": joined["vehicle_id"],
@@ -311,6 +324,7 @@ def _second_vehicle_and_leader_acc(traj: Trajectories) -> pd.DataFrame:
             "gap2": np.where(has2, joined["gap"] + joined["lead_gap"], np.nan),
             "lead2_v": np.where(has2, joined["lead2_v"], np.nan),
             "has_leader2": has2.astype(float),
+            "lead_age": lead_age.astype(float),
         }
     )
 
@@ -333,6 +347,7 @@ def _ahead_arrays(traj: Trajectories, arrays: FollowerArrays) -> AheadArrays:
         out["gap2"][row, :n] = np.where(known, rows["gap2"], 100.0)
         out["lead2_v"][row, :n] = np.where(known, rows["lead2_v"], 1.0)
         out["has_leader2"][row, :n] = known
+        out["lead_age"][row, :n] = rows["lead_age"].to_numpy()
     if no_lead_acc:
         log.info(
             "%d usable step(s) have no previous leader sample; their leader acceleration is "

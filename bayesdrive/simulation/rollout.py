@@ -197,7 +197,7 @@ def _start_buffer(scene: SceneArrays) -> Series:
         *(zeros for _ in range(7)),
         dt=jnp.broadcast_to(scene.dt, zeros.shape),
         merge=merge,
-        ahead=AheadArrays(zeros, zeros, zeros, zeros),
+        ahead=AheadArrays(zeros, zeros, zeros, zeros, zeros),
     )
 
 
@@ -210,13 +210,18 @@ def _written(buffer: Series, scene: SceneArrays, t: Array, state) -> Series:
     has_leader = _from_leaders(scene.head_present[t], jnp.ones_like(state.x))
     # The head's own leader is not replayed: the first vehicle sees no second vehicle ahead.
     has_leader2 = _from_leaders(0.0, has_leader) * has_leader
-    earlier = jnp.where(t > 0, buffer.lead_v[:, jnp.maximum(t - 1, 0)], lead_v)
+    before = jnp.maximum(t - 1, 0)
+    earlier = jnp.where(t > 0, buffer.lead_v[:, before], lead_v)
+    # Leaders never change in a scene; a replayed head that appears starts a new leader.
+    kept_leader = (t > 0) & (buffer.has_leader[:, before] > 0) & (has_leader > 0)
+    lead_age = jnp.where(kept_leader, buffer.ahead.lead_age[:, before] + 1.0, 0.0)
     column = {"v": state.v, "gap": gap, "lead_v": lead_v, "has_leader": has_leader}
     ahead = {
         "lead_acc": (lead_v - earlier) / scene.dt,
         "gap2": jnp.where(has_leader2 > 0, gap + _from_leaders(0.0, gap), 100.0),
         "lead2_v": jnp.where(has_leader2 > 0, _from_leaders(1.0, lead_v), 1.0),
         "has_leader2": has_leader2,
+        "lead_age": lead_age,
     }
     buffer = buffer._replace(
         **{k: getattr(buffer, k).at[:, t].set(c) for k, c in column.items()},

@@ -37,6 +37,7 @@ class ExtendedInputs(NamedTuple):
     gap2: bumper gap to the leader plus the leader's bumper gap to its own leader (m).
     lead2_v: speed of the second vehicle ahead (m/s).
     has_leader2: 1.0 when a second vehicle ahead is known, else 0.0.
+    lead_age: steps the current leader has been the leader (0 on the step it cuts in).
     lag_v, lag_gap, lag_lead_v: (K + 1,) ego speed, gap and leader speed k steps ago (k = 0: now).
     """
 
@@ -48,6 +49,7 @@ class ExtendedInputs(NamedTuple):
     gap2: Array
     lead2_v: Array
     has_leader2: Array
+    lead_age: Array
     lag_v: Array
     lag_gap: Array
     lag_lead_v: Array
@@ -80,6 +82,7 @@ def inputs_at(series: Series, j: Array, history: int) -> ExtendedInputs:
         gap2=ahead.gap2[j],
         lead2_v=ahead.lead2_v[j],
         has_leader2=ahead.has_leader2[j],
+        lead_age=ahead.lead_age[j],
         lag_v=series.v[lags],
         lag_gap=series.gap[lags],
         lag_lead_v=series.lead_v[lags],

@@ -10,8 +10,10 @@ Model, 2006): with :math:`T_r` the reaction time,
 while the kinematics use the current speed. The delay is continuous: the delayed values are
 linearly interpolated between the samples of the history window carried by
 :class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs` (``lag_v``, ``lag_gap``,
-``lag_lead_v``). When the leader changes inside the window the driver still reacts to the old one
-for :math:`T_r` seconds, which is what a delay means.
+``lag_lead_v``). A leader that cuts in (or appears) less than :math:`T_r` ago is perceived as it
+was on entry (``lead_age``): the driver cannot perceive the new leader's past, and reacting to
+the old leader, which is no longer ahead, would be no delay but a blindness; the delay then
+applies to the new leader's motion from its entry on.
 
 =============  ====  =======  ============  ===========================================
 name           unit  default  prior bounds  meaning
@@ -72,9 +74,10 @@ def with_reaction_delay(base: DriverModel) -> ExtendedModel:
 
     def mean_acceleration(params, state: EgoState, inputs: ExtendedInputs) -> Array:
         steps = params.reaction_time / inputs.dt
+        leader_steps = jnp.minimum(steps, inputs.lead_age)
         perceived = CarFollowingInputs(
-            gap=delayed(inputs.lag_gap, steps),
-            lead_v=delayed(inputs.lag_lead_v, steps),
+            gap=delayed(inputs.lag_gap, leader_steps),
+            lead_v=delayed(inputs.lag_lead_v, leader_steps),
             has_leader=inputs.has_leader,
             dt=inputs.dt,
         )
