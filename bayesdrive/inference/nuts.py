@@ -57,7 +57,12 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.inference.likelihood import StepInputs, series_loglik
 from bayesdrive.inference.output import EngineResult
-from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
+from bayesdrive.inference.vehicles import (
+    log_likelihood_draws,
+    posterior_draws,
+    prepare,
+    static_key,
+)
 
 __all__ = ["INIT_RADIUS", "NUTSConfig", "NUTSDraws", "run", "sample_nuts"]
 
@@ -269,7 +274,12 @@ def run(
         config=config,
     )
     out, compile_time, run_time = problem.run(
-        per_vehicle, key, chunk=vehicle_chunk, batch=vehicle_batch, progress=progress
+        per_vehicle,
+        key,
+        chunk=vehicle_chunk,
+        batch=vehicle_batch,
+        progress=progress,
+        cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
     )
     out = jax.tree.map(lambda a: a[0], out)  # the one replicate
 
