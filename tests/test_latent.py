@@ -40,9 +40,9 @@ from bayesdrive.inference.latent import (
     state_filter_loglik,
 )
 from bayesdrive.inference.likelihood import fixed_params
-from bayesdrive.inference.vehicles import vehicle_keys
 from bayesdrive.inference.output import metadata
 from bayesdrive.inference.synthetic import simulate_following
+from bayesdrive.inference.vehicles import vehicle_keys
 
 # ---------------------------------------------------------------------------------------------
 # A linear car-following model through the driver-model interface (no speed clip: linear Gaussian)

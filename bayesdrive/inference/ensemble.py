@@ -14,9 +14,10 @@ the box with JAX gradients. Stretch moves expand such a ball within tens of step
 burn-in; the price is that a second, distant mode goes unseen (the particle engines and NUTS'
 dispersed chains are the check for that).
 
-**Seeding.** Each vehicle's key (the seed with its id folded in, :mod:`bayesdrive.inference.vehicles`)
-gives its mode-search candidates, its start ball and a 32-bit seed, so a vehicle's chains are
-the same whichever vehicles it is fitted with, in whatever order; the ensemble's numpy
+**Seeding.** Each vehicle's key (the seed with its id folded in,
+:mod:`bayesdrive.inference.vehicles`) gives its mode-search candidates, its start ball and a
+32-bit seed, so a vehicle's chains are the same whichever vehicles it is fitted with, in whatever
+order; the ensemble's numpy
 ``RandomState`` is seeded with it through ``emcee.State(p0, random_state=...)`` (emcee's own
 ``random_state`` setter swallows errors, so the state is handed over with the initial positions),
 and the seed is recorded per vehicle. The same key gives identical chains.

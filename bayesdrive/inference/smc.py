@@ -49,11 +49,11 @@ posterior mean is the spread of the replicate means
 
 Vehicles are independent, each with its own key derived from the seed and its id
 (:mod:`bayesdrive.inference.vehicles`), so its draws are bit-identical whichever vehicles it is
-fitted with, in whatever order or chunk. One vehicle's whole filter is a ``lax.scan`` over steps with
-rejuvenation under ``lax.cond``. Vehicles run in compiled chunks; inside a chunk ``vehicle_batch``
-of them are vectorised together. With ``vehicle_batch = 1`` (the default) ``lax.cond`` stays a real
-branch: under ``vmap`` it would turn into a select that pays for the O(N T) rejuvenation at every
-step of every vehicle (``benchmarks/bench_filters.py`` measures both).
+fitted with, in whatever order or chunk. One vehicle's whole filter is a ``lax.scan`` over steps
+with rejuvenation under ``lax.cond``. Vehicles run in compiled chunks; inside a chunk
+``vehicle_batch`` of them are vectorised together. With ``vehicle_batch = 1`` (the default)
+``lax.cond`` stays a real branch: under ``vmap`` it would turn into a select that pays for the
+O(N T) rejuvenation at every step of every vehicle (``benchmarks/bench_filters.py`` measures both).
 """
 
 from __future__ import annotations

@@ -9,8 +9,8 @@ and :func:`log_likelihood_draws` put per-vehicle outputs in the result's (chain,
 layout. An engine keeps only its kernel, its own options and its own sample stats.
 
 **Per-vehicle keys.** A vehicle's PRNG key is the run's key with the vehicle's id folded in
-(:func:`vehicle_keys`: ``fold_in`` of a stable 64-bit hash of the UTF-8 id, as two 32-bit words), and
-replicate ``r`` of a vehicle folds in ``r`` as well. Every random draw of a vehicle comes from its
+(:func:`vehicle_keys`: ``fold_in`` of a stable 64-bit hash of the UTF-8 id, as two 32-bit
+words), and replicate ``r`` of a vehicle folds in ``r`` as well. Every random draw of a vehicle comes from its
 own key, and chunks of vehicles are fixed by the data order and the chunk size, so a vehicle's
 draws are bit-identical whether it is fitted alone, with others, in another order or in another
 chunk. 64 bits, not 32: among 100,000 vehicles (a HighD-sized data set) two 32-bit hashes would
