@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -121,21 +122,15 @@ class VehicleProblem(NamedTuple):
         """``kernel(key, series)`` on every vehicle, ``replicates`` times with independent keys.
 
         Outputs are numpy arrays with leading axes (replicate, vehicle); the compile and run
-        times as :func:`map_vehicles` gives them. Replicates run as extra vehicles, replicate-major.
+        times as :func:`map_vehicles` gives them. Replicates run as extra vehicles, replicate-major
+        (``progress`` counts them as vehicles).
         """
-        keys = vehicle_keys(key, self.vehicle_ids, replicates).reshape(-1)
+        keys = vehicle_keys(key, self.vehicle_ids, replicates)
+        keys = keys.reshape(-1, *keys.shape[2:])  # raw uint32 keys keep their trailing axis
         # Repeat along the vehicle axis only (merge scenes carry a trailing merge-slot axis).
         copies = jax.tree.map(lambda a: jnp.concatenate([a] * replicates), self.series)
-        total = replicates * self.num_vehicles
         out, compile_time, run_time = map_vehicles(
-            kernel,
-            (keys, copies),
-            chunk=chunk,
-            batch=batch,
-            progress=None
-            if progress is None
-            else lambda done, _: progress(min(done, total), total),
-            cache_key=cache_key,
+            kernel, (keys, copies), chunk=chunk, batch=batch, progress=progress, cache_key=cache_key
         )
         out = jax.tree.map(lambda a: a.reshape(replicates, self.num_vehicles, *a.shape[1:]), out)
         return out, compile_time, run_time
@@ -165,7 +160,7 @@ def prepare(
         check(model)
     names = param_names(model, params)
     vehicle_ids = tuple(str(v) for v in arrays.vehicle_ids)
-    repeated = sorted({v for v in vehicle_ids if vehicle_ids.count(v) > 1})
+    repeated = sorted(v for v, count in Counter(vehicle_ids).items() if count > 1)
     if repeated:
         raise ValueError(
             f"vehicle ids must be distinct (each names a vehicle's random stream); repeated: "
