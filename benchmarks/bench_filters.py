@@ -38,7 +38,7 @@ from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import DELTA, IDM, MIN_GAP, STOP_SPEED
 from bayesdrive.inference import pf, smc
 from bayesdrive.inference.fit import first_vehicles
-from bayesdrive.inference.likelihood import clear_compiled
+from bayesdrive.inference.vehicles import clear_compiled
 
 PARAMS = ("v_des", "d_min", "tau", "a_max", "b_pref", "sigma")
 SEED = 0

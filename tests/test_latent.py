@@ -42,6 +42,7 @@ from bayesdrive.inference.latent import (
 from bayesdrive.inference.likelihood import fixed_params
 from bayesdrive.inference.output import metadata
 from bayesdrive.inference.synthetic import simulate_following
+from bayesdrive.inference.vehicles import vehicle_keys
 
 # ---------------------------------------------------------------------------------------------
 # A linear car-following model through the driver-model interface (no speed clip: linear Gaussian)
@@ -364,9 +365,9 @@ def noisy_idm_data():
 
 
 def run_pmmh(seed: int, model: DriverModel, data):
-    known, (observations, inputs), _ = data
+    known, (observations, inputs), arrays = data
     return pmmh(
-        jax.random.key(seed),
+        vehicle_keys(jax.random.key(seed), arrays.vehicle_ids),
         model,
         PMMH_NAMES,
         observations,
@@ -423,10 +424,10 @@ def test_pmmh_same_seed_gives_identical_chains(pmmh_result, noisy_idm_data):
 
 
 def test_pmmh_refuses_an_initial_point_outside_the_prior(noisy_idm_data):
-    known, (observations, inputs), _ = noisy_idm_data
+    known, (observations, inputs), arrays = noisy_idm_data
     with pytest.raises(ValueError, match="outside the prior box"):
         pmmh(
-            jax.random.key(0),
+            vehicle_keys(jax.random.key(0), arrays.vehicle_ids),
             NOISY_IDM,
             PMMH_NAMES,
             observations,

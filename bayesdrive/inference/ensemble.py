@@ -14,7 +14,10 @@ the box with JAX gradients. Stretch moves expand such a ball within tens of step
 burn-in; the price is that a second, distant mode goes unseen (the particle engines and NUTS'
 dispersed chains are the check for that).
 
-**Seeding.** The JAX key is split per vehicle into a 32-bit seed; the ensemble's numpy
+**Seeding.** Each vehicle's key (the seed with its id folded in,
+:mod:`bayesdrive.inference.vehicles`) gives its mode-search candidates, its start ball and a
+32-bit seed, so a vehicle's chains are the same whichever vehicles it is fitted with, in whatever
+order; the ensemble's numpy
 ``RandomState`` is seeded with it through ``emcee.State(p0, random_state=...)`` (emcee's own
 ``random_state`` setter swallows errors, so the state is handed over with the initial positions),
 and the seed is recorded per vehicle. The same key gives identical chains.
@@ -45,14 +48,9 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.likelihood import (
-    check_model,
-    fixed_params,
-    param_names,
-    series_loglik,
-    step_inputs,
-)
+from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
 
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",
@@ -99,8 +97,10 @@ def run(
     ``kept_draws`` (before the common truncation), ``autocorr_reliable``, ``acceptance_fraction``
     (mean over walkers) and the numpy ``seed`` of its ensemble.
     """
-    check_model(model, "emcee", whole_series=True)
-    names = param_names(model, params)
+    problem = prepare(
+        "emcee", arrays, model=model, params=params, fixed=fixed, prior=prior, whole_series=True
+    )
+    names, box, prior, fixed_values = problem.names, problem.box, problem.prior, problem.fixed
     dim = len(names)
     walkers = num_walkers_for(dim) if num_walkers is None else num_walkers
     burn = num_steps // 2 if num_burn is None else num_burn
@@ -109,13 +109,9 @@ def run(
             f"need num_walkers >= 2 * {dim} and 0 <= num_burn < num_steps - 1, got "
             f"num_walkers={walkers}, num_burn={burn}, num_steps={num_steps}"
         )
-    box = model.prior(names)
-    prior = box if prior is None else prior
-    fixed_values = fixed_params(model, fixed)
     lower, upper = np.asarray(box.lower, np.float64), np.asarray(box.upper, np.float64)
     width = upper - lower
-    series = step_inputs(arrays, model)
-    num_vehicles = series.mask.shape[0]
+    series, num_vehicles = problem.series, problem.num_vehicles
 
     def log_posterior(thetas: Array, vehicle: Any) -> Array:
         log_prior = jax.vmap(prior.logpdf)(thetas)
@@ -139,20 +135,19 @@ def run(
         jax.value_and_grad(lambda th, vehicle: log_posterior(th[None], vehicle)[0])
     )
     jax.block_until_ready(log_density_and_grad(example[0], vehicle_series(0)))
-    pointwise = jax.jit(
-        jax.vmap(
-            lambda th, vehicle: series_loglik(model, names, fixed_values, th, vehicle),
-            in_axes=(0, None),
-        )
-    )
     compile_time = time.perf_counter() - started
 
-    key_candidates, key_ball, key_seed = jax.random.split(key, 3)
-    candidates = prior.sample(key_candidates, (num_vehicles, START_CANDIDATES, walkers))
-    balls = np.asarray(jax.random.normal(key_ball, (num_vehicles, walkers, dim)))
-    seeds = np.asarray(jax.random.bits(key_seed, (num_vehicles,), dtype=jnp.uint32)).astype(
-        np.int64
-    )
+    def vehicle_start(key: Array) -> tuple[Array, Array, Array]:
+        """One vehicle's mode-search candidates, start-ball offsets and ensemble seed."""
+        key_candidates, key_ball, key_seed = jax.random.split(key, 3)
+        return (
+            prior.sample(key_candidates, (START_CANDIDATES, walkers)),
+            jax.random.normal(key_ball, (walkers, dim)),
+            jax.random.bits(key_seed, (), dtype=jnp.uint32),
+        )
+
+    candidates, balls, seeds = jax.vmap(vehicle_start)(problem.keys(key))
+    balls, seeds = np.asarray(balls), np.asarray(seeds).astype(np.int64)
 
     chains, taus, thins, kept, acceptance = [], [], [], [], []
     run_time = 0.0
@@ -194,16 +189,11 @@ def run(
     started = time.perf_counter()
     common = min(*kept, num_particles)
     theta = np.stack([draws[-common:] for draws in chains])  # (vehicle, draw, d)
-    log_lik = np.stack(
-        [
-            np.asarray(pointwise(jnp.asarray(theta[i], dtype=box.lower.dtype), vehicle_series(i)))
-            for i in range(num_vehicles)
-        ]
-    )  # (vehicle, draw, step)
+    log_lik = problem.score(theta)  # (vehicle, draw, step)
     run_time += time.perf_counter() - started
     tau_array = np.asarray(taus)
     return EngineResult(
-        posterior={name: theta[:, :, j].T[None].copy() for j, name in enumerate(names)},
+        posterior=posterior_draws(names, theta[:, None]),
         sample_stats={
             "autocorr_time": (("vehicle", "param"), tau_array),
             "thin": (("vehicle",), np.asarray(thins)),
@@ -215,7 +205,7 @@ def run(
             "acceptance_fraction": (("vehicle",), np.asarray(acceptance)),
             "seed": (("vehicle",), seeds),
         },
-        log_likelihood=log_lik.transpose(1, 0, 2)[None],
+        log_likelihood=log_likelihood_draws(log_lik[:, None]),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={

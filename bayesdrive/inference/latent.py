@@ -27,8 +27,10 @@ bumper gap of the data layer, and each particle sees ``gap - e_t`` (``shift_ego`
 its own latent position, never to the noisy reading.
 
 **Engine.** :func:`run` is the ``pmmh`` engine (the :class:`~bayesdrive.inference.fit.Engine`
-signature, returning an :class:`~bayesdrive.inference.output.EngineResult`). Chains and vehicles
-are flattened into lanes of one ``vmap`` level: nested ``vmap`` of the threefry RNG multiplies XLA
+signature, returning an :class:`~bayesdrive.inference.output.EngineResult`). Each vehicle's
+chains and scoring filters draw from the vehicle's own key, the seed with its id folded in
+(:mod:`bayesdrive.inference.vehicles`), so a vehicle's draws do not depend on the others.
+Chains and vehicles are flattened into lanes of one ``vmap`` level: nested ``vmap`` of the threefry RNG multiplies XLA
 compile time (about 2x per level on CPU). **Starting values matter**: far from the posterior the
 filter degenerates, its estimate's variance explodes and PMMH chains stick; warm-up from prior
 draws can take thousands of iterations (``benchmarks/bench_latent.py`` measures it). Choose
@@ -52,15 +54,16 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.idm import exact_observation_logpdf
 from bayesdrive.drivers.measurement_noise import shift_ego
-from bayesdrive.inference.likelihood import (
-    fixed_params,
-    map_vehicles,
-    param_names,
-    static_key,
-    step_inputs,
-)
+from bayesdrive.inference.likelihood import StepInputs, step_inputs
 from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.resampling import systematic
+from bayesdrive.inference.vehicles import (
+    log_likelihood_draws,
+    map_vehicles,
+    posterior_draws,
+    prepare,
+    static_key,
+)
 from bayesdrive.inference.weights import effective_sample_size
 
 __all__ = [
@@ -151,7 +154,11 @@ def latent_data(arrays: FollowerArrays, model: DriverModel) -> tuple[PositionObs
     The data layer's bumper gap, leader rear minus observed ego front, is exactly the leader's rear
     on each step's local axis (module docstring); arrays are cast to the default float type.
     """
-    steps = step_inputs(arrays, model)
+    return _readings(step_inputs(arrays, model))
+
+
+def _readings(steps: StepInputs) -> tuple[PositionObservations, Any]:
+    """The readings and the model's inputs of ``steps``."""
     return PositionObservations(dx=steps.dx, v=steps.v, mask=steps.mask), steps.inputs
 
 
@@ -253,7 +260,7 @@ def state_filter_loglik(
 
 
 def pmmh(
-    key: Array,
+    keys: Array,
     model: DriverModel,
     names: Sequence[str],
     observations: PositionObservations,
@@ -286,8 +293,10 @@ def pmmh(
     ordinary, exact PMMH chain. Chains start at ``init`` (broadcast to (chain, vehicle, param)) or,
     by default, at independent prior draws.
 
-    Each vehicle's randomness comes from its own key (``split(key, num_vehicles)``), so results do
-    not depend on ``vehicle_chunk``: how many vehicles one compiled call vectorises (default: all);
+    ``keys`` hold one PRNG key per vehicle (vehicle,), e.g. from
+    :func:`~bayesdrive.inference.vehicles.vehicle_keys`; all of a vehicle's randomness comes from
+    its key, so results do not depend on ``vehicle_chunk``: how many vehicles one compiled call
+    vectorises (default: all);
     ``progress(done, total)`` is called after each chunk. Chains and vehicles are vectorised with
     ``vmap``, iterations run in ``lax.scan``; compiled once per model, settings and shape.
     """
@@ -306,9 +315,9 @@ def pmmh(
     if num_state_particles < 2:
         raise ValueError(f"num_state_particles must be at least 2, got {num_state_particles}")
 
-    init_keys, chain_keys = jnp.swapaxes(
-        jax.vmap(jax.random.split)(jax.random.split(key, num_vehicles)), 0, 1
-    )
+    if jnp.shape(keys)[:1] != (num_vehicles,):
+        raise ValueError(f"need one key per vehicle ({num_vehicles}), got keys {jnp.shape(keys)}")
+    init_keys, chain_keys = jnp.swapaxes(jax.vmap(jax.random.split)(keys), 0, 1)
     if init is None:
         start = jax.vmap(lambda k: prior.sample(k, (num_chains,)))(init_keys)
     else:
@@ -382,7 +391,7 @@ def _map_lanes(
 ) -> tuple[Any, float, float]:
     """``per_lane`` over lanes: ``lane_inputs`` have leading axes (vehicle, lane), and each
     vehicle's ``vehicle_inputs`` (leading axis vehicle) go to all its lanes. Runs through
-    :func:`~bayesdrive.inference.likelihood.map_vehicles` with the lanes of ``vehicle_chunk``
+    :func:`~bayesdrive.inference.vehicles.map_vehicles` with the lanes of ``vehicle_chunk``
     vehicles vectorised together; outputs come back as (vehicle, lane, ...)."""
     num_vehicles, num_lanes = jax.tree.leaves(lane_inputs)[0].shape[:2]
     flat = jax.tree.map(lambda a: a.reshape(num_vehicles * num_lanes, *a.shape[2:]), lane_inputs)
@@ -500,18 +509,19 @@ def run(
     estimate each draw carries) and ``filter_ess`` [vehicle, step] (the state filter's effective
     sample size, averaged over the draws).
     """
-    check_model(model)
     if prior is not None:
         raise ValueError("engine 'pmmh' samples under the model's uniform prior box; prior=None")
     if isinstance(init, str) and init not in ("prior", "defaults"):
         raise ValueError(f"init must be 'prior', 'defaults' or an array, got {init!r}")
-    names = param_names(model, params)
-    fixed_values = fixed_params(model, fixed)
+    problem = prepare(
+        "pmmh", arrays, model=model, params=params, fixed=fixed, prior=None, check=check_model
+    )
+    names, fixed_values = problem.names, problem.fixed
     num_draws = -(-num_particles // max(num_chains, 1))
-    observations, inputs = latent_data(arrays, model)
-    chains_key, score_key = jax.random.split(key)
+    observations, inputs = _readings(problem.series)
+    chains_keys, score_keys = jnp.swapaxes(jax.vmap(jax.random.split)(problem.keys(key)), 0, 1)
     result = pmmh(
-        chains_key,
+        chains_keys,
         model,
         names,
         observations,
@@ -530,9 +540,7 @@ def run(
     draws = np.moveaxis(result.samples, 2, 0)  # (vehicle, chain, draw, d)
     num_vehicles = draws.shape[0]
     lanes = num_chains * num_draws
-    lane_keys = jax.vmap(lambda k: jax.random.split(k, lanes))(
-        jax.random.split(score_key, num_vehicles)
-    )
+    lane_keys = jax.vmap(lambda k: jax.random.split(k, lanes))(score_keys)
     fixed_key = static_key(fixed_values)
     (increments, ess), score_compile_time, score_run_time = _map_lanes(
         partial(
@@ -552,14 +560,13 @@ def run(
     by_draw = (num_vehicles, num_chains, num_draws, -1)
     increments, ess = increments.reshape(by_draw), ess.reshape(by_draw)
     return EngineResult(
-        posterior={name: result.samples[..., i].astype(np.float64) for i, name in enumerate(names)},
+        posterior=posterior_draws(names, draws),
         sample_stats={
             "acceptance_rate": (("chain", "vehicle"), result.acceptance_rate),
             "log_likelihood_estimate": (("chain", "draw", "vehicle"), result.log_likelihood),
             "filter_ess": (("vehicle", "step"), ess.mean(axis=(1, 2))),
         },
-        # (vehicle, chain, draw, step) -> (chain, draw, vehicle, step)
-        log_likelihood=np.moveaxis(increments, 0, 2),
+        log_likelihood=log_likelihood_draws(increments),
         compile_time_s=result.compile_time_s + score_compile_time,
         wall_time_s=result.wall_time_s + score_run_time,
         options={

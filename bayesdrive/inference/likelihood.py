@@ -1,5 +1,5 @@
-"""What every particle engine shares: the per-step log-likelihood, built only from the driver-model
-interface, and the loop that runs a per-vehicle engine over chunks of vehicles.
+"""What every engine shares: the per-step log-likelihood, built only from the driver-model
+interface (the per-vehicle preamble and loop are :mod:`bayesdrive.inference.vehicles`).
 
 Step t of vehicle n scores the observed transition from sample t to t+1 with the model's exact
 one-step density ``model.transition_logpdf`` (states relative to the current step: x = 0 and the
@@ -13,8 +13,7 @@ which scene parts a model reads.
 from __future__ import annotations
 
 import functools
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -29,15 +28,12 @@ from bayesdrive.drivers.idm import exact_observation_logpdf
 __all__ = [
     "StepInputs",
     "check_model",
-    "clear_compiled",
     "fixed_params",
     "full_history",
-    "map_vehicles",
     "param_names",
     "particles_loglik",
     "score_draws",
     "series_loglik",
-    "static_key",
     "step_inputs",
     "step_loglik",
     "step_logpdfs",
@@ -203,92 +199,3 @@ def score_draws(
     """Per-step log-likelihood (vehicle, draw, step) of draws (vehicle, draw, d), on every padded
     step (the result's ``log_likelihood`` group keeps the unmasked ones)."""
     return np.asarray(_score_draws(model, names, fixed, jnp.asarray(particles, float), series))
-
-
-# Compiled chunk runners by cache key, so repeated fits of one shape (tests, seed studies) compile
-# once per process; small, because each entry holds an executable.
-_COMPILED: dict[Any, Any] = {}
-_COMPILED_MAX = 8
-
-
-def clear_compiled() -> None:
-    """Forget every cached compiled chunk (the next fit compiles again, e.g. to time it)."""
-    _COMPILED.clear()
-
-
-def map_vehicles(
-    per_vehicle: Callable[..., Any],
-    inputs: tuple[Any, ...],
-    *,
-    chunk: int,
-    batch: int | None,
-    progress: Callable[[int, int], None] | None = None,
-    cache_key: Any = None,
-) -> tuple[Any, float, float]:
-    """Run ``per_vehicle`` on every vehicle, ``chunk`` vehicles per compiled call.
-
-    ``inputs`` are pytrees with a leading vehicle axis; ``per_vehicle`` gets one vehicle's slice.
-    Inside a chunk, ``batch`` vehicles are vectorised together (None or 1: one after another, which
-    keeps ``lax.cond`` a real branch; under ``vmap`` it becomes a select that runs both sides).
-    The last chunk is padded by repeating its last vehicle, so the function compiles once, ahead
-    of time. ``cache_key`` (hashable, or None for no caching) must determine ``per_vehicle``
-    completely: the compiled chunk is reused for the same key and input shapes, and the compile
-    time is then 0. Returns the stacked numpy outputs, the compile time and the run time (compile
-    excluded) in seconds; ``progress(done, total)`` is called after each chunk.
-    """
-    num_vehicles = jax.tree.leaves(inputs)[0].shape[0]
-    chunk = max(1, min(chunk, num_vehicles))
-    batch_size = None if batch is None or batch <= 1 else min(batch, chunk)
-
-    def run_chunk(*chunk_inputs):
-        return jax.lax.map(lambda xs: per_vehicle(*xs), chunk_inputs, batch_size=batch_size)
-
-    def chunk_at(start: int):
-        rows = np.minimum(np.arange(start, start + chunk), num_vehicles - 1)
-        return jax.tree.map(lambda a: a[rows], inputs)
-
-    first = chunk_at(0)
-    shapes = jax.tree.map(lambda a: (a.shape, str(a.dtype)), first)
-    key = None if cache_key is None else (cache_key, chunk, batch_size, str(shapes))
-    compile_time = 0.0
-    if key is None or key not in _COMPILED:
-        started = time.perf_counter()
-        compiled = jax.jit(run_chunk).lower(*first).compile()
-        compile_time = time.perf_counter() - started
-        if key is not None:
-            if len(_COMPILED) >= _COMPILED_MAX:
-                _COMPILED.pop(next(iter(_COMPILED)))
-            _COMPILED[key] = compiled
-    else:
-        compiled = _COMPILED[key]
-
-    pieces, run_time = [], 0.0
-    for start in range(0, num_vehicles, chunk):
-        chunk_inputs = first if start == 0 else chunk_at(start)
-        started = time.perf_counter()
-        out = jax.block_until_ready(compiled(*chunk_inputs))
-        run_time += time.perf_counter() - started
-        keep = min(chunk, num_vehicles - start)
-        pieces.append(jax.tree.map(lambda a, keep=keep: np.asarray(a)[:keep], out))
-        if progress is not None:
-            progress(start + keep, num_vehicles)
-    stacked = jax.tree.map(lambda *parts: np.concatenate(parts), *pieces)
-    return stacked, compile_time, run_time
-
-
-def static_key(value: Any) -> Any:
-    """A hashable stand-in for a prior or a parameter tuple, for ``map_vehicles``'s cache key.
-
-    Arrays become tuples of floats; leaves other than arrays, numbers and strings give None (no
-    caching), because an object hashed by identity could change between fits.
-    """
-    leaves, treedef = jax.tree.flatten(value)
-    frozen = []
-    for leaf in leaves:
-        if hasattr(leaf, "shape"):
-            frozen.append((np.shape(leaf), tuple(np.asarray(leaf).ravel().tolist())))
-        elif isinstance(leaf, str | int | float):
-            frozen.append(leaf)
-        else:
-            return None
-    return (type(value).__qualname__, str(treedef), tuple(frozen))

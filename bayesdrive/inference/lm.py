@@ -47,8 +47,9 @@ That happens when the data cannot inform a parameter (v_des in congestion) and, 
 best fit lies on the edge of the box, where the sigmoid is flat (``sample_stats.at_bound``): on the
 NGSIM I-80 fit windows most vehicles have one, e.g. b_pref at its upper bound. A Gaussian cannot
 describe such a posterior; use a sampling engine there. The draws come from one
-numpy generator per vehicle, seeded from the PRNG key (``sample_stats.seed``); the fit itself is
-deterministic and needs no key.
+numpy generator per vehicle, seeded from the vehicle's own key (the seed with its id folded in,
+:mod:`bayesdrive.inference.vehicles`; ``sample_stats.seed``), so a vehicle's draws are the same
+whichever vehicles it is fitted with; the fit itself is deterministic and needs no key.
 """
 
 from __future__ import annotations
@@ -69,19 +70,9 @@ from scipy.special import expit
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.idm import STOP_SPEED
-from bayesdrive.inference.likelihood import (
-    StepInputs,
-    check_model,
-    fixed_params,
-    param_names,
-    series_loglik,
-    step_inputs,
-)
-from bayesdrive.inference.output import (
-    EngineResult,
-    particle_log_likelihood,
-    particle_posterior,
-)
+from bayesdrive.inference.likelihood import StepInputs
+from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
 
 __all__ = ["ResidualSeries", "residual_series", "run"]
 
@@ -109,13 +100,11 @@ class ResidualSeries(NamedTuple):
     steps: StepInputs
 
 
-def residual_series(
-    arrays: FollowerArrays, model: DriverModel
-) -> tuple[ResidualSeries, np.ndarray]:
-    """The residual inputs of every vehicle, and the number of censored (stopped) steps of each."""
+def residual_series(arrays: FollowerArrays, steps: StepInputs) -> tuple[ResidualSeries, np.ndarray]:
+    """The residual inputs of every vehicle (``steps``: its steps with the model's inputs), and
+    the number of censored (stopped) steps of each."""
     dt = arrays.dt
     implied = (arrays.dx - arrays.v * dt) / (0.5 * dt**2)
-    steps = step_inputs(arrays, model)
     usable = np.asarray(steps.mask) > 0
     moving = arrays.next_v > STOP_SPEED
     series = ResidualSeries(
@@ -155,18 +144,6 @@ def _residuals(
 
 
 _jacobian = jax.jit(jax.jacfwd(_residuals), static_argnames=("model", "names"))
-
-
-@functools.partial(jax.jit, static_argnames=("model", "names"))
-def _score_draws(
-    draws: Array, steps: StepInputs, fixed: Any, *, model: DriverModel, names: tuple[str, ...]
-) -> Array:
-    """Per-step log-likelihood of (V, M, d) draws on the (V, T) steps: (V, M, T)."""
-
-    def vehicle(thetas, series):
-        return jax.vmap(lambda theta: series_loglik(model, names, fixed, theta, series))(thetas)
-
-    return jax.vmap(vehicle)(draws, steps)
 
 
 class _VehicleFit(NamedTuple):
@@ -233,28 +210,27 @@ def run(
     ``censored_steps``, ``estimate`` [vehicle, param] (the fit itself, sigma = sigma_hat),
     ``at_bound`` [vehicle, param] (estimate within 1e-4 of the box width of a prior bound, or
     beyond it for sigma_hat) and
-    ``seed``, the numpy seed of the vehicle's draws (split from ``key``, which is used for the
+    ``seed``, the numpy seed of the vehicle's draws (from the vehicle's key, which is used for the
     posterior draws only).
     """
-    check_model(model, "lm")
     noise = model.execution_noise_param
     if noise is None:
         raise ValueError(
             f"lm needs Gaussian execution noise, but model {model.name!r} marks no execution-noise "
             "sd parameter (ParamSpec.execution_noise)"
         )
-    names = param_names(model, params)
-    fitted = tuple(n for n in names if n != noise)
-    if not fitted:
-        raise ValueError(f"lm fits parameters other than {noise!r}; got only {list(names)}")
-    if num_particles < 1:
-        raise ValueError(f"num_particles (posterior draws) must be >= 1, got {num_particles}")
     if prior is not None:
         raise NotImplementedError(
             "lm fits inside the model's uniform prior box only; a custom prior "
             f"({type(prior).__name__}) needs a sampling engine (smc, nuts, emcee)"
         )
-    fixed_values = fixed_params(model, fixed)
+    problem = prepare("lm", arrays, model=model, params=params, fixed=fixed, prior=None)
+    names, fixed_values = problem.names, problem.fixed
+    fitted = tuple(n for n in names if n != noise)
+    if not fitted:
+        raise ValueError(f"lm fits parameters other than {noise!r}; got only {list(names)}")
+    if num_particles < 1:
+        raise ValueError(f"num_particles (posterior draws) must be >= 1, got {num_particles}")
     box = model.prior(fitted)
     lower = np.asarray(box.lower, np.float64)
     width = np.asarray(box.upper, np.float64) - lower
@@ -263,8 +239,8 @@ def run(
         [np.log((defaults - lower) / (lower + width - defaults)), np.zeros(len(fitted))]
     )
 
-    series, censored = residual_series(arrays, model)
-    num_vehicles = len(arrays.vehicle_ids)
+    series, censored = residual_series(arrays, problem.series)
+    num_vehicles = problem.num_vehicles
     num_residuals = np.asarray(series.used).sum(axis=1).astype(int)
     too_short = {
         vid: int(n)
@@ -280,14 +256,11 @@ def run(
     # Compiled once per padded shape (and cached across runs with the same model and names).
     bounds = (jnp.asarray(lower, dtype=float), jnp.asarray(width, dtype=float))
     static = {"model": model, "names": fitted}
-    steps = series.steps
     started = time.perf_counter()
     first = jax.tree.map(lambda a: a[0], series)
     z_example = jnp.zeros(len(fitted), dtype=first.implied.dtype)
     for compiled in (_residuals, _jacobian):
         compiled.lower(z_example, first, fixed_values, *bounds, **static).compile()
-    draws_example = jnp.zeros((num_vehicles, num_particles, len(names)), dtype=first.implied.dtype)
-    _score_draws.lower(draws_example, steps, fixed_values, model=model, names=names).compile()
     compile_time = time.perf_counter() - started
 
     started = time.perf_counter()
@@ -326,7 +299,9 @@ def run(
 
     # Draws: sigma^2 ~ SSR / chi2(n - p) (or the fixed sigma), then z | sigma Gaussian, from one
     # numpy generator per vehicle seeded from the key (JAX's gamma sampler compiles for seconds).
-    seeds = np.asarray(jax.random.bits(key, (num_vehicles,), dtype=jnp.uint32)).astype(np.int64)
+    seeds = np.asarray(
+        jax.vmap(lambda k: jax.random.bits(k, (), dtype=jnp.uint32))(problem.keys(key))
+    ).astype(np.int64)
     draws = np.empty((num_vehicles, num_particles, len(names)))
     estimate = np.empty((num_vehicles, len(names)))
     for n, (fit, covariance) in enumerate(zip(fits, covariances, strict=True)):
@@ -352,21 +327,12 @@ def run(
     margin = AT_BOUND * (edges[:, 1] - edges[:, 0])
     at_bound = (estimate <= edges[:, 0] + margin) | (estimate >= edges[:, 1] - margin)
 
-    log_likelihood = np.asarray(
-        _score_draws(
-            jnp.asarray(draws, dtype=float),
-            steps,
-            fixed_values,
-            model=model,
-            names=names,
-        ),
-        np.float64,
-    )
+    log_likelihood = np.asarray(problem.score(draws), np.float64)
     wall_time = time.perf_counter() - started
 
     vehicle = ("vehicle",)
     return EngineResult(
-        posterior=particle_posterior(names, draws),
+        posterior=posterior_draws(names, draws[:, None]),
         sample_stats={
             "cost": (vehicle, sum_squares / 2.0),
             "nfev": (vehicle, np.array([f.nfev for f in fits])),
@@ -381,7 +347,7 @@ def run(
             "at_bound": (("vehicle", "param"), at_bound),
             "seed": (vehicle, seeds),
         },
-        log_likelihood=particle_log_likelihood(log_likelihood),
+        log_likelihood=log_likelihood_draws(log_likelihood[:, None]),
         compile_time_s=compile_time,
         wall_time_s=wall_time,
         options={

@@ -13,8 +13,10 @@ one step size and one mass matrix, although their posterior scales differ by ord
 functional kernel, ``numpyro.infer.hmc.hmc(potential_fn_gen=...)``, directly: for one vehicle its
 ``num_chains`` chains are vectorised (``vmap``, NumPyro's ``chain_method="vectorized"``), each with
 its own warm-up (dual-averaging step size and a diagonal mass matrix on Stan's windowed schedule),
-and vehicles run through :func:`~bayesdrive.inference.likelihood.map_vehicles`, compiled once ahead
-of time for all of them. ``vehicle_batch`` vectorises that many vehicles together; NUTS trees are
+and vehicles run through :func:`~bayesdrive.inference.vehicles.map_vehicles`, compiled once ahead
+of time for all of them. Each vehicle's chains draw from the vehicle's own key (the seed with its
+id folded in, :mod:`bayesdrive.inference.vehicles`), so a vehicle's draws are bit-identical
+whichever vehicles it is fitted with, in whatever order or chunk. ``vehicle_batch`` vectorises that many vehicles together; NUTS trees are
 ``while`` loops, so a vectorised batch waits for its deepest tree at every iteration. Measured
 (``benchmarks/bench_agreement.py --nuts-batch``, 15 NGSIM vehicles, six parameters, 4 chains x
 (200 + 200)): one vehicle at a time 58 s, all 15 in one batch 131 s, so the default is 1.
@@ -53,16 +55,14 @@ from numpyro.infer.util import potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.likelihood import (
-    StepInputs,
-    check_model,
-    fixed_params,
-    map_vehicles,
-    param_names,
-    series_loglik,
-    step_inputs,
-)
+from bayesdrive.inference.likelihood import StepInputs, series_loglik
 from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.vehicles import (
+    log_likelihood_draws,
+    posterior_draws,
+    prepare,
+    static_key,
+)
 
 __all__ = ["INIT_RADIUS", "NUTSConfig", "NUTSDraws", "run", "sample_nuts"]
 
@@ -245,8 +245,6 @@ def run(
     ``tree_depth``, ``n_steps``, ``acceptance_rate``, ``energy`` and ``lp`` (the log density on the
     unconstrained scale), and the adapted ``step_size`` per vehicle and chain.
     """
-    check_model(model, "nuts", whole_series=True)
-    names = param_names(model, params)
     num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
         raise ValueError(
@@ -255,6 +253,9 @@ def run(
         )
     if not 0.0 < target_accept_prob < 1.0:
         raise ValueError(f"target_accept_prob must be in (0, 1), got {target_accept_prob}")
+    problem = prepare(
+        "nuts", arrays, model=model, params=params, fixed=fixed, prior=prior, whole_series=True
+    )
     config = NUTSConfig(
         num_chains=num_chains,
         num_warmup=num_warmup,
@@ -266,27 +267,28 @@ def run(
     per_vehicle = functools.partial(
         _nuts_vehicle,
         model=model,
-        names=names,
-        fixed=fixed_params(model, fixed),
-        box=model.prior(names),
-        prior=prior,
+        names=problem.names,
+        fixed=problem.fixed,
+        box=problem.box,
+        prior=problem.given_prior,
         config=config,
     )
-    series = step_inputs(arrays, model)
-    keys = jax.random.split(key, series.mask.shape[0])
-    out, compile_time, run_time = map_vehicles(
-        per_vehicle, (keys, series), chunk=vehicle_chunk, batch=vehicle_batch, progress=progress
+    out, compile_time, run_time = problem.run(
+        per_vehicle,
+        key,
+        chunk=vehicle_chunk,
+        batch=vehicle_batch,
+        progress=progress,
+        cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
     )
+    out = jax.tree.map(lambda a: a[0], out)  # the one replicate
 
     def chain_draw_vehicle(values: np.ndarray) -> np.ndarray:
         return np.moveaxis(values, 0, -1)  # (vehicle, chain, draw) -> (chain, draw, vehicle)
 
     per_draw = ("chain", "draw", "vehicle")
     return EngineResult(
-        posterior={
-            name: chain_draw_vehicle(out.theta[..., i]).astype(np.float64)
-            for i, name in enumerate(names)
-        },
+        posterior=posterior_draws(problem.names, out.theta),
         sample_stats={
             "diverging": (per_draw, chain_draw_vehicle(out.diverging)),
             "tree_depth": (per_draw, chain_draw_vehicle(out.tree_depth)),
@@ -296,7 +298,7 @@ def run(
             "lp": (per_draw, chain_draw_vehicle(out.lp)),
             "step_size": (("vehicle", "chain"), out.step_size),
         },
-        log_likelihood=out.log_likelihood.transpose(1, 2, 0, 3),
+        log_likelihood=log_likelihood_draws(out.log_likelihood),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={

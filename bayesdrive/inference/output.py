@@ -57,8 +57,6 @@ __all__ = [
     "build_tree",
     "load_result",
     "metadata",
-    "particle_log_likelihood",
-    "particle_posterior",
     "save_result",
     "set_metadata",
     "thinned_draws",
@@ -110,16 +108,6 @@ def thinned_draws(num_draws: int, num_scored: int) -> np.ndarray:
     """Indices of ``num_scored`` evenly spaced draws out of ``num_draws`` (all when fewer)."""
     num_scored = min(num_scored, num_draws)
     return (np.arange(num_scored) * num_draws) // num_scored
-
-
-def particle_posterior(names: tuple[str, ...], particles: np.ndarray) -> dict[str, np.ndarray]:
-    """Equally weighted particles (vehicle, particle, param) as posterior arrays (1, N, vehicle)."""
-    return {name: particles[:, :, i].T[None].astype(np.float64) for i, name in enumerate(names)}
-
-
-def particle_log_likelihood(log_lik: np.ndarray) -> np.ndarray:
-    """Per-vehicle scores (vehicle, draw, step) as the group's (chain = 1, draw, vehicle, step)."""
-    return np.asarray(log_lik).transpose(1, 0, 2)[None]
 
 
 def _draws_dataset(

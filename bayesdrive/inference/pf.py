@@ -25,7 +25,12 @@ is an artificial parameter random walk, so the filter targets no fixed-parameter
 ``smc`` for inference; this engine exists to reproduce the paper honestly.
 
 Vectorised over vehicles (``vmap``) and particles, with a ``lax.scan`` over steps; vehicles are
-sorted by series length into chunks and steps where a whole chunk has no data are skipped.
+sorted by series length into chunks and steps where a whole chunk has no data are skipped. Every
+random draw of a vehicle (its prior draws, its filter, its start in the next epoch) comes from its
+own key, the seed with its id folded in (:mod:`bayesdrive.inference.vehicles`), and a vehicle's
+filter never reads its chunk mates: with one epoch its draws are bit-identical whichever vehicles
+it is fitted with, in whatever order or chunk. Later epochs start from the pool of all vehicles'
+particles, so they depend on the others by design.
 """
 
 from __future__ import annotations
@@ -42,23 +47,16 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.likelihood import (
-    StepInputs,
-    check_model,
-    fixed_params,
-    map_vehicles,
-    param_names,
-    particles_loglik,
-    score_draws,
-    static_key,
-    step_inputs,
-)
-from bayesdrive.inference.output import (
-    EngineResult,
-    particle_log_likelihood,
-    particle_posterior,
-)
+from bayesdrive.inference.likelihood import StepInputs, particles_loglik
+from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.resampling import count_distinct_sorted, systematic
+from bayesdrive.inference.vehicles import (
+    log_likelihood_draws,
+    map_vehicles,
+    posterior_draws,
+    prepare,
+    static_key,
+)
 from bayesdrive.inference.weights import (
     convergence_curve,
     effective_sample_size,
@@ -161,8 +159,10 @@ def _pf_chunk(
         parents = systematic(key_resample, log_weight)
         dithered = jnp.clip(index[parents] + dither_steps(key_dither, index.shape), 0, last)
         index = jnp.where(live, dithered, index)
+        # A step without data reports what the chunk's idle step does, bit for bit, so a
+        # vehicle's output does not depend on its chunk mates.
         out = (
-            effective_sample_size(log_weight),
+            jnp.where(live, effective_sample_size(log_weight), float(num_particles)),
             jnp.where(live, log_mean_weight(log_weight), 0.0),
             jnp.where(live, count_distinct_sorted(parents), jnp.nan),
             jnp.mean(first + index * step_size, axis=0),
@@ -220,32 +220,29 @@ def run(
 
     Vehicles are sorted by the length of their series and run ``vehicle_chunk`` at a time,
     vectorised; steps where no vehicle of a chunk has data are skipped. Every vehicle keeps its
-    own random stream, so results do not depend on the order or the chunk size. ``prior``
+    own random stream (module docstring), so with one epoch its results do not depend on the
+    other vehicles, their order or the chunk size. ``prior``
     (default the model's uniform box) gives epoch 0's particles, snapped to the grid; those draws,
     before snapping, are the result's ``prior`` group.
     """
-    check_model(model, "pf")
-    names = param_names(model, params)
-    if len(names) > MAX_DITHERED:
-        raise ValueError(f"pf dithers at most {MAX_DITHERED} parameters, got {len(names)}")
     if num_particles < 2 or epochs < 1:
         raise ValueError(f"need num_particles >= 2 and epochs >= 1, got {num_particles}, {epochs}")
+    problem = prepare("pf", arrays, model=model, params=params, fixed=fixed, prior=prior)
+    names = problem.names
+    if len(names) > MAX_DITHERED:
+        raise ValueError(f"pf dithers at most {MAX_DITHERED} parameters, got {len(names)}")
     grid = make_grid(model, names, grid_steps)
-    box = model.prior(names)
-    prior = box if prior is None else prior
-    fixed_values = fixed_params(model, fixed)
     per_chunk = functools.partial(
         _pf_chunk,
         model=model,
         names=names,
-        fixed=fixed_values,
+        fixed=problem.fixed,
         grid=grid,
-        width=box.upper - box.lower,
+        width=problem.box.upper - problem.box.lower,
     )
-    cache_key = ("pf", model, names, static_key(fixed_values), static_key(tuple(grid)))
-    series = step_inputs(arrays, model)
-    num_vehicles = series.mask.shape[0]
-    key_prior, key_epochs = jax.random.split(key)
+    cache_key = problem.cache_key("pf", static_key(tuple(grid)))
+    series = problem.series
+    num_vehicles = problem.num_vehicles
     # Longest series first, then data-free copies of the shortest to fill the last chunk.
     chunk = max(1, min(vehicle_chunk, num_vehicles))
     live = np.asarray(arrays.mask) > 0
@@ -264,15 +261,16 @@ def run(
         if progress is not None:
             progress(min(done_chunks * chunk, num_vehicles), num_vehicles)
 
-    draws = prior.sample(key_prior, (num_vehicles, num_particles))
+    # Each vehicle's key gives its prior draws and, per epoch, its filter's and its redraw's keys.
+    streams = jax.vmap(lambda k: jax.random.split(k, 1 + 2 * epochs))(problem.keys(key))
+    draws = jax.vmap(lambda k: problem.prior.sample(k, (num_particles,)))(streams[:, 0])
     start = jnp.clip(jnp.round((draws - grid.first) / grid.step), 0, grid.size - 1).astype(
         jnp.int32
     )
     compile_time, run_time = 0.0, 0.0
     epoch_log_evidence, pooled_means = [], []
-    for epoch_key in jax.random.split(key_epochs, epochs):
-        key_filter, key_pool = jax.random.split(epoch_key)
-        keys = jax.random.split(key_filter, num_vehicles)
+    for epoch in range(epochs):
+        keys, pool_keys = streams[:, 1 + 2 * epoch], streams[:, 2 + 2 * epoch]
         out, compiled_s, ran_s = map_vehicles(
             per_chunk,
             (grouped(keys[order]), grouped(ordered), grouped(start[order])),
@@ -288,13 +286,14 @@ def run(
         pooled_means.append(grid.values(out.index).mean(axis=(0, 1)))
         # The paper's epochs: every vehicle's next start is drawn from all final particles.
         pool = jnp.asarray(out.index.reshape(-1, len(names)))
-        start = pool[jax.random.randint(key_pool, start.shape[:2], 0, pool.shape[0])]
+        picks = functools.partial(jax.random.randint, shape=(num_particles,), minval=0)
+        start = pool[jax.vmap(functools.partial(picks, maxval=len(pool)))(pool_keys)]
 
     particles = grid.values(out.index)
-    log_lik = score_draws(model, names, fixed_values, particles, series)
+    log_lik = problem.score(particles)
     vehicle_step = ("vehicle", "step")
     return EngineResult(
-        posterior=particle_posterior(names, particles),
+        posterior=posterior_draws(names, particles[:, None]),
         sample_stats={
             "particle_ess": (vehicle_step, out.ess),
             "resampled": (vehicle_step, np.asarray(arrays.mask) > 0),
@@ -305,8 +304,8 @@ def run(
             "epoch_log_evidence": (("epoch", "vehicle"), np.stack(epoch_log_evidence)),
             "epoch_pooled_mean": (("epoch", "param"), np.stack(pooled_means)),
         },
-        log_likelihood=particle_log_likelihood(log_lik),
-        prior=particle_posterior(names, np.asarray(draws)),
+        log_likelihood=log_likelihood_draws(log_lik[:, None]),
+        prior=posterior_draws(names, np.asarray(draws)[:, None]),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={

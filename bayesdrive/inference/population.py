@@ -27,7 +27,8 @@ vehicle dim and sits in ``sample_stats`` (dims chain, draw, param): ``population
 \sigma(\mu)` in natural units, and ``population_new_driver``, one draw of a new driver's
 parameters per posterior draw (the posterior predictive population distribution, in natural
 units). The per-vehicle parameters, shrunk towards the population, fill the usual ``posterior``
-group, so ``bayesdrive diagnose`` and the agreement table treat the result like any other.
+group, so ``bayesdrive diagnose`` and the agreement table treat the result like any other (but
+the run is joint: unlike the per-vehicle engines, a vehicle's draws depend on the others).
 
 Measured on 12 simulated drivers (128 steps, tau/a_max/sigma, 4 chains x 300 + 300): the
 non-centred form gave 0 divergences at mean tree depth 8.1, the centred form (``centred=True``)
@@ -55,15 +56,10 @@ from numpyro.infer.util import constrain_fn, potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.likelihood import (
-    check_model,
-    fixed_params,
-    param_names,
-    series_loglik,
-    step_inputs,
-)
+from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.nuts import INIT_RADIUS, NUTSConfig, sample_nuts
 from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.vehicles import prepare
 
 __all__ = [
     "MU_PRIOR_SD",
@@ -150,12 +146,17 @@ def run(
     if prior is not None:
         raise ValueError("the hierarchical model has its own population prior; prior must be None")
     num_samples = -(-num_particles // max(num_chains, 1))
-    check_model(model, "hierarchical", whole_series=True)
-    names = param_names(model, params)
-    box = model.prior(names)
-    fixed_values = fixed_params(model, fixed)
-    series = step_inputs(arrays, model)
-    num_vehicles = series.mask.shape[0]
+    problem = prepare(
+        "hierarchical",
+        arrays,
+        model=model,
+        params=params,
+        fixed=fixed,
+        prior=None,
+        whole_series=True,
+    )
+    names, box, fixed_values, series = problem.names, problem.box, problem.fixed, problem.series
+    num_vehicles = problem.num_vehicles
     if num_vehicles < 2:
         raise ValueError("a population model needs at least 2 vehicles")
     config = NUTSConfig(

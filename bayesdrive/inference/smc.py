@@ -42,16 +42,18 @@ the tempering path's excess mass in the long v_des tail (mean 15.5 against 14.6 
 NUTS draws), 240 moves removed it (14.64).
 
 **Replicates.** Draws of one SMC run are correlated through resampling in a way no
-autocorrelation along the draw order measures. ``replicates`` independent runs (keys split from
-the one key) fill the posterior's ``chain`` dimension, so the Monte Carlo standard error of a
+autocorrelation along the draw order measures. ``replicates`` independent runs (replicate r of a
+vehicle runs on the vehicle's key with r folded in) fill the posterior's ``chain`` dimension, so the Monte Carlo standard error of a
 posterior mean is the spread of the replicate means
 (:func:`bayesdrive.inference.agreement.mcse_mean`); per-step diagnostics are replicate 0's.
 
-Vehicles are independent: one vehicle's whole filter is a ``lax.scan`` over steps with
-rejuvenation under ``lax.cond``. Vehicles run in compiled chunks; inside a chunk ``vehicle_batch``
-of them are vectorised together. With ``vehicle_batch = 1`` (the default) ``lax.cond`` stays a real
-branch: under ``vmap`` it would turn into a select that pays for the O(N T) rejuvenation at every
-step of every vehicle (``benchmarks/bench_filters.py`` measures both).
+Vehicles are independent, each with its own key derived from the seed and its id
+(:mod:`bayesdrive.inference.vehicles`), so its draws are bit-identical whichever vehicles it is
+fitted with, in whatever order or chunk. One vehicle's whole filter is a ``lax.scan`` over steps
+with rejuvenation under ``lax.cond``. Vehicles run in compiled chunks; inside a chunk
+``vehicle_batch`` of them are vectorised together. With ``vehicle_batch = 1`` (the default)
+``lax.cond`` stays a real branch: under ``vmap`` it would turn into a select that pays for the
+O(N T) rejuvenation at every step of every vehicle (``benchmarks/bench_filters.py`` measures both).
 """
 
 from __future__ import annotations
@@ -76,24 +78,15 @@ from bayesdrive.inference.kernels import (
     to_free,
     walk_step,
 )
-from bayesdrive.inference.likelihood import (
-    StepInputs,
-    check_model,
-    fixed_params,
-    map_vehicles,
-    param_names,
-    particles_loglik,
-    score_draws,
-    series_loglik,
-    static_key,
-    step_inputs,
-)
-from bayesdrive.inference.output import (
-    EngineResult,
-    particle_log_likelihood,
-    particle_posterior,
-)
+from bayesdrive.inference.likelihood import StepInputs, particles_loglik, series_loglik
+from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.resampling import count_distinct_sorted, systematic
+from bayesdrive.inference.vehicles import (
+    log_likelihood_draws,
+    posterior_draws,
+    prepare,
+    static_key,
+)
 from bayesdrive.inference.weights import (
     convergence_curve,
     effective_sample_size,
@@ -378,8 +371,6 @@ def run(
     moves work on their logit scale. ``replicates`` independent runs of ``num_particles`` each
     become the posterior's chains. The log-likelihood group scores every final particle.
     """
-    check_model(model, "smc")
-    names = param_names(model, params)
     if not 0.0 < ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold must be in (0, 1], got {ess_threshold}")
     if not 0.0 < decorrelation < 1.0:
@@ -393,9 +384,7 @@ def run(
             "need num_particles >= 2 and num_moves, temper_moves, final_moves, replicates >= 1, "
             f"got {num_particles}, {num_moves}, {temper_moves}, {final_moves}, {replicates}"
         )
-    box = model.prior(names)
-    prior = box if prior is None else prior
-    fixed_values = fixed_params(model, fixed)
+    problem = prepare("smc", arrays, model=model, params=params, fixed=fixed, prior=prior)
     config = SMCConfig(
         num_particles=num_particles,
         ess_threshold=ess_threshold,
@@ -409,43 +398,27 @@ def run(
     per_vehicle = functools.partial(
         _smc_vehicle,
         model=model,
-        names=names,
-        fixed=fixed_values,
-        prior=prior,
-        width=box.upper - box.lower,
+        names=problem.names,
+        fixed=problem.fixed,
+        prior=problem.prior,
+        width=problem.box.upper - problem.box.lower,
         config=config,
     )
-    prior_key = static_key(prior)
-    cache_key = (
-        None
-        if prior_key is None
-        else ("smc", model, names, config, prior_key, static_key(fixed_values))
-    )
-    series = step_inputs(arrays, model)
-    num_vehicles = series.mask.shape[0]
-    # Replicates are whole independent runs (own keys), laid out replicate-major as extra vehicles.
-    # Repeat along the vehicle axis only (merge scenes carry a trailing merge-slot axis).
-    copies = jax.tree.map(lambda a: jnp.concatenate([a] * replicates), series)
-    keys = jax.random.split(key, replicates * num_vehicles)
-    out, compile_time, run_time = map_vehicles(
+    out, compile_time, run_time = problem.run(
         per_vehicle,
-        (keys, copies),
+        key,
+        replicates=replicates,
         chunk=vehicle_chunk,
         batch=vehicle_batch,
         progress=progress,
-        cache_key=cache_key,
+        cache_key=problem.cache_key("smc", config, static_key(problem.prior)),
     )
-    theta = out.theta.reshape(replicates, num_vehicles, *out.theta.shape[1:])
-    first = jax.tree.map(lambda a: a[:num_vehicles], out)  # the sequential pass of replicate 0
-    replicate_log_evidence = out.log_evidence.reshape(replicates, num_vehicles)
-    log_lik = [
-        particle_log_likelihood(score_draws(model, names, fixed_values, theta[r], series))
-        for r in range(replicates)
-    ]
-    posteriors = [particle_posterior(names, theta[r]) for r in range(replicates)]
+    first = jax.tree.map(lambda a: a[0], out)  # the sequential pass of replicate 0
+    theta = np.moveaxis(out.theta, 0, 1)  # (vehicle, replicate, particle, d)
+    log_lik = problem.score(theta.reshape(problem.num_vehicles, -1, theta.shape[-1]))
     vehicle_step = ("vehicle", "step")
     return EngineResult(
-        posterior={name: np.concatenate([p[name] for p in posteriors]) for name in names},
+        posterior=posterior_draws(problem.names, theta),
         sample_stats={
             "particle_ess": (vehicle_step, first.ess),
             "resampled": (vehicle_step, first.resampled),
@@ -456,26 +429,26 @@ def run(
             # The mean of unbiased evidence estimates is one, with the replicates' spread shown.
             "log_evidence": (
                 ("vehicle",),
-                jax.nn.logsumexp(replicate_log_evidence, axis=0) - np.log(replicates),
+                jax.nn.logsumexp(out.log_evidence, axis=0) - np.log(replicates),
             ),
-            "replicate_log_evidence": (("chain", "vehicle"), replicate_log_evidence),
+            "replicate_log_evidence": (("chain", "vehicle"), out.log_evidence),
             "sequential_log_evidence": (("vehicle",), first.sequential_log_evidence),
-            "temper_stages": (("chain", "vehicle"), out.temper_stages.reshape(replicates, -1)),
+            "temper_stages": (("chain", "vehicle"), out.temper_stages),
             "temper_acceptance": (
                 ("chain", "vehicle"),
-                out.temper_acceptance.reshape(replicates, -1),
+                out.temper_acceptance,
             ),
             "final_acceptance": (
                 ("chain", "vehicle"),
-                out.final_acceptance.reshape(replicates, -1),
+                out.final_acceptance,
             ),
-            "final_moves": (("chain", "vehicle"), out.final_moves.reshape(replicates, -1)),
+            "final_moves": (("chain", "vehicle"), out.final_moves),
             "final_correlation": (
                 ("chain", "vehicle"),
-                out.final_correlation.reshape(replicates, -1),
+                out.final_correlation,
             ),
         },
-        log_likelihood=np.concatenate(log_lik),
+        log_likelihood=log_likelihood_draws(log_lik.reshape(*theta.shape[:3], -1)),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
