@@ -101,6 +101,7 @@ def test_laplace_sd_halves_when_the_same_data_are_seen_four_times(long_fit):
         np.sqrt(4 * (n - p) / (4 * n - p)),
         rtol=1e-5,
     )
+
     def logit_sd(result, name):
         spec = IDM.spec(name)
         unit = (result.posterior[name][0] - spec.lower) / (spec.upper - spec.lower)

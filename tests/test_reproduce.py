@@ -48,6 +48,20 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
         events = result["undesirable_events"]["by_step"]["mean"]
         assert len(events) == 51 and events == sorted(events)  # a share so far never falls
 
+    # The criticism's final model stands beside the IDM wherever the IDM is: the highway table,
+    # the Turing test and models/ (when the criticism found a cause on this data set).
+    criticism = json.loads((out / "criticism" / "ngsim_i80_chains" / "criticism.json").read_text())
+    final = criticism["model"]
+    assert final.split("+")[0] == "idm" and [r["verdict"] for r in criticism["rounds"]][-1] in (
+        "none",
+        *final.split("+")[1:],
+    )
+    if final != "idm":
+        assert f"{final}-smc" in models
+        turing = json.loads((out / "turing.json").read_text())
+        assert f"{final}-smc" in turing["classifier"]["ngsim_i80_chains"]
+        assert (out / "models" / f"ngsim_i80_chains_{final.replace('+', '_')}_smc.md").exists()
+
     merge = json.loads((out / "merge.json").read_text())
     assert {"cidm-smc", "idm-lm", "cidm-c1", "idm-nomerge", "cv"} <= set(merge["models"])
     cooperation = merge["cidm_posterior"]["c"]

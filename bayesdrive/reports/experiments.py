@@ -30,15 +30,16 @@ import pandas as pd
 
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
-from bayesdrive.data.provenance import describe_code
 from bayesdrive.data.trajectories import Trajectories, summary
 from bayesdrive.data.views import FollowerArrays, pooled_series
-from bayesdrive.drivers.base import PriorBox
+from bayesdrive.drivers.base import DriverModel, PriorBox
 from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.fit import summary as fit_summary
 from bayesdrive.inference.output import load_result, metadata, save_result
+from bayesdrive.reports.model_card import model_card
 from bayesdrive.simulation.baselines import baseline_policy
 from bayesdrive.simulation.generate import (
     draw_pooled,
@@ -92,6 +93,8 @@ BASELINE_MODELS = ("idm-default", "idm-nls", "idm-lm", "cv", "ca", "blackbox")
 MERGE_DATA = "ngsim_merge_episodes"
 MERGE_MODELS = ("cidm-c1", "idm-nomerge", "cv")
 CLIP_PAIRS = 3
+# Key of the criticism's final model among a highway step's fits (beside "smc" and "pf").
+FINAL = "final"
 
 
 @dataclass(frozen=True)
@@ -188,9 +191,11 @@ def fit_step(
     engine: str,
     settings: Settings,
     force: bool,
+    model: DriverModel = IDM,
 ) -> Path:
-    """Fit the IDM's six parameters per vehicle on its fitting window; save result.nc."""
-    path = out / f"{engine}.nc"
+    """Fit every parameter of ``model`` (the IDM's six by default) per vehicle on its fitting
+    window; save ``<engine>.nc`` (``<model>-<engine>.nc`` for another model)."""
+    path = out / (f"{engine}.nc" if model is IDM else f"{model.name}-{engine}.nc")
     if path.exists() and not force:
         return path
     seed = SEEDS[f"fit_{engine}"]
@@ -199,7 +204,7 @@ def fit_step(
     tree = fit(
         jax.random.key(seed),
         traj,
-        model=IDM,
+        model=model,
         engine=engine,
         num_particles=particles,
         seed=seed,
@@ -207,18 +212,29 @@ def fit_step(
         **options,
     )
     save_result(tree, path)
-    _save_json(out / f"{engine}_summary.json", fit_summary(tree))
+    _save_json(out / f"{path.stem}_summary.json", fit_summary(tree))
     return path
 
 
 def highway_step(
-    out: Path, label: str, traj: Trajectories, settings: Settings, force: bool
+    out: Path,
+    label: str,
+    traj: Trajectories,
+    settings: Settings,
+    force: bool,
+    final_model: str | None = None,
 ) -> dict:
-    """Fit, then score learned models and baselines on the held-out platoon scenarios."""
+    """Fit, then score learned models and baselines on the held-out platoon scenarios; with
+    ``final_model`` (the criticism's final model, when it is not the IDM) that model too, fitted
+    by smc like the IDM."""
     out.mkdir(parents=True, exist_ok=True)
     scenarios = _highway_scenarios(label, traj, settings)
     vehicle_ids = scenarios.simulated_ids
     results_nc = {e: fit_step(out, traj, vehicle_ids, e, settings, force) for e in ("smc", "pf")}
+    if final_model is not None and final_model != IDM.name:
+        results_nc[FINAL] = fit_step(
+            out, traj, vehicle_ids, "smc", settings, force, model=get_model(final_model)
+        )
     trees = {e: load_result(p) for e, p in results_nc.items()}
     scored = _covered(scenarios, trees)
 
@@ -235,11 +251,9 @@ def highway_step(
         }
 
     rows = {}
-    for engine, tree in trees.items():
-        meta = metadata(tree)
-        rows[f"idm-{engine}"] = evaluate(
-            f"idm-{engine}", posterior_policy(f"idm-{engine}", IDM, tree, meta)
-        )
+    for tree in trees.values():
+        name, policy = _learned_policy(tree)
+        rows[name] = evaluate(name, policy)
     for name in BASELINE_MODELS:
         policy = baseline_policy(
             name, jax.random.key(SEEDS["baselines"]), traj, scored.simulated_ids
@@ -254,6 +268,14 @@ def highway_step(
         "seed": SEEDS["evaluate"],
         "rollouts": settings.rollouts,
     }
+
+
+def _learned_policy(tree) -> tuple[str, Any]:
+    """A fitted result as a simulation policy named ``<model>-<engine>`` (each vehicle draws from
+    its own posterior)."""
+    meta = metadata(tree)
+    name = f"{meta['model']}-{meta['engine']}"
+    return name, posterior_policy(name, get_model(meta["model"]), tree, meta)
 
 
 def _merge_fit(
@@ -382,9 +404,7 @@ def turing_step(
             real_v.append(data.v)
             real_g.append(data.gap)
         real = segment_features(np.concatenate(real_v), np.concatenate(real_g), scenarios.dt)
-        policies = {
-            f"idm-{e}": posterior_policy(f"idm-{e}", IDM, t, metadata(t)) for e, t in trees.items()
-        }
+        policies = dict(_learned_policy(t) for t in trees.values())
         for name in ("idm-default", "cv"):
             policies[name] = baseline_policy(
                 name, jax.random.key(SEEDS["baselines"]), traj, scenarios.simulated_ids
@@ -634,25 +654,16 @@ MODEL_DESCRIPTIONS = {
 }
 
 
-def _card_means(units: list[dict], params: list[str]) -> list[str]:
-    """A model card's parameter lines: the spread of the posterior means across fitted units, or
-    for a single (pooled) unit its posterior mean and sd."""
-    if len(units) == 1:
-        only = units[0]
-        return [
-            "Posterior mean / sd:",
-            "",
-            *(f"- {n}: {only[n]['mean']:.2f} / {only[n]['sd']:.2f}" for n in params),
-        ]
-    return [
-        "Posterior means (mean / sd across fitted units):",
-        "",
-        *(
-            f"- {n}: {np.mean([u[n]['mean'] for u in units]):.2f}"
-            f" / {np.std([u[n]['mean'] for u in units]):.2f}"
-            for n in params
-        ),
-    ]
+def describe_model(name: str) -> str:
+    """A model card's words for a (composite) model name."""
+    base, *causes = name.split("+")
+    words = MODEL_DESCRIPTIONS[base]
+    if causes:
+        words += (
+            f" extended by {' and '.join(c.replace('_', ' ') for c in causes)}, the causes "
+            "`bayesdrive criticize` found on this data set (reports: the criticism section)"
+        )
+    return words
 
 
 def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Settings) -> list[str]:
@@ -665,41 +676,24 @@ def export_models(out: Path, fitted: dict[str, tuple[str, Path]], settings: Sett
     written = []
     for stem, (label, path) in fitted.items():
         tree = load_result(path)
-        meta = metadata(tree)
         posterior = tree["posterior"].to_dataset().astype("float32")
         slim = xr.DataTree.from_dict({"posterior": posterior})
         # The step length stays with the slim file: SUMO export sub-steps the IDM at it.
         slim.attrs = {**tree.attrs, "dt": float(tree["observed_data"].attrs["dt"])}
         save_result(slim, out / f"{stem}.nc")
-        summary_by_vehicle = fit_summary(tree)["vehicles"].values()
-        ess = tree["sample_stats"].to_dataset()
-        evidence = ess["log_evidence"].values if "log_evidence" in ess else np.array([np.nan])
-        card = "\n".join(
-            [
-                f"# {stem}",
-                "",
-                f"- model: {meta['model']} ({MODEL_DESCRIPTIONS[meta['model']]}; parameters "
-                f"{', '.join(meta['params'])})",
-                f"- data: {meta['data_source']} ({label}), window '{meta['window']}' of the split: "
-                f"{meta.get('split_rule', '')}",
-                f"- fitted units: {len(summary_by_vehicle)}; engine: {meta['engine']}, "
-                f"{meta['num_particles']} particles, seed {meta['seed']}",
-                "- prior: independent uniform on the documented bounds (bayesdrive.drivers)",
-                f"- diagnostics: median log-evidence per unit {np.nanmedian(evidence):.1f} nats; "
-                f"wall time {meta.get('wall_time_s', float('nan')):.0f} s",
-                f"- settings: bayesdrive reproduce, '{settings.name}' run",
-                f"- fitted by: {describe_code(meta.get('code'))}",
-                "- cross-engine agreement of smc with nuts and emcee on real NGSIM vehicles: "
+        card = model_card(
+            tree,
+            title=stem,
+            description=describe_model(metadata(tree)["model"]),
+            label=label,
+            lines=[
+                f"settings: bayesdrive reproduce, '{settings.name}' run",
+                "cross-engine agreement of smc with nuts and emcee on real NGSIM vehicles: "
                 "reports/agreement/agreement.md; congested data leaves v_des, d_min and b_pref "
                 "weakly identified",
-                "- regenerate: `bayesdrive reproduce --out results` (the file is "
+                "regenerate: `bayesdrive reproduce --out results` (the file is "
                 f"results/models/{stem}.nc)",
-                "- open with: `xarray.open_datatree(path, engine='h5netcdf')` or arviz; draws "
-                "are (chain, draw, vehicle) per parameter",
-                "",
-                *_card_means(list(summary_by_vehicle), meta["params"]),
-                "",
-            ]
+            ],
         )
         write_text_atomic(out / f"{stem}.md", card)
         written.append(str(out / f"{stem}.nc"))
@@ -728,14 +722,28 @@ def run_all(
     trajs: dict[str, Trajectories] = {}
     for name in HIGHWAY_SIZES:
         trajs.update(highway_data(name))
+    # The criticism comes first: its final model joins the highway tables, the Turing test and
+    # models/ beside the IDM (the acc-contrast recordings, not human drivers, are not criticised).
+    main_data = {k: v for k, v in trajs.items() if not k.endswith("acc-contrast")}
+    criticism = {}
+    for label, traj in main_data.items():
+        progress(f"criticism: {label}")
+        folder = out / "criticism" / label.replace(":", "_")
+        criticism[label] = cached(
+            folder, "criticism", lambda t=traj, f=folder: criticism_step(f, t, settings), force
+        )
+    results["criticism"] = criticism
     highway = {}
     for label, traj in trajs.items():
         progress(f"highway experiment: {label}")
         folder = highway_folder(out, label)
+        final = criticism[label]["model"] if label in criticism else None
         highway[label] = cached(
             folder,
             "evaluation",
-            lambda t=traj, f=folder, lab=label: highway_step(f, lab, t, settings, force),
+            lambda t=traj, f=folder, lab=label, m=final: highway_step(
+                f, lab, t, settings, force, final_model=m
+            ),
             force,
         )
     results["highway"] = highway
@@ -745,6 +753,11 @@ def run_all(
     )
     highway_fits = {label: fit_paths(h, highway_folder(out, label)) for label, h in highway.items()}
     smc_trees = {label: load_result(fits["smc"]) for label, fits in highway_fits.items()}
+    results["final_models"] = {
+        label: metadata(load_result(fits[FINAL]))["model"]
+        for label, fits in highway_fits.items()
+        if FINAL in fits
+    }
     pf_trees = {label: load_result(fits["pf"]) for label, fits in highway_fits.items()}
     results["parameters"] = parameter_table(smc_trees).to_dict("records")
     progress("Turing test")
@@ -753,7 +766,6 @@ def run_all(
     )
     progress("scene generation")
     main_trees = {k: v for k, v in smc_trees.items() if not k.endswith("acc-contrast")}
-    main_data = {k: v for k, v in trajs.items() if not k.endswith("acc-contrast")}
     results["scenes"] = cached(
         out, "scenes", lambda: scenes_step(out / "scenes", main_trees, main_data, settings), force
     )
@@ -770,18 +782,17 @@ def run_all(
     results["prior_sensitivity"] = cached(
         out, "prior_sensitivity", lambda: prior_sensitivity_step(chains, chain_ids, settings), force
     )
-    criticism = {}
-    for label, traj in main_data.items():
-        progress(f"criticism: {label}")
-        folder = out / "criticism" / label.replace(":", "_")
-        criticism[label] = cached(
-            folder, "criticism", lambda t=traj, f=folder: criticism_step(f, t, settings), force
-        )
-    results["criticism"] = criticism
     fitted = {
         f"{label.replace(':', '_')}_idm_smc": (label, fits["smc"])
         for label, fits in highway_fits.items()
     }
+    for label, fits in highway_fits.items():
+        if FINAL in fits:
+            model = metadata(load_result(fits[FINAL]))["model"]
+            fitted[f"{label.replace(':', '_')}_{model.replace('+', '_')}_smc"] = (
+                label,
+                fits[FINAL],
+            )
     fitted[f"{MERGE_DATA}_cidm_smc"] = (
         MERGE_DATA,
         fit_paths(results["merge"], out / "merge")["cidm-smc"],
