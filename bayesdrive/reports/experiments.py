@@ -660,7 +660,7 @@ def describe_model(name: str) -> str:
     words = MODEL_DESCRIPTIONS[base]
     if causes:
         words += (
-            f" extended by {' and '.join(c.replace('_', ' ') for c in causes)}, the causes "
+            f" extended by {' and '.join(c.replace('_', ' ') for c in causes)}: what "
             "`bayesdrive criticize` found on this data set (reports: the criticism section)"
         )
     return words
