@@ -19,7 +19,7 @@ from bayesdrive.data.outputs import OutputError, ResultsFolder, recorded_argumen
 
 
 def _run(results: ResultsFolder, quick: bool, force: bool) -> Path:
-    from bayesdrive.reports.experiments import FULL, QUICK, run_all
+    from bayesdrive.experiments.paper import FULL, QUICK, run_all
     from bayesdrive.reports.paper_report import build_report
 
     started = time.perf_counter()

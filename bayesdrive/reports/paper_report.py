@@ -1,6 +1,6 @@
 """The reproduction report: every experiment of the paper on held-out real data, as one HTML page.
 
-Built from the results :mod:`bayesdrive.reports.experiments` saved; figures are drawn here into the
+Built from the results :mod:`bayesdrive.experiments.paper` saved; figures are drawn here into the
 output folder and embedded in the page.
 """
 
