@@ -64,7 +64,7 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import EgoState, fill_params
 from bayesdrive.drivers.extensions import extend
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.drivers.idm import STOP_SPEED
+from bayesdrive.drivers.idm import STOP_SPEED, increment_law
 from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
 from bayesdrive.inference.tempering import FitResult
 from bayesdrive.simulation.follower_rollout import Rollouts
@@ -130,12 +130,11 @@ def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, st
 
     def per_step(params, inputs, v, dx):
         state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
-        mean_acc = model.mean_acceleration(params, state, inputs)
-        dt = inputs.dt
-        predicted = v * dt + 0.5 * mean_acc * dt**2
-        below = jax.scipy.stats.norm.cdf(dx, predicted, 0.5 * params.sigma * dt**2)
-        stop = jax.scipy.stats.norm.cdf(-(v + mean_acc * dt) / (params.sigma * dt))
-        return below, stop
+        law = increment_law(
+            v, model.mean_acceleration(params, state, inputs), params.sigma, inputs.dt
+        )
+        below = jax.scipy.stats.norm.cdf(dx, law.mean, law.sd)
+        return below, jax.scipy.stats.norm.cdf(law.stop_z)
 
     def per_vehicle(theta_v, steps_v):
         def per_draw(th):

@@ -75,10 +75,12 @@ __all__ = [
     "IDM",
     "STOP_SPEED",
     "IDMParams",
+    "IncrementLaw",
     "equilibrium_gap",
     "execution_noise_model",
     "execution_noise_sd",
     "idm_acceleration",
+    "increment_law",
     "noisy_step",
     "step_logpdf",
 ]
@@ -142,14 +144,33 @@ def noisy_step(key: Array, state: EgoState, mean_acc: Array, sigma: Array, dt: A
     return EgoState(x=state.x + 0.5 * (state.v + next_v) * dt, v=next_v)
 
 
+class IncrementLaw(NamedTuple):
+    """The law of one step under :func:`noisy_step`, the one Gaussian increment density every
+    density, filter and check uses: a moving step's position increment is N(``mean``, ``sd``^2);
+    the step ends in a stop with probability Phi(``stop_z``)."""
+
+    mean: Array
+    sd: Array
+    stop_z: Array
+
+
+def increment_law(v: Array, mean_acc: Array, sigma: Array, dt: Array) -> IncrementLaw:
+    """:class:`IncrementLaw` of a step from speed ``v`` with mean acceleration ``mean_acc`` and
+    execution-noise sd ``sigma``."""
+    return IncrementLaw(
+        mean=v * dt + 0.5 * mean_acc * dt**2,
+        sd=0.5 * sigma * dt**2,
+        stop_z=(STOP_SPEED - v - mean_acc * dt) / (sigma * dt),
+    )
+
+
 def step_logpdf(
     state: EgoState, next_state: EgoState, mean_acc: Array, sigma: Array, dt: Array
 ) -> Array:
     """Exact log-density of the observed next state under :func:`noisy_step` (module docstring)."""
-    increment = next_state.x - state.x
-    predicted = state.v * dt + 0.5 * mean_acc * dt**2
-    moving = norm.logpdf(increment, predicted, 0.5 * sigma * dt**2)
-    stopped = norm.logcdf((STOP_SPEED - state.v - mean_acc * dt) / (sigma * dt))
+    law = increment_law(state.v, mean_acc, sigma, dt)
+    moving = norm.logpdf(next_state.x - state.x, law.mean, law.sd)
+    stopped = norm.logcdf(law.stop_z)
     return jnp.where(next_state.v <= STOP_SPEED, stopped, moving)
 
 

@@ -65,7 +65,7 @@ from jax import Array
 from jax.scipy.stats import norm
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, observed_lift
-from bayesdrive.drivers.idm import STOP_SPEED, step_logpdf
+from bayesdrive.drivers.idm import STOP_SPEED, increment_law, step_logpdf
 
 __all__ = [
     "CAUSE",
@@ -117,7 +117,6 @@ def _noise_filter(base: DriverModel, base_params, params, steps: Any) -> Array:
     own = base_params(params)
     dt = steps.inputs.dt[0]
     noise_var = params.sigma_obs**2
-    dynamics_sd = 0.5 * own.sigma * dt**2
     index = jnp.arange(steps.v.shape[0])
     usable = steps.mask > 0
     starts = usable & ~jnp.concatenate([jnp.zeros(1, bool), usable[:-1]])
@@ -133,8 +132,8 @@ def _noise_filter(base: DriverModel, base_params, params, steps: Any) -> Array:
     def one(inputs, v, next_v, dx, mean, var):
         state = EgoState(jnp.zeros_like(v), v)
         rule = base.mean_acceleration(own, state, inputs)
-        predicted = v * dt + 0.5 * rule * dt**2 - mean
-        moving = norm.logpdf(dx, predicted, jnp.sqrt(dynamics_sd**2 + noise_var + var))
+        law = increment_law(v, rule, own.sigma, dt)
+        moving = norm.logpdf(dx, law.mean - mean, jnp.sqrt(law.sd**2 + noise_var + var))
         stopped = step_logpdf(state, EgoState(dx, next_v), rule, own.sigma, dt)
         return jnp.where(next_v <= STOP_SPEED, stopped, moving)
 
