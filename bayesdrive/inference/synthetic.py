@@ -10,6 +10,13 @@ posteriors too wide for tau and d_min (too few extreme ranks; 90% coverage of ta
 The result is the :class:`~bayesdrive.data.views.FollowerArrays` an engine fits.
 States are kept relative to the current step, as the engines score them, so the recorded
 increments carry no float32 position round-off.
+
+The follower reads its inputs through its model (``model.inputs_at`` on a buffer of the one
+series that the simulation writes into step by step: speeds, gaps, the leader's speed and
+acceleration, the leader's age; no second vehicle ahead), and carries the model's own state, so
+any registered model is simulated, extensions and composites included. A model that reads its
+past starts with a history of the constant start (its first steps are never scored: engines score
+a step only with a full usable history behind it).
 """
 
 from __future__ import annotations
@@ -21,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.data.views import FollowerArrays
-from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState
+from bayesdrive.data.views import AheadArrays, FollowerArrays, history_steps
+from bayesdrive.drivers.base import DriverModel, EgoState, Series
 
 __all__ = ["simulate_following"]
 
@@ -48,17 +55,51 @@ def simulate_following(
         2 * jnp.pi * t[None, :] / period[:, None] + phase[:, None]
     )
 
+    history = history_steps(dt) if model.reads_history else 0
+
     def one_vehicle(key, vehicle_params, lead_v, start_v, start_gap):
+        # The buffer's first ``history`` steps are the constant start, then the simulated steps.
+        length = history + num_steps + 1
+        lead = jnp.concatenate([jnp.full(history, lead_v[0]), lead_v])
+        zeros = jnp.zeros(length)
+        buffer = Series(
+            v=jnp.full(length, start_v),
+            next_v=zeros,
+            dx=jnp.full(length, start_v * dt),
+            gap=jnp.full(length, start_gap),
+            lead_v=lead,
+            has_leader=jnp.ones(length),
+            mask=jnp.ones(length),
+            dt=jnp.full(length, dt),
+            ahead=AheadArrays(
+                lead_acc=jnp.concatenate([zeros[:1], jnp.diff(lead) / dt]),
+                gap2=jnp.full(length, 100.0),
+                lead2_v=jnp.ones(length),
+                has_leader2=zeros,
+                lead_age=jnp.arange(length, dtype=zeros.dtype),
+            ),
+        )
+        start = model.initial_sample(
+            jax.random.fold_in(key, num_steps), vehicle_params, EgoState(x=0.0, v=start_v)
+        )
+
         def step(carry, xs):
-            v, gap = carry
-            key, lead_now, lead_next = xs
-            inputs = CarFollowingInputs(gap=gap, lead_v=lead_now, has_leader=1.0, dt=dt)
-            nxt = model.transition_sample(key, vehicle_params, EgoState(x=0.0, v=v), inputs)
-            lead_dx = 0.5 * (lead_now + lead_next) * dt
-            return (nxt.v, gap + lead_dx - nxt.x), (v, nxt.v, nxt.x, gap)
+            state, buf = carry
+            key, j = xs
+            v, gap = buf.v[j], buf.gap[j]
+            inputs = model.inputs_at(buf, j, history)
+            nxt = model.transition_sample(key, vehicle_params, state._replace(x=0.0), inputs)
+            lead_dx = 0.5 * (buf.lead_v[j] + buf.lead_v[j + 1]) * dt
+            buf = buf._replace(
+                v=buf.v.at[j + 1].set(nxt.v),
+                dx=buf.dx.at[j].set(nxt.x),
+                gap=buf.gap.at[j + 1].set(gap + lead_dx - nxt.x),
+            )
+            return (nxt, buf), (v, nxt.v, nxt.x, gap)
 
         keys = jax.random.split(key, num_steps)
-        _, out = jax.lax.scan(step, (start_v, start_gap), (keys, lead_v[:-1], lead_v[1:]))
+        steps = history + jnp.arange(num_steps)
+        _, out = jax.lax.scan(step, (start, buffer), (keys, steps))
         return out
 
     v, next_v, dx, gap = jax.vmap(one_vehicle)(
