@@ -7,8 +7,10 @@ study with the same seed fitting the sd-doubled likelihood, which must be reject
 ``reports/sbc/`` (or ``--out``): per study the rank histograms (PNG), ranks (CSV) and digest
 (JSON), and ``sbc_table.md`` with every p-value, coverage, the verdicts and the runtimes.
 
-Run: ``python benchmarks/bench_sbc.py [--replications 200] [--engines smc,nuts,emcee]``; a run of
-some engines keeps the other engines' studies from ``sbc_studies.json``.
+Run: ``python benchmarks/bench_sbc.py [--replications 200] [--engines smc,nuts,emcee]
+[--model idm+autocorrelated_noise]``; with an extended model its own parameters are inferred too,
+drawn from their prior box. A run of some engines and a model keeps the other studies from
+``sbc_studies.json``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import numpy as np
 from bayesdrive.cli.sbc_cmd import write_outcome
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.fit import ENGINES
 from bayesdrive.inference.sbc import run_sbc, sd_doubled
 
@@ -56,11 +59,15 @@ def table(digests: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def kept_studies(path: Path, rerun: set[str]) -> list[dict]:
-    """Studies of engines not rerun now, from an earlier run's digest file (none if absent)."""
+def kept_studies(path: Path, rerun: set[str], model: str) -> list[dict]:
+    """Studies not rerun now (another engine or model), from an earlier run's digest file."""
     if not path.exists():
         return []
-    return [s for s in json.loads(path.read_text())["studies"] if s["engine"] not in rerun]
+    return [
+        s
+        for s in json.loads(path.read_text())["studies"]
+        if s["engine"] not in rerun or s["model"] != model
+    ]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -70,20 +77,23 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=2024)
     parser.add_argument("--engines", default="smc,nuts,emcee")
     parser.add_argument("--out", type=Path, default=Path("reports/sbc"))
+    parser.add_argument("--model", default="idm", help="a model name (extensions too)")
     args = parser.parse_args(argv)
 
+    model = get_model(args.model)
+    params = PARAMS + tuple(n for n in model.param_names if n not in IDM.param_names)
     started = time.perf_counter()
     engines = args.engines.split(",")
-    digests = kept_studies(args.out / "sbc_studies.json", set(engines))
+    digests = kept_studies(args.out / "sbc_studies.json", set(engines), model.name)
     for engine in engines:
-        for fit_model in (IDM, sd_doubled(IDM)):
+        for fit_model in (model, sd_doubled(model)):
             study_started = time.perf_counter()
             outcome = run_sbc(
                 jax.random.key(args.seed),
                 ENGINES[engine],
                 engine_name=engine,
-                model=IDM,
-                params=PARAMS,
+                model=model,
+                params=params,
                 fit_model=fit_model,
                 num_replications=args.replications,
                 num_steps=args.steps,
@@ -91,7 +101,11 @@ def main(argv: list[str] | None = None) -> None:
                 seed=args.seed,
             )
             seconds = time.perf_counter() - study_started
-            stem = f"sbc_{engine}" + ("" if fit_model is IDM else "_sd_doubled")
+            stem = (
+                f"sbc_{engine}"
+                + ("" if model is IDM else "_" + model.name.replace("+", "_"))
+                + ("" if fit_model is model else "_sd_doubled")
+            )
             write_outcome(outcome, args.out, stem)
             digests.append({**outcome.summary(), "study_time_s": seconds})
             print(
@@ -103,9 +117,11 @@ def main(argv: list[str] | None = None) -> None:
     header = (
         "# Simulation-based calibration (benchmarks/bench_sbc.py)\n\n"
         f"{args.replications} replications x {args.steps} steps (dt 0.1 s) per study, seed "
-        f"{args.seed}, parameters {', '.join(PARAMS)} from the uniform prior box, the rest at "
-        "their defaults; a replayed synthetic leader per replication; L = 99 ranks. Verdict: "
-        "chi-square per parameter at 0.01 / 4 (Bonferroni). The sd-doubled rows fit a likelihood "
+        f"{args.seed}, parameters {', '.join(PARAMS)} (and an extended model's own) from the "
+        "uniform prior box, the rest at their defaults; a replayed synthetic leader per "
+        "replication, the follower simulated by the fitted model's own step "
+        "(bayesdrive.inference.synthetic); L = 99 ranks. Verdict: chi-square per parameter at "
+        "0.01 / the number of parameters (Bonferroni). The sd-doubled rows fit a likelihood "
         "with twice the execution-noise sd on the same simulated data (same seed): they must "
         "be rejected.\n\n"
         f"Engine settings: {json.dumps(ENGINE_OPTIONS)}.\n\n"
@@ -113,7 +129,9 @@ def main(argv: list[str] | None = None) -> None:
         f"{platform.machine()} ({jax.device_count()} JAX device(s), shared 2-core machine); "
         "studies of other engines are kept from the previous run (their times in the table).\n\n"
     )
-    digests.sort(key=lambda s: (list(ENGINE_OPTIONS).index(s["engine"]), s["fit_model"]))
+    digests.sort(
+        key=lambda s: (s["model"], list(ENGINE_OPTIONS).index(s["engine"]), s["fit_model"])
+    )
     write_text_atomic(args.out / "sbc_table.md", header + table(digests))
     write_text_atomic(
         args.out / "sbc_studies.json",

@@ -114,6 +114,15 @@ def simulate_following(
         return np.asarray(a, dtype=np.float64)
 
     shape = (num_vehicles, num_steps)
+    lead = host(lead_v)
+    # The scene ahead as the simulation saw it: no second vehicle ahead, one leader throughout.
+    ahead = AheadArrays(
+        lead_acc=np.concatenate([np.zeros((num_vehicles, 1)), np.diff(lead[:, :-1]) / dt], 1),
+        gap2=np.full(shape, 100.0),
+        lead2_v=np.ones(shape),
+        has_leader2=np.zeros(shape),
+        lead_age=np.broadcast_to(history + np.arange(num_steps, dtype=float), shape).copy(),
+    )
     return FollowerArrays(
         vehicle_ids=tuple(f"sim{i}" for i in range(num_vehicles)),
         v=host(v),
@@ -125,4 +134,5 @@ def simulate_following(
         mask=np.ones(shape),
         t=np.broadcast_to(host(t[:-1]), shape).copy(),
         dt=float(dt),
+        ahead=ahead,
     )
