@@ -55,6 +55,8 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
             "4",
             "--causes",
             "reaction_delay",
+            "--final-particles",
+            "128",
             "--out",
             str(out),
             "--json",

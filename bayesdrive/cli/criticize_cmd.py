@@ -70,6 +70,13 @@ def criticize_command(
             "(1: the first cause only).",
         ),
     ] = 3,
+    final_particles: Annotated[
+        int,
+        typer.Option(
+            "--final-particles",
+            help="smc particles of the final model's fit written by --out (final_model.nc).",
+        ),
+    ] = 1000,
     out: Annotated[
         Path | None, typer.Option("--out", help="Folder for the check pictures.")
     ] = None,
@@ -139,6 +146,7 @@ def criticize_command(
         config.num_particles < 2
         or rollouts < 0
         or max_rounds < 1
+        or final_particles < 2
         or not 0 <= config.unmoved_tolerance < 1
     ):
         raise fail(
@@ -172,7 +180,7 @@ def criticize_command(
         from bayesdrive.reports.criticism_plots import plot_criticism
 
         written = plot_criticism(result, results.path)
-        written += _write_final_model(result, traj, seed, results.path)
+        written += _write_final_model(result, traj, seed, results.path, final_particles)
         results.commit()
         result.report["figures"] = [str(out / p.relative_to(results.path)) for p in written]
     if emit_json(result.report, json_out):
@@ -180,7 +188,7 @@ def criticize_command(
     print_report(result.report)
 
 
-def _write_final_model(result, traj, seed: int, folder: Path) -> list[Path]:
+def _write_final_model(result, traj, seed: int, folder: Path, num_particles: int) -> list[Path]:
     """The final model fitted by smc (its defaults) to the criticized vehicles' fitting windows,
     as a result file ``final_model.nc`` beside its model card ``final_model.md``."""
     import jax
@@ -200,6 +208,7 @@ def _write_final_model(result, traj, seed: int, folder: Path) -> list[Path]:
         traj,
         model=model,
         engine="smc",
+        num_particles=num_particles,
         window="fit",
         seed=seed,
         vehicle_ids=list(result.series.vehicle_ids),
