@@ -184,8 +184,13 @@ def fit(
         )
     if chunk_size is not None and cluster is None:
         raise fail("--chunk-size applies to --cluster only")
-    if cluster is not None and engine in distributed.JOINT_ENGINES:
-        raise fail(f"--cluster fits vehicles apart; --engine {engine} fits them jointly")
+    if cluster is not None:
+        if engine in distributed.JOINT_ENGINES:
+            raise fail(f"--cluster fits vehicles apart; --engine {engine} fits them jointly")
+        try:
+            distributed.cluster_workers(cluster)
+        except ValueError as error:
+            raise fail(str(error)) from None
     options = {
         name: value
         for name, value in (("epochs", epochs), ("num_steps", steps))

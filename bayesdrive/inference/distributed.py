@@ -19,6 +19,7 @@ address such as ``tcp://HOST:8786``.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
 import os
@@ -36,6 +37,9 @@ from jax import Array
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
+from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.idm import IDM
+from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.convergence import check_convergence, log_problems
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.output import load_result, metadata, save_result, set_metadata
@@ -44,6 +48,7 @@ __all__ = [
     "DEFAULT_CHUNK_SIZE",
     "JOINT_ENGINES",
     "chunk_rows",
+    "cluster_workers",
     "fit_on_cluster",
     "open_cluster",
     "remove_chunks",
@@ -79,48 +84,69 @@ def _pin_to_core(core: int) -> None:
     os.sched_setaffinity(0, {core})
 
 
-@contextmanager
-def open_cluster(cluster: str) -> Iterator[Any]:
-    """A ``distributed.Client`` for ``cluster`` (module docstring), closed (and a local cluster
-    shut down) on leaving. A ValueError names a malformed spec or a missing ``distributed``."""
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
+def cluster_workers(cluster: str) -> int | None:
+    """Check a cluster spec (module docstring) before any work: the worker count of a local
+    cluster, None for a scheduler address. A ValueError names a malformed spec or a missing
+    ``distributed``."""
+    if importlib.util.find_spec("distributed") is None:
         raise ValueError(
             "--cluster needs Dask's distributed scheduler: pip install 'bayesdrive[cluster]'"
-        ) from None
+        )
     if cluster == "local" or cluster.startswith("local:"):
         count = cluster.partition(":")[2]
         if count and not (count.isdigit() and int(count) > 0):
             raise ValueError(f"--cluster {cluster}: the worker count must be a positive integer")
-        cores = _cores()
-        workers = int(count) if count else len(cores)
-        with (
-            LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
-            ) as local,
-            Client(local) as client,
-        ):
-            client.wait_for_workers(workers)
-            for index, address in enumerate(sorted(client.scheduler_info()["workers"])):
-                client.run(_pin_to_core, cores[index % len(cores)], workers=[address])
-            yield client
-        return
+        return int(count) if count else len(_cores())
     if "://" not in cluster:
         raise ValueError(
             f"--cluster {cluster!r}: give local, local:N or a scheduler address such as "
             "tcp://HOST:8786"
         )
-    try:
-        client = Client(cluster, timeout="30s")
-    except OSError as error:
-        raise ValueError(f"--cluster {cluster}: cannot reach the scheduler ({error})") from None
-    with client:
+    return None
+
+
+@contextmanager
+def open_cluster(cluster: str) -> Iterator[Any]:
+    """A ``distributed.Client`` for ``cluster`` (checked as :func:`cluster_workers` does), closed
+    (and a local cluster shut down) on leaving."""
+    workers = cluster_workers(cluster)
+    from distributed import Client, LocalCluster
+
+    if workers is None:
+        try:
+            client = Client(cluster, timeout="30s")
+        except OSError as error:
+            raise ValueError(f"--cluster {cluster}: cannot reach the scheduler ({error})") from None
+        with client:
+            yield client
+        return
+    cores = _cores()
+    with (
+        LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as local,
+        Client(local) as client,
+    ):
+        client.wait_for_workers(workers)
+        for index, address in enumerate(sorted(client.scheduler_info()["workers"])):
+            client.run(_pin_to_core, cores[index % len(cores)], workers=[address])
         yield client
+
+
+def _by_name(model: DriverModel) -> DriverModel | str:
+    """A registry model's name (each worker then uses its own registry's object), else the model:
+    a model's functions unpickled anew for every task would miss the compile cache, so every
+    chunk would compile again."""
+    try:
+        return model.name if get_model(model.name) is model else model
+    except KeyError:
+        return model
 
 
 def _fit_chunk(key: Array, arrays: FollowerArrays, options: dict[str, Any]) -> xr.DataTree:
     """One task: ``fit`` on a chunk's vehicles (runs on a worker)."""
+    if isinstance(options["model"], str):
+        options = {**options, "model": get_model(options["model"])}
     return fit(key, arrays, **options)
 
 
@@ -186,6 +212,7 @@ def fit_on_cluster(
     *,
     folder: Path,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
+    model: DriverModel = IDM,
     engine: str = "smc",
     window: Window = "fit",
     max_vehicles: int | None = None,
@@ -229,14 +256,24 @@ def fit_on_cluster(
         progress(done, total)
     if todo:
         log.info("fitting %d of %d chunk(s) on the cluster", len(todo), len(chunks))
-    chunk_options = {**options, "engine": engine, "window": window, "source": source}
+    # Sent once to every worker, which hands every task the same objects (a model not in the
+    # registry then compiles once per worker and run, not once per chunk).
+    [shared] = client.scatter(
+        [
+            {
+                **options,
+                "model": _by_name(model),
+                "engine": engine,
+                "window": window,
+                "source": source,
+            }
+        ],
+        broadcast=True,
+        hash=False,
+    )
     futures = {
         client.submit(
-            _fit_chunk,
-            key,
-            arrays.subset(np.asarray(rows[index])),
-            chunk_options,
-            pure=False,
+            _fit_chunk, key, arrays.subset(np.asarray(rows[index])), shared, pure=False
         ): index
         for index in todo
     }
