@@ -106,6 +106,19 @@ def cluster_workers(cluster: str) -> int | None:
 
 
 @contextmanager
+def _quiet_scheduler() -> Iterator[None]:
+    """A local scheduler runs in this process and logs every worker's comings and goings at
+    INFO; only its warnings are worth a user's attention."""
+    logger = logging.getLogger("distributed")
+    level = logger.level
+    logger.setLevel(max(logger.getEffectiveLevel(), logging.WARNING))
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
+@contextmanager
 def open_cluster(cluster: str) -> Iterator[Any]:
     """A ``distributed.Client`` for ``cluster`` (checked as :func:`cluster_workers` does), closed
     (and a local cluster shut down) on leaving."""
@@ -122,8 +135,13 @@ def open_cluster(cluster: str) -> Iterator[Any]:
         return
     cores = _cores()
     with (
+        _quiet_scheduler(),
         LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
         ) as local,
         Client(local) as client,
     ):
