@@ -34,6 +34,8 @@ NOT_RUN = {
     'python3.12 -m venv .venv && .venv/bin/pip install -e ".[test]" && .venv/bin/ruff check . && '
     ".venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --durations=20": "the test "
     "command: CI runs it (.ci/run reads it from the README)",
+    "dask scheduler --port 8786                       # on one machine": "starts a Dask "
+    "cluster; tests/test_cluster.py runs `fit --cluster` on a local one, through its address",
 }
 # Lines of a run block that are not run here -> what runs them instead.
 LINES_NOT_RUN = {

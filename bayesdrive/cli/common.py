@@ -53,8 +53,9 @@ def check_json_out(out: str | None) -> None:
         raise fail(f"cannot write --json {out}: {ancestor} is a file, not a folder")
 
 
-# Options that say where a result goes or whether to replace it, not what it is.
-NOT_IDENTITY = ("out", "force", "json_out")
+# Options that say where a result goes, where it is computed or whether to replace it, not what
+# it is (a cluster run resumes on another cluster, e.g. a scheduler restarted on a new port).
+NOT_IDENTITY = ("out", "force", "json_out", "cluster")
 FORCE_HELP = "Replace a complete result in OUT (or discard a partial one of other settings)."
 _scope: ContextVar[tuple[ExitStack, dict[str, Any]]] = ContextVar("results_scope")
 

@@ -39,6 +39,7 @@ from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.drivers.extensions import CAUSES
 from bayesdrive.drivers.registry import MODELS, get_model
+from bayesdrive.inference import distributed
 from bayesdrive.inference.fit import ENGINES, PARTICLE_ENGINES, check_engine_model, summary
 from bayesdrive.inference.fit import fit as fit_model
 from bayesdrive.inference.likelihood import param_names
@@ -48,6 +49,11 @@ from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
 
 __all__ = ["fit"]
 
+CLUSTER_HELP = (
+    "Fit chunks of vehicles on Dask: local[:N] starts N single-threaded process workers (default: "
+    "one per core), tcp://HOST:PORT uses a running scheduler. Same result as without; an "
+    "interrupted run resumes from its finished chunks."
+)
 JSON_HELP = "Write summary.json's content to OUT too ('-' for standard output, then nothing else)."
 # Vehicles listed in the printed table; summary.json has all of them.
 SHOWN_VEHICLES = 10
@@ -155,6 +161,12 @@ def fit(
     columns: str | None = typer.Option(None, "--columns", help=COLUMNS_HELP),
     units: str | None = typer.Option(None, "--units", help=UNITS_HELP),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    cluster: str | None = typer.Option(None, "--cluster", help=CLUSTER_HELP),
+    chunk_size: int | None = typer.Option(
+        None,
+        "--chunk-size",
+        help=f"With --cluster: vehicles per task (default {distributed.DEFAULT_CHUNK_SIZE}).",
+    ),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Fit per-vehicle parameter distributions and write result.nc, summary.json and plots."""
@@ -170,13 +182,23 @@ def fit(
         raise fail(
             f"--particles applies to {' and '.join(PARTICLE_ENGINES)}; {engine} takes --draws"
         )
+    if chunk_size is not None and cluster is None:
+        raise fail("--chunk-size applies to --cluster only")
+    if cluster is not None:
+        if engine in distributed.JOINT_ENGINES:
+            raise fail(f"--cluster fits vehicles apart; --engine {engine} fits them jointly")
+        try:
+            distributed.cluster_workers(cluster)
+        except ValueError as error:
+            raise fail(str(error)) from None
     options = {
         name: value
         for name, value in (("epochs", epochs), ("num_steps", steps))
         if value is not None
     }
     check_json_out(json_out)
-    results = results_folder(out, "fit", force=force)
+    # A cluster run keeps its finished chunks when interrupted, for the next run to reuse.
+    results = results_folder(out, "fit", force=force, resumable=cluster is not None)
     try:
         # Checked before reading any data, so a typo fails at once.
         driver = get_model(model)
@@ -188,24 +210,35 @@ def fit(
         traj = registry.load(data, format=format, data_dir=data_dir, **reader_options)
         fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
         with _progress() as bar:
-            task = bar.add_task(f"{engine}: compiling, then fitting vehicles", total=None)
-            tree = fit_model(
-                jax.random.key(seed),
-                fitted,
-                source=traj.source,
-                model=driver,
-                engine=engine,
-                params=names,
-                num_particles=particles,
-                draws=draws,
-                chains=chains,
-                warmup=warmup,
-                window=window,
-                seed=seed,
-                max_vehicles=vehicles,
-                progress=lambda done, total: bar.update(task, completed=done, total=total),
+            where = "" if cluster is None else f" on {cluster}"
+            task = bar.add_task(f"{engine}{where}: compiling, then fitting vehicles", total=None)
+            settings = {
+                "model": driver,
+                "engine": engine,
+                "params": names,
+                "num_particles": particles,
+                "draws": draws,
+                "chains": chains,
+                "warmup": warmup,
+                "window": window,
+                "seed": seed,
+                "max_vehicles": vehicles,
+                "source": traj.source,
+                "progress": lambda done, total: bar.update(task, completed=done, total=total),
                 **options,
-            )
+            }
+            if cluster is None:
+                tree = fit_model(jax.random.key(seed), fitted, **settings)
+            else:
+                with distributed.open_cluster(cluster) as client:
+                    tree = distributed.fit_on_cluster(
+                        client,
+                        jax.random.key(seed),
+                        fitted,
+                        folder=results.path,
+                        chunk_size=chunk_size or distributed.DEFAULT_CHUNK_SIZE,
+                        **settings,
+                    )
     except (DataError, KeyError, ValueError, NotImplementedError) as error:
         raise fail(str(error.args[0] if isinstance(error, KeyError) else error)) from None
 
@@ -216,6 +249,7 @@ def fit(
         save_result(tree, results.path / "result.nc")
     except ImportError as error:
         raise fail(f"cannot write {Path(out) / 'result.nc'}: {error}") from None
+    distributed.remove_chunks(results.path)
     folder = results.commit()
     if not emit_json(result, json_out):
         _print(result, folder, ["result.nc", "summary.json", *(p.name for p in plots)])
