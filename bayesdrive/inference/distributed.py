@@ -77,11 +77,20 @@ def _cores() -> list[int]:
     return sorted(os.sched_getaffinity(0))
 
 
-def _pin_to_core(core: int) -> None:
-    """Confine this worker process to one core before JAX starts, so XLA and every other pool
-    size themselves to one thread. Not XLA_FLAGS=--xla_cpu_multi_thread_eigen=false: that
-    flag picks other kernels, whose results differ in the last bits from a plain run's."""
-    os.sched_setaffinity(0, {core})
+def _one_core_each(cores: list[int]) -> Any:
+    """A worker plugin confining local worker ``name`` to one of ``cores`` as it starts (a
+    worker restarted after a crash too), before JAX does, so XLA and every other pool size
+    themselves to one thread. Not XLA_FLAGS=--xla_cpu_multi_thread_eigen=false: that flag picks
+    other kernels, whose results differ in the last bits from a plain run's."""
+    from distributed import WorkerPlugin
+
+    class OneCore(WorkerPlugin):
+        name = "bayesdrive-one-core"
+
+        def setup(self, worker: Any) -> None:
+            os.sched_setaffinity(0, {cores[int(worker.name) % len(cores)]})
+
+    return OneCore()
 
 
 def cluster_workers(cluster: str) -> int | None:
@@ -133,7 +142,6 @@ def open_cluster(cluster: str) -> Iterator[Any]:
         with client:
             yield client
         return
-    cores = _cores()
     with (
         _quiet_scheduler(),
         LocalCluster(
@@ -145,9 +153,7 @@ def open_cluster(cluster: str) -> Iterator[Any]:
         ) as local,
         Client(local) as client,
     ):
-        client.wait_for_workers(workers)
-        for index, address in enumerate(sorted(client.scheduler_info()["workers"])):
-            client.run(_pin_to_core, cores[index % len(cores)], workers=[address])
+        client.register_plugin(_one_core_each(_cores()))
         yield client
 
 
