@@ -273,7 +273,7 @@ def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
     ]
     for r in rates.itertuples():
         lines.append(
-            f"| {r.cell} | {r.size} | {r.generator} | {r.code} | {r.ranges} | {r.right_verdicts} "
+            f"| {r.cell} | {r.size} | {r.generator} | {r.code} | {r.ranges} | {r.right_verdicts.replace('|', ', ')} "
             f"| {r.n} | "
             f"{r.hits} | "
             f"{r.rate:.2f} | [{r.low:.2f}, {r.high:.2f}] | {r.others or ''} | {r.models} | "
