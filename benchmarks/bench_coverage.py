@@ -88,14 +88,37 @@ def coverage_table(truth: np.ndarray, found: dict[str, np.ndarray], width: np.nd
     return lines
 
 
-def save_raw(path: Path, seeds: list[int], truths: list, found: dict[str, list]) -> None:
-    """Every replication's seed, truth and (low, mean, high) per engine, atomically."""
+def save_raw(
+    path: Path, seeds: list[int], truths: list, found: dict[str, list], seconds: dict[str, float]
+) -> None:
+    """Every replication's seed, truth and (low, mean, high) per engine, and the engines'
+    inference seconds so far, atomically."""
     arrays = {
         "seed": np.repeat(seeds, len(truths[0])),
         "truth": np.concatenate(truths),
         **{f"bounds_{name}": np.concatenate(rows) for name, rows in found.items()},
+        **{f"seconds_{name}": np.asarray(s) for name, s in seconds.items()},
     }
     write_atomic(path, lambda tmp: np.savez(tmp, params=np.asarray(PARAMS), **arrays))
+
+
+def load_raw(path: Path, seeds: list[int], engines: list[str], vehicles: int):
+    """The seeds already done in ``path`` (a prefix of ``seeds``), their truths and intervals per
+    seed, and the inference seconds (NaN where a file predates recording them)."""
+    with np.load(path) as raw:
+        done = [int(s) for s in raw["seed"][::vehicles]]
+        if done != seeds[: len(done)] or tuple(raw["params"]) != PARAMS:
+            raise SystemExit(f"{path}: its seeds/parameters are not a start of this run's")
+        missing = [name for name in engines if f"bounds_{name}" not in raw]
+        if missing:
+            raise SystemExit(f"{path}: holds no intervals of engine(s) {missing}")
+        truths = list(np.split(raw["truth"], len(done)))
+        found = {name: list(np.split(raw[f"bounds_{name}"], len(done))) for name in engines}
+        seconds = {
+            name: float(raw[f"seconds_{name}"]) if f"seconds_{name}" in raw else float("nan")
+            for name in engines
+        }
+    return done, truths, found, seconds
 
 
 def main() -> None:
@@ -120,11 +143,22 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("reports/coverage.md"))
     parser.add_argument("--raw", type=Path, default=None, help="also keep replications (.npz)")
+    parser.add_argument(
+        "--resume", action="store_true", help="skip the seeds already in --raw, keep their results"
+    )
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="stop after the seed running when this many minutes have passed; report those done",
+    )
     args = parser.parse_args()
     chosen = args.engines.split(",")
     unknown = sorted(set(chosen) - set(ENGINES))
     if unknown:
         parser.error(f"--engines: unknown engine(s) {unknown}; choose from {sorted(ENGINES)}")
+    if args.resume and args.raw is None:
+        parser.error("--resume needs --raw, the file to resume from")
     load_before = os.getloadavg()
     started = time.perf_counter()
     box = IDM.prior(PARAMS)
@@ -135,7 +169,13 @@ def main() -> None:
     truths = []
     seconds = dict.fromkeys(chosen, 0.0)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    for done, seed in enumerate(seeds, start=1):
+    done_seeds = []
+    if args.resume and args.raw.exists():
+        done_seeds, truths, found, seconds = load_raw(args.raw, seeds, chosen, args.vehicles)
+        print(f"resuming after {len(done_seeds)} seeds from {args.raw}", flush=True)
+    for done, seed in enumerate(seeds[len(done_seeds) :], start=len(done_seeds) + 1):
+        if args.minutes is not None and time.perf_counter() - started > 60 * args.minutes:
+            break
         key_sim, key_fit = jax.random.split(jax.random.key(seed))
         truth, arrays = simulate_replications(
             key_sim, IDM, PARAMS, num_replications=args.vehicles, num_steps=args.steps
@@ -147,10 +187,15 @@ def main() -> None:
             result = run(key, arrays, model=fit_model, params=PARAMS, **options)
             seconds[name] += result.wall_time_s
             found[name].append(intervals(result.posterior))
+        done_seeds.append(seed)
         print(f"seed {seed} done ({done}/{args.seeds})", flush=True)
         if args.raw is not None and (done % CHECKPOINT_SEEDS == 0 or done == args.seeds):
-            save_raw(args.raw, seeds[:done], truths, found)
+            save_raw(args.raw, done_seeds, truths, found, seconds)
+    if args.raw is not None:
+        save_raw(args.raw, done_seeds, truths, found, seconds)
 
+    if not done_seeds:
+        raise SystemExit("no seed was fitted within --minutes; nothing to report")
     truth = np.concatenate(truths)  # (replication, param)
     lines = coverage_table(truth, {name: np.concatenate(found[name]) for name in chosen}, width)
     particles = (
@@ -162,24 +207,30 @@ def main() -> None:
         [
             "# Coverage of posterior intervals on simulated IDM followers",
             "",
-            f"Generated by `benchmarks/bench_coverage.py`: {args.seeds} seeds x {args.vehicles} "
-            f"followers = {len(truth)} replications, {args.steps} steps of 0.1 s each, "
+            "Generated by `benchmarks/bench_coverage.py`: "
+            f"{len(done_seeds)} seeds x {args.vehicles} followers = {len(truth)} replications, "
+            f"{args.steps} steps of 0.1 s each, "
             f"{particles}, engines {', '.join(chosen)} fitting model `{fit_model.name}`, "
             f"parameters {', '.join(PARAMS)} drawn from "
             "the uniform prior box (other IDM parameters at their defaults), seeds "
-            f"{seeds[0]} to {seeds[-1]}. Load average at the start: {load_before[0]:.1f}; "
-            f"total run time {(time.perf_counter() - started) / 60:.1f} min.",
+            f"{done_seeds[0]} to {done_seeds[-1]}"
+            + (f" (of {seeds[0]} to {seeds[-1]} planned)" if len(done_seeds) < len(seeds) else "")
+            + f". Load average at the start: {load_before[0]:.1f}; run time of this invocation "
+            f"{(time.perf_counter() - started) / 60:.1f} min.",
             "",
             *lines,
             "",
             "Exact posteriors cover at the nominal 90% when truths are drawn from the prior; a "
             "95% interval excluding 0.90 is evidence of miscalibration. pf (the paper's filter, "
             "1 epoch, grid steps "
-            f"{', '.join(f'{p} {IDM.spec(p).grid_step}' for p in PARAMS)}) is measured, not required "
-            "to be calibrated: dithering is an artificial random walk on the parameters.",
+            f"{', '.join(f'{p} {IDM.spec(p).grid_step}' for p in PARAMS)}) is measured, not "
+            "required to be calibrated: dithering is an artificial random walk on the parameters.",
             "",
             "Inference time (compilation excluded): "
-            + ", ".join(f"{name} {s:.1f} s" for name, s in seconds.items())
+            + ", ".join(
+                f"{name} " + ("not recorded" if np.isnan(s) else f"{s:.1f} s")
+                for name, s in seconds.items()
+            )
             + ".",
             "",
         ]
