@@ -102,10 +102,19 @@ def generator_fingerprint() -> str:
 
 
 def library_fingerprint() -> str:
-    """First 12 hex digits of the sha256 of bayesdrive's source (the detector): rows made by
-    another version of the library are told apart."""
+    """First 12 hex digits of the sha256 of the detector's source: every bayesdrive module loaded
+    once criticize and the readers are imported (none of them imports lazily), so rows made by
+    another version of the detector are told apart while changes elsewhere in the library (the
+    CLI, the reports, other engines) leave finished replications valid."""
+    package = ROOT / "bayesdrive"
+    sources = sorted(
+        Path(module.__file__)
+        for name, module in list(sys.modules.items())
+        if name.split(".")[0] == "bayesdrive" and getattr(module, "__file__", None)
+    )
     digest = hashlib.sha256()
-    for source in sorted((ROOT / "bayesdrive").rglob("*.py")):
+    for source in sources:
+        digest.update(str(source.relative_to(package)).encode())
         digest.update(source.read_bytes())
     return digest.hexdigest()[:12]
 
