@@ -75,19 +75,39 @@ def followers(size: int, duration_s: float, seed: int, workdir: Path):
     return arrays.subset(slice(0, size))
 
 
+def ngsim_followers(size: int):
+    """The first ``size`` NGSIM I-80 chain followers with usable steps in their fitting windows
+    (0: all of them)."""
+    from bayesdrive.data import registry
+    from bayesdrive.data.views import follower_arrays
+
+    arrays = follower_arrays(registry.load("ngsim_i80_chains"), window="fit")
+    return arrays if size == 0 else arrays.subset(slice(0, size))
+
+
 def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
-    """Fit ``size`` followers in ``mode``; times, memory and the step count."""
+    """Fit ``size`` followers in ``mode``; times, memory and the step count. With ``--means``,
+    each vehicle's posterior means and sds go to ``<out>/means-<source>-<mode>-<size>.json``."""
     import jax
     import numpy as np
 
     from bayesdrive.drivers.idm import IDM
     from bayesdrive.inference import smc
 
-    workdir = Path(args.workdir)
-    arrays = followers(size, args.duration, args.seed, workdir)
+    if args.source == "trafficgen":
+        arrays = followers(size, args.duration, args.seed, Path(args.workdir))
+    else:
+        arrays = ngsim_followers(size)
+        size = len(arrays.vehicle_ids)
     steps = int(np.asarray(arrays.mask).sum())
     key = jax.random.key(args.seed)
-    row = {"mode": mode, "vehicles": size, "steps": steps, "particles": args.particles}
+    row = {
+        "source": args.source,
+        "mode": mode,
+        "vehicles": size,
+        "steps": steps,
+        "particles": args.particles,
+    }
     started = time.perf_counter()
     if mode == "cluster":
         from bayesdrive.inference.distributed import fit_on_cluster, open_cluster
@@ -122,6 +142,17 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
         row["inference_s"] = result.wall_time_s
         row["compile_s"] = result.compile_time_s
         row["batch"] = batch
+        if args.means:
+            summary = {
+                name: {
+                    "mean": draws.mean(axis=(0, 1)).tolist(),
+                    "sd": draws.std(axis=(0, 1)).tolist(),
+                }
+                for name, draws in result.posterior.items()
+            }
+            summary["vehicle_ids"] = list(arrays.vehicle_ids)
+            target = Path(args.out) / f"means-{args.source}-{mode}-{size}.json"
+            target.write_text(json.dumps(summary))
     row["whole_s"] = time.perf_counter() - started
     row["peak_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     row["per_vehicle_s"] = row["inference_s"] / size
@@ -141,19 +172,24 @@ def write_report(out: Path) -> str:
 
     rows = sorted(
         load_rows(out / "runs.jsonl"),
-        key=lambda r: (r["machine"], MODES.index(r["mode"]), r["vehicles"]),
+        key=lambda r: (
+            r["machine"],
+            r.get("source", "trafficgen"),
+            MODES.index(r["mode"]),
+            r["vehicles"],
+        ),
     )
     lines = [
-        "| machine | mode | vehicles | steps | inference (s) | per vehicle (s) | compile (s) "
+        "| machine | data | mode | vehicles | steps | inference (s) | per vehicle (s) | compile (s) "
         "| whole (s) | peak memory (MiB) | worker peak (MiB) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         mode = r["mode"] + (f" (batch {r['batch']})" if r.get("batch", 1) > 1 else "")
         compile_s = "in workers" if r["compile_s"] is None else f"{r['compile_s']:.1f}"
         worker = f"{r['worker_peak_mib']:.0f}" if "worker_peak_mib" in r else ""
         lines.append(
-            f"| {r['machine']} | {mode} | {r['vehicles']} | {r['steps']} | {r['inference_s']:.1f} "
+            f"| {r['machine']} | {r.get('source', 'trafficgen')} | {mode} | {r['vehicles']} | {r['steps']} | {r['inference_s']:.1f} "
             f"| {r['per_vehicle_s']:.3f} | {compile_s} | {r['whole_s']:.1f} | {r['peak_mib']:.0f} "
             f"| {worker} |"
         )
@@ -177,6 +213,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=20261124)
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "scaling")
     parser.add_argument("--workdir", default=None, help="where generated recordings are kept")
+    parser.add_argument(
+        "--source",
+        choices=("trafficgen", "ngsim_i80_chains"),
+        default="trafficgen",
+        help="generated followers, or NGSIM I-80 chain followers' fitting windows (size 0: all)",
+    )
+    parser.add_argument("--means", action="store_true", help="save posterior means and sds")
     parser.add_argument("--report-only", action="store_true")
     parser.add_argument("--one", nargs=2, metavar=("MODE", "SIZE"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -192,12 +235,15 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unknown mode(s) {unknown}; known: {list(MODES)}")
     here = machine()
-    done = {(r["machine"], r["mode"], r["vehicles"]) for r in load_rows(args.out / "runs.jsonl")}
+    done = {
+        (r["machine"], r.get("source", "trafficgen"), r["mode"], r["vehicles"])
+        for r in load_rows(args.out / "runs.jsonl")
+    }
     with tempfile.TemporaryDirectory() as scratch:
         workdir = args.workdir or scratch
         for size in sorted(int(s) for s in args.sizes.split(",")):
             for mode in modes:
-                if (here, mode, size) in done:
+                if (here, args.source, mode, size) in done:
                     continue
                 command = [
                     sys.executable,
@@ -215,6 +261,11 @@ def main(argv: list[str] | None = None) -> int:
                     str(args.duration),
                     "--seed",
                     str(args.seed),
+                    "--source",
+                    args.source,
+                    "--out",
+                    str(args.out),
+                    *(["--means"] if args.means else []),
                 ]
                 finished = subprocess.run(command, capture_output=True, text=True, check=False)
                 if finished.returncode != 0:

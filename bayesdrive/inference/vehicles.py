@@ -214,7 +214,10 @@ def map_vehicles(
     ``inputs`` are pytrees with a leading vehicle axis; ``per_vehicle`` gets one vehicle's slice.
     Inside a chunk, ``batch`` vehicles are vectorised together (None or 1: one after another, which
     keeps ``lax.cond`` a real branch; under ``vmap`` it becomes a select that runs both sides).
-    The last chunk is padded by repeating its last vehicle, so the function compiles once, ahead
+    With several local JAX devices (GPUs, or CPU devices from
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each chunk is sharded over them along
+    the vehicle axis (``jax.shard_map``), every device taking whole batches, so a vehicle's draws
+    do not depend on the device count. The last chunk is padded by repeating its last vehicle, so the function compiles once, ahead
     of time. ``cache_key`` (hashable, or None for no caching) must determine ``per_vehicle``
     completely: the compiled chunk is reused for the same key and input shapes, and the compile
     time is then 0. Returns the stacked numpy outputs, the compile time and the run time (compile
@@ -223,21 +226,78 @@ def map_vehicles(
     num_vehicles = jax.tree.leaves(inputs)[0].shape[0]
     chunk = max(1, min(chunk, num_vehicles))
     batch_size = None if batch is None or batch <= 1 else min(batch, chunk)
+    # Every device takes whole batches of a chunk: chunks are a multiple of (devices x batch), so
+    # vehicles are vectorised in the same consecutive batches whatever the device count.
+    devices = jax.local_device_count()
+    multiple = devices * (batch_size or 1)
+    chunk = -(-chunk // multiple) * multiple
 
-    def run_chunk(*chunk_inputs):
-        return jax.lax.map(lambda xs: per_vehicle(*xs), chunk_inputs, batch_size=batch_size)
+    size = batch_size or 1
+    batches = np.int32(chunk // multiple)  # per device
+
+    def run_chunk(count, *chunk_inputs):
+        # The trip count is an argument, and every device's rows end with one batch never
+        # computed, so the compiler can neither unroll the loop nor hoist a loop-invariant slice
+        # out of it: either fuses the work with its surroundings and changes float bits (a
+        # vehicle fitted alone would differ from the same vehicle in a longer chunk).
+        def one(i):
+            rows = jax.tree.map(
+                lambda a: jax.lax.dynamic_slice_in_dim(a, i * size, size), chunk_inputs
+            )
+            if batch_size is None:  # no vmap: lax.cond stays a branch
+                alone = per_vehicle(*jax.tree.map(lambda a: a[0], rows))
+                return jax.tree.map(lambda a: a[None], alone)
+            return jax.vmap(per_vehicle)(*rows)
+
+        length = jax.tree.leaves(chunk_inputs)[0].shape[0]
+        empty = jax.tree.map(
+            lambda s: jnp.zeros((length, *s.shape[1:]), s.dtype), jax.eval_shape(one, 0)
+        )
+
+        def fill(i, out):
+            return jax.tree.map(
+                lambda o, part: jax.lax.dynamic_update_slice_in_dim(o, part, i * size, 0),
+                out,
+                one(i),
+            )
+
+        return jax.lax.fori_loop(0, count, fill, empty)
+
+    if devices > 1:
+        spec = jax.sharding.PartitionSpec("vehicle")
+        run_chunk = jax.shard_map(
+            run_chunk,
+            mesh=jax.make_mesh((devices,), ("vehicle",), axis_types=(jax.sharding.AxisType.Auto,)),
+            in_specs=(jax.sharding.PartitionSpec(), *(spec,) * len(inputs)),
+            out_specs=spec,
+            check_vma=False,  # vehicles share nothing: no cross-device value to check
+        )
+
+    per_device = chunk // devices
 
     def chunk_at(start: int):
-        rows = np.minimum(np.arange(start, start + chunk), num_vehicles - 1)
-        return jax.tree.map(lambda a: a[rows], inputs)
+        rows = start + np.arange(chunk).reshape(devices, per_device)
+        rows = np.concatenate([rows, rows[:, -size:]], axis=1)  # the unused batch
+        return jax.tree.map(lambda a: a[np.minimum(rows.ravel(), num_vehicles - 1)], inputs)
+
+    def computed(out):
+        """The chunk's outputs in vehicle order, each device's unused batch dropped."""
+        return jax.tree.map(
+            lambda a: (
+                np.asarray(a)
+                .reshape(devices, per_device + size, *a.shape[1:])[:, :per_device]
+                .reshape(chunk, *a.shape[1:])
+            ),
+            out,
+        )
 
     first = chunk_at(0)
     shapes = jax.tree.map(lambda a: (a.shape, str(a.dtype)), first)
-    key = None if cache_key is None else (cache_key, chunk, batch_size, str(shapes))
+    key = None if cache_key is None else (cache_key, chunk, batch_size, devices, str(shapes))
     compile_time = 0.0
     if key is None or key not in _COMPILED:
         started = time.perf_counter()
-        compiled = jax.jit(run_chunk).lower(*first).compile()
+        compiled = jax.jit(run_chunk).lower(batches, *first).compile()
         compile_time = time.perf_counter() - started
         if key is not None:
             if len(_COMPILED) >= _COMPILED_MAX:
@@ -250,8 +310,9 @@ def map_vehicles(
     for start in range(0, num_vehicles, chunk):
         chunk_inputs = first if start == 0 else chunk_at(start)
         started = time.perf_counter()
-        out = jax.block_until_ready(compiled(*chunk_inputs))
+        out = jax.block_until_ready(compiled(batches, *chunk_inputs))
         run_time += time.perf_counter() - started
+        out = computed(out)
         keep = min(chunk, num_vehicles - start)
         pieces.append(jax.tree.map(lambda a, keep=keep: np.asarray(a)[:keep], out))
         if progress is not None:
