@@ -82,6 +82,8 @@ def test_fit_runs_the_paper_filter_with_epochs(data_dir, tmp_path):
         (["--draws", "50"], "engine 'smc' is sized by its particles"),
         (["--engine", "lm", "--chains", "2"], "engine 'lm' has no chains option"),
         (["--engine", "gibbs"], "unknown engine 'gibbs'"),
+        (["--engine", "pf", "--vehicle-batch", "4"], "--vehicle-batch applies to smc and nuts"),
+        (["--vehicle-batch", "0"], "--vehicle-batch must be at least 1, got 0"),
         (["--params", "v_des,speed"], "has no parameter(s) ['speed']"),
         (["--model", "krauss"], "unknown driver model 'krauss'"),
         (["--columns", "t"], "--columns: 't' is not SCHEMA=FILE_COLUMN"),

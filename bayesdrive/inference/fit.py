@@ -31,6 +31,7 @@ from bayesdrive.inference.likelihood import check_model, param_names
 from bayesdrive.inference.output import EngineResult, build_tree, metadata, set_metadata
 
 __all__ = [
+    "BATCHED_ENGINES",
     "ENGINES",
     "INFERENCE_LIBRARY",
     "MCMC_OPTIONS",
@@ -82,6 +83,8 @@ INFERENCE_LIBRARY = {
     "pmmh": "bayesdrive",
 }
 PARTICLE_ENGINES = ("smc", "pf")
+# Engines that vectorise vehicles on request (``vehicle_batch``).
+BATCHED_ENGINES = ("smc", "nuts")
 DEFAULT_SIZE = 1000
 # fit's chains and warmup as each MCMC engine calls them (emcee's chains are its walkers).
 MCMC_OPTIONS = {
