@@ -34,11 +34,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 FOLLOWERS_PER_PLATOON = 10
+MAX_GENERATED = 1000
 MODES = ("plain", "batched", "cluster")
 
 
@@ -52,12 +55,16 @@ def machine() -> str:
 
 
 def followers(size: int, duration_s: float, seed: int, workdir: Path):
-    """The first ``size`` followers (whole series) of a generated recording with enough platoons."""
+    """The first ``size`` followers (whole series) of a generated recording with enough platoons;
+    beyond :data:`MAX_GENERATED`, copies of those under new ids (``<id>#<copy>``): each id is its
+    own random stream, and fitting costs the same whether the data repeat or not, while
+    generating and reading 10,000 followers would take longer than fitting them."""
     from bayesdrive.data.readers import read
     from bayesdrive.data.views import follower_arrays
     from trafficgen import generate
 
-    platoons = -(-size // FOLLOWERS_PER_PLATOON)
+    generated = min(size, MAX_GENERATED)
+    platoons = -(-generated // FOLLOWERS_PER_PLATOON)
     path = workdir / f"platoons_{platoons}_{duration_s:g}s_{seed}.csv"
     if not path.exists():
         generate(
@@ -70,9 +77,15 @@ def followers(size: int, duration_s: float, seed: int, workdir: Path):
             cut_ins=0,
         )
     arrays = follower_arrays(read(path, format="ngsim_raw"), window="all")
-    if len(arrays.vehicle_ids) < size:
+    if len(arrays.vehicle_ids) < generated:
         raise RuntimeError(f"the recording holds {len(arrays.vehicle_ids)} followers, not {size}")
-    return arrays.subset(slice(0, size))
+    arrays = arrays.subset(slice(0, generated))
+    copies = -(-size // generated)
+    if copies == 1:
+        return arrays
+    tiled = arrays.subset(np.tile(np.arange(generated), copies)[:size])
+    ids = [f"{v}#{i // generated}" for i, v in enumerate(tiled.vehicle_ids)]
+    return tiled._replace(vehicle_ids=tuple(ids))
 
 
 def ngsim_followers(size: int):
@@ -89,7 +102,6 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
     """Fit ``size`` followers in ``mode``; times, memory and the step count. With ``--means``,
     each vehicle's posterior means and sds go to ``<out>/means-<source>-<mode>-<size>.json``."""
     import jax
-    import numpy as np
 
     from bayesdrive.drivers.idm import IDM
     from bayesdrive.inference import smc
