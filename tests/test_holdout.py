@@ -3,6 +3,7 @@ paired interval, never a number reached on held-out data."""
 
 from __future__ import annotations
 
+import html
 import math
 
 import jax
@@ -15,13 +16,15 @@ from bayesdrive.experiments.holdout import (
     BASELINES,
     LEARNED,
     POOLED,
+    PROTOCOL,
     TRAINING_DATA,
     HoldoutConfig,
     evaluate_data_set,
     paired_difference,
 )
 from bayesdrive.inference.fit import fit
-from bayesdrive.reports.paper_report import holdout_table
+from bayesdrive.reports.html import Section
+from bayesdrive.reports.paper_report import holdout_section, holdout_table
 from bayesdrive.simulation.blackbox import TrainConfig
 
 # Two leader-follower pairs of 35 s: the smallest held-out case with leaders.
@@ -92,3 +95,11 @@ def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir,
     table = holdout_table(result)
     assert list(table["method"]) == list(models)
     assert (table.loc[table["method"] != "idm-smc"].iloc[:, -1] != "-").all()
+    section = Section("held out")
+    holdout_section(
+        section,
+        {"protocol": PROTOCOL, "data_sets": {HELD_OUT: result, "none": {"error": "no leaders"}}},
+    )
+    page = "".join(section.parts)
+    assert PROTOCOL in html.unescape(page) and "none: not evaluated: no leaders" in page
+    assert "idm-smc minus this, position (m) [95%]" in page

@@ -17,7 +17,7 @@ from bayesdrive.data.atomic import write_atomic
 from bayesdrive.drivers.registry import MODELS
 from bayesdrive.inference.agreement import agreement_summary, agreement_table
 from bayesdrive.reports.filter_plots import plot_convergence
-from bayesdrive.reports.html import Report
+from bayesdrive.reports.html import Report, Section
 
 __all__ = ["build_report"]
 
@@ -110,6 +110,27 @@ def holdout_table(entry: dict[str, Any], learned: str = "idm-smc") -> pd.DataFra
             }
         )
     return pd.DataFrame(rows)
+
+
+def holdout_section(section: Section, holdout: dict[str, Any]) -> None:
+    """The held-out section: the protocol, then one table per data set (why a set was not
+    evaluated, where it was not) with its training population and who drives."""
+    section.text(holdout["protocol"])
+    section.note(
+        "A negative paired difference means the per-vehicle model idm-smc is closer to the data "
+        "than the method of its row. The row idm-smc-pooled-ngsim is what this section reported "
+        "before: the pooled NGSIM I-80 posterior applied to every driver of every data set."
+    )
+    for name, entry in holdout["data_sets"].items():
+        if "error" in entry:
+            section.note(f"{name}: not evaluated: {entry['error'][:160]}")
+            continue
+        drivers = f"; {entry['acc']}" if entry["acc"] else ""
+        section.table(
+            holdout_table(entry),
+            caption=f"{name}: population from {entry['training_data']} "
+            f"({entry['population_vehicles']} drivers){drivers}",
+        )
 
 
 def plot_rmse_curves(models: dict[str, Any], path: Path, title: str, dt: float) -> Path:
@@ -364,24 +385,7 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     for path in results["scenes"]["figures"] + results["scenes"]["sweeps"]:
         scenes.figure(Path(path), Path(path).stem.replace("_", " "))
 
-    holdout = report.section("Generalisation to held-out data sets")
-    holdout.text(results["holdout"]["protocol"])
-    holdout.note(
-        "Fitting held-out vehicles on their fitting windows with the fixed defaults is "
-        "evaluation; nothing was chosen or tuned on these data. The row idm-smc-pooled-ngsim is "
-        "what this section reported before: the pooled NGSIM I-80 posterior applied to every "
-        "driver of every data set."
-    )
-    for name, entry in results["holdout"]["data_sets"].items():
-        if "error" in entry:
-            holdout.note(f"{name}: not evaluated: {entry['error'][:160]}")
-            continue
-        drivers = f"; {entry['acc']}" if entry["acc"] else ""
-        holdout.table(
-            holdout_table(entry),
-            caption=f"{name}: population from {entry['training_data']} "
-            f"({entry['population_vehicles']} drivers){drivers}",
-        )
+    holdout_section(report.section("Generalisation to held-out data sets"), results["holdout"])
 
     prior = report.section("Prior sensitivity")
     frame = pd.DataFrame(results["prior_sensitivity"]["rows"])
