@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import html
 import math
+from pathlib import Path
 
 import jax
 import numpy as np
 import pandas as pd
 import pytest
+import xarray as xr
 
 from bayesdrive.data import registry
+from bayesdrive.drivers.idm import IDM
 from bayesdrive.experiments.holdout import (
     BASELINES,
     LEARNED,
@@ -23,10 +26,13 @@ from bayesdrive.experiments.holdout import (
     paired_difference,
 )
 from bayesdrive.inference.fit import fit
+from bayesdrive.inference.output import load_result
 from bayesdrive.reports.html import Section
 from bayesdrive.reports.paper_report import holdout_section, holdout_table
 from bayesdrive.simulation.blackbox import TrainConfig
+from bayesdrive.simulation.posterior import population_policy
 
+MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
 # Two leader-follower pairs of 35 s: the smallest held-out case with leaders.
 HELD_OUT = "ngsim_i80_pairs_raw_c"
 
@@ -46,6 +52,29 @@ def test_paired_interval_brackets_the_mean_and_is_seeded():
     # One scenario: no spread to resample, the interval is the difference itself.
     single = paired_difference([2.0], [0.5], seed=5)
     assert single["low"] == single["mean"] == single["high"] == 1.5
+
+
+def test_population_policy_draws_each_driver_per_rollout_from_the_new_driver_draws():
+    tree = load_result(MODEL)
+    names = ["v_des", "tau"]
+    rows = np.array([[20.0 + d, 1.0 + d / 10] for d in range(8)]).reshape(2, 4, 2)
+    tree["sample_stats"] = xr.DataTree(
+        xr.Dataset(
+            {"population_new_driver": (("chain", "draw", "param"), rows)}, coords={"param": names}
+        )
+    )
+    policy = population_policy("pop", IDM, tree, ["a", "b"])
+    params = policy.params_for(jax.random.key(0), ("a", "b"), 40)
+    drawn = np.stack([np.asarray(params.v_des), np.asarray(params.tau)], axis=-1)
+    flat = rows.reshape(-1, 2)
+    assert all(np.isclose(flat, pair).all(axis=1).any() for pair in drawn.reshape(-1, 2))
+    # New drivers: the two vehicles and the rollouts draw apart, not one driver for all.
+    assert len({tuple(pair) for pair in drawn.reshape(-1, 2)}) > 2
+    assert not np.array_equal(drawn[:, 0], drawn[:, 1])
+    # What the population does not describe stays at the fit's fixed values (here defaults).
+    np.testing.assert_allclose(
+        np.asarray(params.d_min), IDM.specs[IDM.param_names.index("d_min")].default
+    )
 
 
 @pytest.mark.realdata
