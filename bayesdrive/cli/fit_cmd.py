@@ -2,7 +2,8 @@
 
 DATA is a file, a folder or a data set name; a held-out name is read from the held-out folder
 (``--data-dir``, else as :func:`bayesdrive.data.registry.holdout_dir` finds it) with a logged
-note: fitting its vehicles with fixed settings is evaluation, tuning anything on it is not. Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
+note: fitting its vehicles with fixed settings is evaluation, tuning anything on it is not.
+Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
 merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
 (:func:`bayesdrive.inference.fit.summary`) and, for the filters, the diagnostics ess.png,
 unique_particles.png and convergence.png, then manifest.json last (arguments, seed, complete);

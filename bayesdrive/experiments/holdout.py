@@ -97,6 +97,8 @@ ACC_NOTES = {
     "openacc_zalazone": "followers drive on adaptive cruise control, except in the all-human "
     "no_ACC recordings (OpenACC ZalaZone notes)",
 }
+# Recordings driven by hand inside a mostly-ACC data set, by the folder their scenario ids start
+# with, so the note can count the scenarios that are not ACC.
 HUMAN_SCENES = {"openacc_zalazone": "no_ACC/"}
 
 PROTOCOL = (
@@ -269,6 +271,8 @@ def evaluate_data_set(
         "scenarios_dropped_without_fit": len(found.scenarios) - len(scenarios.scenarios),
         "training_data": metadata(population)["data_source"],
         "population_vehicles": int(population["posterior"].sizes["vehicle"]),
+        # Reported beside the rows, never acted on: an unconverged population weakens its row.
+        "population_convergence_problems": len(metadata(population)["convergence"]["problems"]),
         "acc": _acc_note(name, scenarios),
         "models": models,
         "paired": paired,
