@@ -16,8 +16,10 @@ with the documented defaults and scoring them on their later held-out windows is
 3. **Population predictive** (``idm-population``): the hierarchical population model (engine
    ``hierarchical``) fitted on the fitting windows of the training data set of the same kind
    (:data:`TRAINING_DATA`: NGSIM I-80 chains for NGSIM sets, OpenACC Vicolungo for OpenACC and
-   ACC sets); every follower is treated as a driver with no data of its own: each rollout draws
-   its parameters from the population distribution of a new driver.
+   ACC sets), on the training vehicles the highway experiment fitted, with the engine's default
+   chains and warm-up (a quick run shrinks them); every follower is treated as a driver with no
+   data of its own: each rollout draws its parameters from the population distribution of a new
+   driver.
 4. **Pooled posterior** (``idm-smc-pooled-ngsim``, when given): the earlier generalisation row,
    every follower drawing from the pooled per-vehicle smc draws of the NGSIM I-80 chains,
    whatever the data set.
@@ -139,16 +141,25 @@ def holdout_scenarios(traj: Trajectories, max_scenarios: int | None) -> Scenario
 
 
 def fit_population(
-    traj: Trajectories, vehicle_ids: list[str], *, draws: int, seed: int
+    traj: Trajectories,
+    vehicle_ids: list[str],
+    *,
+    draws: int,
+    seed: int,
+    chains: int | None = None,
+    warmup: int | None = None,
 ) -> xr.DataTree:
     """The hierarchical population model of the IDM's six parameters on the fitting windows of
-    ``vehicle_ids`` of a training data set (the engine's default chains and warm-up)."""
+    ``vehicle_ids`` of a training data set (``chains`` and ``warmup``: the engine's defaults
+    unless a quick run shrinks them)."""
     return fit(
         jax.random.key(seed),
         traj,
         model=IDM,
         engine="hierarchical",
         num_particles=draws,
+        chains=chains,
+        warmup=warmup,
         seed=seed,
         vehicle_ids=vehicle_ids,
     )
