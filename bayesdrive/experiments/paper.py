@@ -12,6 +12,9 @@ Every choice below was fixed before any result was seen, and none was made on he
   followers drive on adaptive cruise control is evaluated apart, as a contrast.
 * **Fits** see only each simulated vehicle's fitting window (the split rule of
   :mod:`bayesdrive.data.views`); every score is on the later held-out window.
+* **Held-out data sets** follow one protocol (:mod:`bayesdrive.experiments.holdout`): each
+  follower fitted on its own fitting window with the fixed defaults, new drivers predicted from
+  the population fitted on the training data set of the same kind, nothing chosen on them.
 """
 
 from __future__ import annotations
