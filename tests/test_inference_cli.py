@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import arviz
 import numpy as np
@@ -101,12 +102,30 @@ def test_bad_options_end_with_a_clear_error(data_dir, tmp_path, extra, message):
     assert not any(tmp_path.iterdir())  # nothing written
 
 
-def test_held_out_data_is_never_fitted(tmp_path):
+@pytest.mark.realdata
+def test_fit_takes_a_held_out_name_and_logs_that_nothing_may_be_tuned(
+    holdout_dir, tmp_path, caplog
+):
+    name = "ngsim_i80_pairs_raw_c"
+    args = ["fit", name, "--data-dir", str(holdout_dir), "--vehicles", "1"]
+    args += ["--particles", "32", "--params", "v_des,sigma", "--out", str(tmp_path / "fit")]
+    with caplog.at_level(logging.WARNING, logger="bayesdrive.cli.fit_cmd"):
+        result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    notes = [r.getMessage() for r in caplog.records if r.name == "bayesdrive.cli.fit_cmd"]
+    assert len(notes) == 1 and name in notes[0]
+    assert "held out for evaluation only" in notes[0] and "never choose or tune" in notes[0]
+    meta = metadata(load_result(tmp_path / "fit" / "result.nc"))
+    assert (meta["data_source"], meta["window"]) == (name, "fit")
+
+
+def test_a_held_out_name_is_looked_up_in_the_held_out_folder(tmp_path):
     name = next(iter(HOLDOUT))
-    result = runner.invoke(app, ["fit", name, "--out", str(tmp_path)])
+    result = runner.invoke(
+        app, ["fit", name, "--data-dir", str(tmp_path), "--out", str(tmp_path / "o")]
+    )
     assert result.exit_code == 2
-    assert "held out for evaluation only" in one_line(result.stderr)
-    assert not any(tmp_path.iterdir())
+    assert f"data set {name!r} is not in {tmp_path}" in one_line(result.stderr)
 
 
 @pytest.mark.realdata

@@ -1,7 +1,9 @@
 """``bayesdrive fit``: per-vehicle parameter distributions from trajectories, saved to a folder.
 
-DATA is a file, a folder or a data set name (held-out names are refused: nothing is fitted on
-them). Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
+DATA is a file, a folder or a data set name; a held-out name is read from the held-out folder
+(``--data-dir``, else as :func:`bayesdrive.data.registry.holdout_dir` finds it) with a logged
+note: fitting its vehicles with fixed settings is evaluation, tuning anything on it is not.
+Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
 merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
 (:func:`bayesdrive.inference.fit.summary`) and, for the filters, the diagnostics ess.png,
 unique_particles.png and convergence.png, then manifest.json last (arguments, seed, complete);
@@ -13,6 +15,7 @@ written, warns naming each vehicle and parameter, and exits with code 3.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +57,8 @@ from bayesdrive.reports.filter_plots import write_filter_plots
 from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
 
 __all__ = ["fit"]
+
+log = logging.getLogger(__name__)
 
 CLUSTER_HELP = (
     "Fit chunks of vehicles on Dask: local[:N] starts N single-threaded process workers (default: "
@@ -123,6 +128,21 @@ def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
     console.print(escape(f"wrote {', '.join(written)} to {out}"))
 
 
+HELD_OUT_NOTE = (
+    "%s is held out for evaluation only: fit it with fixed, documented settings to measure the "
+    "toolkit; never choose or tune a default, prior, threshold, seed or model on it"
+)
+
+
+def _load(data: str, format: str | None, data_dir: str | None, options: dict) -> Any:
+    """The trajectories to fit; a held-out name (not an existing path) is read from the held-out
+    folder, with :data:`HELD_OUT_NOTE` logged."""
+    if data in registry.HOLDOUT and not Path(data).exists():
+        log.warning(HELD_OUT_NOTE, data)
+        return registry.load_holdout(data, format=format, holdout_dir=data_dir, **options)
+    return registry.load(data, format=format, data_dir=data_dir, **options)
+
+
 @results_command
 def fit(
     data: str = typer.Argument(..., help="A file, a folder, or a data set name."),
@@ -170,7 +190,9 @@ def fit(
         "hundreds). Draws then differ from the default's in the last bits, not with the device "
         "count.",
     ),
-    data_dir: str | None = typer.Option(None, "--data-dir", help="Folder holding data sets."),
+    data_dir: str | None = typer.Option(
+        None, "--data-dir", help="Folder holding data sets (held-out ones for a held-out name)."
+    ),
     columns: str | None = typer.Option(None, "--columns", help=COLUMNS_HELP),
     units: str | None = typer.Option(None, "--units", help=UNITS_HELP),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
@@ -230,7 +252,7 @@ def fit(
             None if params is None else param_names(driver, [p.strip() for p in params.split(",")])
         )
         format, reader_options = column_map_options(format, columns, units)
-        traj = registry.load(data, format=format, data_dir=data_dir, **reader_options)
+        traj = _load(data, format, data_dir, reader_options)
         fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
         with _progress() as bar:
             where = "" if cluster is None else f" on {cluster}"

@@ -2,7 +2,8 @@
 
 A result tree (:mod:`bayesdrive.inference.output`) holds, per parameter, draws shaped
 (chain, draw, vehicle). The simulator wants, per vehicle, a (draws, parameters) matrix; the paper's
-scene generation and the held-out generalisation use the pooled mixture of all vehicles' draws.
+scene generation uses the pooled mixture of all vehicles' draws, and drivers with no data of their
+own draw from the hierarchical engine's population distribution of a new driver.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ __all__ = [
     "fixed_params",
     "particles_by_vehicle",
     "pooled_policy",
+    "population_draws",
+    "population_policy",
     "posterior_policy",
     "posterior_predictive",
 ]
@@ -81,6 +84,39 @@ def pooled_policy(
         dict.fromkeys(vehicle_ids, pool),
         fixed_params(model, meta),
         f"{name}: pooled {meta.get('engine')} posterior of {len(pool)} draws over fitted vehicles",
+    )
+
+
+def population_draws(tree: xr.DataTree) -> tuple[tuple[str, ...], np.ndarray]:
+    """The hierarchical engine's draws of a new driver's parameters
+    (``sample_stats/population_new_driver``, one per posterior draw): the parameter names and a
+    (chain * draw, parameters) matrix."""
+    stats = tree["sample_stats"].to_dataset() if "sample_stats" in tree.children else None
+    if stats is None or "population_new_driver" not in stats:
+        raise ValueError(
+            "the result holds no population distribution (sample_stats/population_new_driver): "
+            "fit with the hierarchical engine, or export per vehicle or posterior draws"
+        )
+    new_driver = stats["population_new_driver"].transpose("chain", "draw", "param")
+    names = tuple(str(p) for p in new_driver["param"].values)
+    return names, new_driver.values.reshape(-1, len(names))
+
+
+def population_policy(
+    name: str, model: DriverModel, tree: xr.DataTree, vehicle_ids: list[str]
+) -> Policy:
+    """Every vehicle in ``vehicle_ids`` is a new driver: each rollout draws its parameters from
+    the population distribution of the hierarchical fit ``tree`` (:func:`population_draws`), so
+    nothing of the vehicle's own data is used."""
+    names, draws = population_draws(tree)
+    return particle_policy(
+        name,
+        model,
+        names,
+        dict.fromkeys(vehicle_ids, draws),
+        fixed_params(model, metadata(tree)),
+        f"{name}: a new driver drawn per rollout from the hierarchical population of "
+        f"{tree['posterior'].sizes['vehicle']} fitted vehicles ({len(draws)} draws)",
     )
 
 

@@ -65,7 +65,7 @@ from bayesdrive.data.provenance import provenance_line
 from bayesdrive.drivers.idm import DELTA
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.output import metadata
-from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
+from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle, population_draws
 
 __all__ = [
     "IDM_TO_SUMO",
@@ -158,15 +158,7 @@ def posterior_drivers(key: Array, tree: xr.DataTree, num_drivers: int) -> list[D
 def population_drivers(key: Array, tree: xr.DataTree, num_drivers: int) -> list[Driver]:
     """``num_drivers`` new drivers from the hierarchical engine's population distribution: a
     uniformly chosen posterior draw of ``population_new_driver`` each."""
-    stats = tree["sample_stats"].to_dataset() if "sample_stats" in tree.children else None
-    if stats is None or "population_new_driver" not in stats:
-        raise ValueError(
-            "the result holds no population distribution (sample_stats/population_new_driver): "
-            "fit with the hierarchical engine, or export per vehicle or posterior draws"
-        )
-    new_driver = stats["population_new_driver"]
-    params = [str(p) for p in new_driver["param"].values]
-    flat = new_driver.transpose("chain", "draw", "param").values.reshape(-1, len(params))
+    params, flat = population_draws(tree)
     index = np.asarray(jax.random.randint(key, (num_drivers,), 0, len(flat)))
     return [
         Driver(

@@ -1,0 +1,134 @@
+"""The held-out protocol (bayesdrive.experiments.holdout) on a tiny case: every method's row and
+paired interval, never a number reached on held-out data."""
+
+from __future__ import annotations
+
+import html
+import math
+from pathlib import Path
+
+import jax
+import numpy as np
+import pandas as pd
+import pytest
+import xarray as xr
+
+from bayesdrive.data import registry
+from bayesdrive.drivers.idm import IDM
+from bayesdrive.experiments.holdout import (
+    BASELINES,
+    LEARNED,
+    POOLED,
+    PROTOCOL,
+    TRAINING_DATA,
+    HoldoutConfig,
+    evaluate_data_set,
+    paired_difference,
+)
+from bayesdrive.inference.fit import fit
+from bayesdrive.inference.output import load_result
+from bayesdrive.reports.html import Section
+from bayesdrive.reports.paper_report import holdout_section, holdout_table
+from bayesdrive.simulation.blackbox import TrainConfig
+from bayesdrive.simulation.posterior import population_policy
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
+# Two leader-follower pairs of 35 s: the smallest held-out case with leaders.
+HELD_OUT = "ngsim_i80_pairs_raw_c"
+
+
+def test_every_held_out_set_has_a_training_set_of_its_kind():
+    assert set(TRAINING_DATA) == set(registry.HOLDOUT)
+    assert set(TRAINING_DATA.values()) <= set(registry.DATASETS)
+
+
+def test_paired_interval_brackets_the_mean_and_is_seeded():
+    rng = np.random.default_rng(0)
+    learned, other = rng.normal(size=12), rng.normal(size=12)
+    first = paired_difference(learned, other, seed=5)
+    assert first == paired_difference(learned, other, seed=5)
+    assert first["mean"] == pytest.approx(np.mean(learned - other))
+    assert first["low"] < first["mean"] < first["high"] and first["scenarios"] == 12
+    # One scenario: no spread to resample, the interval is the difference itself.
+    single = paired_difference([2.0], [0.5], seed=5)
+    assert single["low"] == single["mean"] == single["high"] == 1.5
+
+
+def test_population_policy_draws_each_driver_per_rollout_from_the_new_driver_draws():
+    tree = load_result(MODEL)
+    names = ["v_des", "tau"]
+    rows = np.array([[20.0 + d, 1.0 + d / 10] for d in range(8)]).reshape(2, 4, 2)
+    tree["sample_stats"] = xr.DataTree(
+        xr.Dataset(
+            {"population_new_driver": (("chain", "draw", "param"), rows)}, coords={"param": names}
+        )
+    )
+    policy = population_policy("pop", IDM, tree, ["a", "b"])
+    params = policy.params_for(jax.random.key(0), ("a", "b"), 40)
+    drawn = np.stack([np.asarray(params.v_des), np.asarray(params.tau)], axis=-1)
+    flat = rows.reshape(-1, 2)
+    assert all(np.isclose(flat, pair).all(axis=1).any() for pair in drawn.reshape(-1, 2))
+    # New drivers: the two vehicles and the rollouts draw apart, not one driver for all.
+    assert len({tuple(pair) for pair in drawn.reshape(-1, 2)}) > 2
+    assert not np.array_equal(drawn[:, 0], drawn[:, 1])
+    # What the population does not describe stays at the fit's fixed values (here defaults).
+    np.testing.assert_allclose(
+        np.asarray(params.d_min), IDM.specs[IDM.param_names.index("d_min")].default
+    )
+
+
+@pytest.mark.realdata
+def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir, holdout_dir):
+    held_out = registry.load_holdout(HELD_OUT, holdout_dir=holdout_dir)
+    pairs = list(pd.unique(held_out.scenes["scene_id"]))[:2]
+    traj = held_out.subset(
+        held_out.scenes.loc[held_out.scenes["scene_id"].isin(pairs), "vehicle_id"]
+    )
+    training = registry.load(TRAINING_DATA[HELD_OUT], data_dir=data_dir)
+    # The engine's smallest run: its draws only feed the rows, their quality is not checked.
+    population = fit(
+        jax.random.key(0),
+        training,
+        engine="hierarchical",
+        num_particles=16,
+        chains=1,
+        warmup=20,
+        vehicle_ids=training.vehicle_ids[1:3],
+    )
+    config = HoldoutConfig(
+        particles=32,
+        rollouts=2,
+        max_scenarios=None,
+        fit_seed=1,
+        rollout_seed=2,
+        baseline_seed=3,
+        blackbox=TrainConfig(hidden=(8,), steps=20, batch_size=64),
+    )
+    result = evaluate_data_set(HELD_OUT, traj, config, population, pooled=population)
+
+    models = result["models"]
+    assert set(models) == {*LEARNED, POOLED, *BASELINES}
+    scenarios = result["scenario_set"]["scenarios"]
+    assert scenarios >= 1 and result["acc"] is None
+    for row in models.values():
+        assert row["scenarios"] == scenarios
+        assert math.isfinite(row["rmse_position_m"]["mean"])
+        assert math.isfinite(row["rmse_speed_mps"]["mean"])
+        assert row["collisions"]["total"] >= 0
+    for learned in LEARNED:
+        assert set(result["paired"][learned]) == set(models) - {learned}
+        for metrics in result["paired"][learned].values():
+            for paired in metrics.values():
+                assert paired["scenarios"] == scenarios
+                assert paired["low"] <= paired["mean"] <= paired["high"]
+    table = holdout_table(result)
+    assert list(table["method"]) == list(models)
+    assert (table.loc[table["method"] != "idm-smc"].iloc[:, -1] != "-").all()
+    section = Section("held out")
+    holdout_section(
+        section,
+        {"protocol": PROTOCOL, "data_sets": {HELD_OUT: result, "none": {"error": "no leaders"}}},
+    )
+    page = "".join(section.parts)
+    assert PROTOCOL in html.unescape(page) and "none: not evaluated: no leaders" in page
+    assert "idm-smc minus this, position (m) [95%]" in page
