@@ -24,6 +24,7 @@ from bayesdrive.experiments.holdout import (
     HoldoutConfig,
     evaluate_data_set,
     paired_difference,
+    population_from,
 )
 from bayesdrive.inference.fit import fit
 from bayesdrive.inference.output import load_result
@@ -85,16 +86,15 @@ def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir,
         held_out.scenes.loc[held_out.scenes["scene_id"].isin(pairs), "vehicle_id"]
     )
     training = registry.load(TRAINING_DATA[HELD_OUT], data_dir=data_dir)
-    # The engine's smallest run: its draws only feed the rows, their quality is not checked.
-    population = fit(
+    # The smallest fits: their draws only feed the rows, their quality is not checked.
+    per_vehicle = fit(
         jax.random.key(0),
         training,
-        engine="hierarchical",
-        num_particles=16,
-        chains=1,
-        warmup=20,
+        num_particles=32,
         vehicle_ids=training.vehicle_ids[1:3],
     )
+    name = TRAINING_DATA[HELD_OUT]
+    population = population_from({name: per_vehicle}, name, draws=16, seed=0)
     config = HoldoutConfig(
         particles=32,
         rollouts=2,

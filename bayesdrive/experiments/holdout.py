@@ -13,13 +13,13 @@ with the documented defaults and scoring them on their later held-out windows is
    follower's own *fitting* window; each rollout draws one of that follower's posterior draws. A
    follower whose fitting window has no usable step has no fit, and its scenarios are dropped for
    every method (counted in ``scenarios_dropped_without_fit``).
-3. **Population predictive** (``idm-population``): the hierarchical population model (engine
-   ``hierarchical``) fitted on the fitting windows of the training data set of the same kind
-   (:data:`TRAINING_DATA`: NGSIM I-80 chains for NGSIM sets, OpenACC Vicolungo for OpenACC and
-   ACC sets), on the training vehicles the highway experiment fitted, with the engine's default
-   chains and warm-up (a quick run shrinks them); every follower is treated as a driver with no
-   data of its own: each rollout draws its parameters from the population distribution of a new
-   driver.
+3. **Population predictive** (``idm-population``): the hierarchical population model of the
+   training data set of the same kind (:data:`TRAINING_DATA`: NGSIM I-80 chains for NGSIM sets,
+   OpenACC Vicolungo for OpenACC and ACC sets), estimated in two stages
+   (:func:`~bayesdrive.inference.population.two_stage`) from the highway experiment's
+   per-vehicle smc posteriors of that set's fitting windows (validated against the joint fit in
+   ``tests/test_population.py``); every follower is treated as a driver with no data of its own:
+   each rollout draws its parameters from the population distribution of a new driver.
 4. **Pooled posterior** (``idm-smc-pooled-ngsim``, when given): the earlier generalisation row,
    every follower drawing from the pooled per-vehicle smc draws of the NGSIM I-80 chains,
    whatever the data set.
@@ -49,6 +49,7 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.fit import fit
 from bayesdrive.inference.output import metadata
+from bayesdrive.inference.population import two_stage
 from bayesdrive.simulation.baselines import Policy, baseline_policy
 from bayesdrive.simulation.blackbox import TrainConfig
 from bayesdrive.simulation.metrics import evaluate_policy
@@ -65,10 +66,9 @@ __all__ = [
     "TRAINING_DATA",
     "HoldoutConfig",
     "evaluate_data_set",
-    "fit_population",
     "holdout_scenarios",
     "paired_difference",
-    "training_vehicles",
+    "population_from",
 ]
 
 HORIZON_S = 5.0
@@ -107,7 +107,8 @@ PROTOCOL = (
     "Every held-out data set with leaders: 5 s scenarios of one follower behind its replayed "
     "leader in the held-out windows. idm-smc: the IDM fitted by smc (defaults) to each follower's "
     "own fitting window, one posterior draw per rollout. idm-population: the hierarchical "
-    "population fitted on the training data set of the same kind (NGSIM I-80 chains for NGSIM "
+    "population (two-stage, from the highway experiment's per-vehicle fits) of the training "
+    "data set of the same kind (NGSIM I-80 chains for NGSIM "
     "sets, OpenACC Vicolungo for OpenACC and ACC sets), each follower a new driver drawn from it "
     "per rollout. idm-smc-pooled-ngsim: the earlier row, the pooled per-vehicle NGSIM I-80 "
     "posterior for every follower. Baselines as in the highway experiment: idm-default, idm-lm "
@@ -140,29 +141,18 @@ def holdout_scenarios(traj: Trajectories, max_scenarios: int | None) -> Scenario
     return found._replace(scenarios=found.scenarios[:max_scenarios])
 
 
-def fit_population(
-    traj: Trajectories,
-    vehicle_ids: list[str],
-    *,
-    draws: int,
-    seed: int,
-    chains: int | None = None,
-    warmup: int | None = None,
-) -> xr.DataTree:
-    """The hierarchical population model of the IDM's six parameters on the fitting windows of
-    ``vehicle_ids`` of a training data set (``chains`` and ``warmup``: the engine's defaults
-    unless a quick run shrinks them)."""
-    return fit(
-        jax.random.key(seed),
-        traj,
-        model=IDM,
-        engine="hierarchical",
-        num_particles=draws,
-        chains=chains,
-        warmup=warmup,
-        seed=seed,
-        vehicle_ids=vehicle_ids,
+def population_from(trees: Mapping[str, xr.DataTree], name: str, *, draws: int, seed: int):
+    """The driver population of training data set ``name``: the two-stage hierarchical estimator
+    on the per-vehicle posteriors ``trees`` (the highway experiment's smc fits, by label) of every
+    label ``name`` or ``name:part`` together."""
+    parts = [tree for label, tree in trees.items() if label.split(":")[0] == name]
+    if not parts:
+        raise ValueError(f"no per-vehicle fit of {name} among {sorted(trees)}")
+    combined = xr.DataTree.from_dict(
+        {"posterior": xr.concat([tree["posterior"].to_dataset() for tree in parts], "vehicle")}
     )
+    combined.attrs = parts[0].attrs
+    return two_stage(jax.random.key(seed), combined, num_particles=draws)
 
 
 def paired_difference(
@@ -210,7 +200,7 @@ def evaluate_data_set(
     pooled: xr.DataTree | None = None,
 ) -> dict[str, Any]:
     """The protocol (module docstring) on one held-out data set ``name`` read as ``traj``, with
-    ``population`` the hierarchical fit on its training data set (:func:`fit_population`) and
+    ``population`` the population of its training data set (:func:`population_from`) and
     ``pooled`` the NGSIM I-80 per-vehicle smc fit for the earlier pooled row (None: no such row).
 
     Returns ``{"error": reason}`` when the data hold no scenario, else the scenario set, the
@@ -282,19 +272,11 @@ def evaluate_data_set(
         "scenarios_dropped_without_fit": len(found.scenarios) - len(scenarios.scenarios),
         "training_data": metadata(population)["data_source"],
         "population_vehicles": int(population["posterior"].sizes["vehicle"]),
-        # Reported beside the rows, never acted on: an unconverged population weakens its row.
-        "population_convergence_problems": len(metadata(population)["convergence"]["problems"]),
+        # Reported beside the rows, never acted on: divergences or few effective draws per
+        # vehicle in the two-stage weights weaken the population's row.
+        "population_divergences": int(population["sample_stats"]["diverging"].sum()),
+        "population_min_importance_ess": float(population["sample_stats"]["importance_ess"].min()),
         "acc": _acc_note(name, scenarios),
         "models": models,
         "paired": paired,
     }
-
-
-def training_vehicles(trees: Mapping[str, xr.DataTree], name: str) -> list[str]:
-    """The vehicles fitted by the highway experiment's per-vehicle trees of data set ``name``
-    (every label ``name`` or ``name:part``), in order: the population's training drivers."""
-    ids: list[str] = []
-    for label, tree in trees.items():
-        if label.split(":")[0] == name:
-            ids.extend(str(v) for v in tree["posterior"]["vehicle"].values if str(v) not in ids)
-    return ids

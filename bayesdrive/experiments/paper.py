@@ -45,8 +45,7 @@ from bayesdrive.experiments.holdout import (
     TRAINING_DATA,
     HoldoutConfig,
     evaluate_data_set,
-    fit_population,
-    training_vehicles,
+    population_from,
 )
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.fit import summary as fit_summary
@@ -127,15 +126,10 @@ class Settings:
     criticism_particles: int
     criticism_rollouts: int
     criticism_seconds: float
-    population_chains: int
-    population_warmup: int
 
 
-# The full run's population fits use the hierarchical engine's defaults (4 chains, 500 warm-up
-# iterations); the quick run's one short chain keeps it in minutes (an OpenACC vehicle's fitting
-# window holds about 2600 steps, and 8 of them took 13 minutes at the defaults).
-FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 128, 32, 120.0, 4, 500)
-QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 1, 128, 8, 45.0, 1, 100)
+FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 128, 32, 120.0)
+QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 1, 128, 8, 45.0)
 
 
 def _save_json(path: Path, payload: Any) -> None:
@@ -571,13 +565,8 @@ def holdout_step(out: Path, smc_trees: dict[str, Any], settings: Settings, force
     for training in sorted(set(TRAINING_DATA.values())):
         path = out / f"population_{training}.nc"
         if force or not path.exists():
-            population = fit_population(
-                registry.load(training),
-                training_vehicles(smc_trees, training),
-                draws=settings.smc_particles,
-                seed=SEEDS["holdout_fit"],
-                chains=settings.population_chains,
-                warmup=settings.population_warmup,
+            population = population_from(
+                smc_trees, training, draws=settings.smc_particles, seed=SEEDS["holdout_fit"]
             )
             save_result(population, path)
         populations[training] = path

@@ -126,12 +126,13 @@ def holdout_section(section: Section, holdout: dict[str, Any]) -> None:
             section.note(f"{name}: not evaluated: {entry['error'][:160]}")
             continue
         drivers = f"; {entry['acc']}" if entry["acc"] else ""
-        problems = entry["population_convergence_problems"]
-        unconverged = f", {problems} convergence problem(s)" if problems else ""
+        divergences = entry["population_divergences"]
+        diverged = f", {divergences} divergent transition(s)" if divergences else ""
         section.table(
             holdout_table(entry),
             caption=f"{name}: population from {entry['training_data']} "
-            f"({entry['population_vehicles']} drivers{unconverged}){drivers}",
+            f"({entry['population_vehicles']} drivers, two-stage; smallest importance ESS of a "
+            f"vehicle {entry['population_min_importance_ess']:.0f}{diverged}){drivers}",
         )
 
 
