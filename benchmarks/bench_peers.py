@@ -10,10 +10,13 @@ of the prior box with its Jacobian (:mod:`bayesdrive.inference.kernels`, as smc'
   replicates (the Monte Carlo error of a mean is their spread);
 * ``blackjax``: ``blackjax.adaptive_tempered_smc`` (target ESS 0.5, smc's ``ess_threshold``) with
   BlackJAX's additive-step random walk, its Gaussian step the particles' covariance on the logit
-  scale times (2.38 / sqrt d)^2 (re-estimated after every stage through
-  ``blackjax.inner_kernel_tuning``), ``--blackjax-moves`` moves a stage (smc's ``temper_moves``),
-  the same particle counts and as many independent runs as smc has replicates; the particles
-  leave the last stage weighted, so they are resampled once (systematic) into equal draws;
+  scale times (2.38 / sqrt d)^2 (smc's starting scale; re-estimated after every stage, as
+  ``blackjax.inner_kernel_tuning`` does), ``--blackjax-moves`` moves a stage (smc's
+  ``temper_moves``), the same particle counts and as many independent runs as smc has
+  replicates; ``--blackjax-adapt`` moves each particle's scale after every stage towards an
+  acceptance of 0.234 (BlackJAX's ``update_scale_from_acceptance_rate``; smc adapts one scale
+  after every move). The particles leave the last stage weighted, so they are resampled once
+  (systematic) into equal draws;
 * ``nuts``: bayesdrive's ``nuts`` engine (NumPyro; its uniform box on NumPyro's logit-of-box
   scale with the Jacobian, the same density), 4 chains, ``--draws`` per chain swept after the
   engine's default warm-up.
@@ -35,7 +38,8 @@ spread for the particle samplers, ArviZ's for NUTS chains).
 Writes ``reports/peers/runs.csv`` (one row per sampler, setting and vehicle) and
 ``reports/peers/table.md`` (one row per sampler and setting, and the least time at which each
 sampler agrees). Run under ``nice``: ``python benchmarks/bench_peers.py [--seed 17]``; a quick
-check: ``--particles 100 --draws 100 --replicates 2``.
+check: ``--particles 100 --draws 100 --replicates 2``; other BlackJAX settings alone:
+``--samplers blackjax --blackjax-moves 100 --out reports/peers/blackjax_100_moves``.
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ import pandas as pd
 import xarray as xr
 from blackjax.smc.base import extend_params
 from blackjax.smc.resampling import systematic
+from blackjax.smc.tuning.from_kernel_info import update_scale_from_acceptance_rate
 from blackjax.smc.tuning.from_particles import particles_covariance_matrix
 
 from bayesdrive.data.atomic import write_text_atomic
@@ -114,56 +119,69 @@ def logit_density(problem: VehicleProblem):
     return box, log_prior, log_lik
 
 
-def blackjax_run(problem: VehicleProblem, num_particles: int, num_moves: int):
+def blackjax_run(problem: VehicleProblem, num_particles: int, num_moves: int, adapt: bool):
     """One adaptive tempered SMC run (module docstring) as a function of its key: equally
-    weighted draws (N, d) on the parameter scale and the number of tempering stages."""
+    weighted draws (N, d) on the parameter scale and the number of tempering stages.
+
+    The walk's step is the particles' covariance times (2.38 / sqrt d)^2, times a scale per
+    particle: 1, or with ``adapt`` moved after every stage by BlackJAX's
+    ``update_scale_from_acceptance_rate`` towards an acceptance of 0.234."""
     box, log_prior, log_lik = logit_density(problem)
     dim = len(problem.names)
     walk = blackjax.additive_step_random_walk.build_kernel()
 
-    def move(key, state, logdensity_fn, chol):
+    def move(key, state, logdensity_fn, chol, scale):
         # The step is a function, which SMC cannot broadcast over particles: its Cholesky factor
-        # travels as the parameter instead.
-        return walk(key, state, logdensity_fn, blackjax.mcmc.random_walk.normal(chol))
+        # and scale travel as the parameters instead.
+        return walk(key, state, logdensity_fn, blackjax.mcmc.random_walk.normal(scale * chol))
 
-    def proposal(particles):
+    def parameters(particles, scale):
         cov = particles_covariance_matrix(particles) + JITTER * jnp.eye(dim)
-        return {"chol": extend_params(RW_SCALE / np.sqrt(dim) * jnp.linalg.cholesky(cov))}
-
-    sampler = blackjax.inner_kernel_tuning(
-        smc_algorithm=blackjax.adaptive_tempered_smc,
-        logprior_fn=log_prior,
-        loglikelihood_fn=log_lik,
-        mcmc_step_fn=move,
-        mcmc_init_fn=blackjax.additive_step_random_walk.init,
-        resampling_fn=systematic,
-        mcmc_parameter_update_fn=lambda key, state, info: proposal(state.particles),
-        initial_parameter_value=None,
-        num_mcmc_steps=num_moves,
-        target_ess=0.5,
-    )
+        chol = RW_SCALE / np.sqrt(dim) * jnp.linalg.cholesky(cov)
+        return {"chol": extend_params(chol), "scale": scale}
 
     def run(key):
         key_init, key_loop, key_draws = jax.random.split(key, 3)
         u = to_free(problem.prior.sample(key_init, (num_particles,)), box)
-        state = blackjax.inner_kernel_tuning.init(
-            blackjax.adaptive_tempered_smc.init, u, proposal(u)
-        )
+        # One shared scale (leading axis 1) unless each particle adapts its own.
+        scale = jnp.ones(num_particles if adapt else 1, u.dtype)
 
         def stage(carry):
-            state, key, stages = carry
-            key, key_step = jax.random.split(key)
-            state, _ = sampler.step(key_step, state)
-            return state, key, stages + 1
+            state, params, key, stages = carry
+            key, key_stage = jax.random.split(key)
+            # As blackjax.inner_kernel_tuning does (the same keys): a step built with this
+            # stage's parameters. Its update function sees no earlier parameters, which the
+            # adapted scale needs, so the loop is written out here.
+            _, key_step = jax.random.split(key_stage)
+            sampler = blackjax.adaptive_tempered_smc(
+                logprior_fn=log_prior,
+                loglikelihood_fn=log_lik,
+                mcmc_step_fn=move,
+                mcmc_init_fn=blackjax.additive_step_random_walk.init,
+                mcmc_parameters=params,
+                resampling_fn=systematic,
+                target_ess=0.5,
+                num_mcmc_steps=num_moves,
+            )
+            state, info = sampler.step(key_step, state)
+            scale = params["scale"]
+            if adapt:
+                acceptance = info.update_info.acceptance_rate.mean(axis=1)
+                scale = update_scale_from_acceptance_rate(scale, acceptance)
+            return state, parameters(state.particles, scale), key, stages + 1
 
-        state, _, stages = jax.lax.while_loop(
-            lambda carry: carry[0].sampler_state.tempering_param < 1.0,
+        state, _, _, stages = jax.lax.while_loop(
+            lambda carry: carry[0].tempering_param < 1.0,
             stage,
-            (state, key_loop, jnp.zeros((), jnp.int32)),
+            (
+                blackjax.adaptive_tempered_smc.init(u),
+                parameters(u, scale),
+                key_loop,
+                jnp.zeros((), jnp.int32),
+            ),
         )
-        weighted = state.sampler_state
-        chosen = systematic(key_draws, weighted.weights, num_particles)
-        return from_free(weighted.particles[chosen], box), stages
+        chosen = systematic(key_draws, state.weights, num_particles)
+        return from_free(state.particles[chosen], box), stages
 
     return run
 
@@ -213,10 +231,10 @@ def run_smc(key, arrays, vehicle, particles, replicates):
     return tree, result.compile_time_s, result.wall_time_s, {}
 
 
-def run_blackjax(key, problem, vehicle, particles, replicates, moves):
+def run_blackjax(key, problem, vehicle, particles, replicates, moves, adapt):
     keys = vehicle_keys(key, [vehicle], replicates)[:, 0]
     started = time.perf_counter()
-    compiled = jax.jit(blackjax_run(problem, particles, moves)).lower(keys[0]).compile()
+    compiled = jax.jit(blackjax_run(problem, particles, moves, adapt)).lower(keys[0]).compile()
     compile_time = time.perf_counter() - started
     draws, stages, run_time = [], [], 0.0
     for replicate_key in keys:
@@ -260,6 +278,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--draws", default="500,1000,2000,4000", help="NUTS draws per chain")
     parser.add_argument("--replicates", type=int, default=4)
     parser.add_argument("--blackjax-moves", type=int, default=20)
+    parser.add_argument(
+        "--blackjax-adapt", action="store_true", help="adapt each particle's random-walk scale"
+    )
     parser.add_argument("--samplers", default="smc,blackjax,nuts")
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--reference", type=Path, default=REFERENCE)
@@ -284,7 +305,13 @@ def main(argv: list[str] | None = None) -> None:
             key, arrays[vehicle], vehicle, particles[level], args.replicates
         ),
         "blackjax": lambda vehicle, level: run_blackjax(
-            key, problems[vehicle], vehicle, particles[level], args.replicates, args.blackjax_moves
+            key,
+            problems[vehicle],
+            vehicle,
+            particles[level],
+            args.replicates,
+            args.blackjax_moves,
+            args.blackjax_adapt,
         ),
         "nuts": lambda vehicle, level: run_nuts(key, arrays[vehicle], vehicle, draws[level]),
     }
@@ -379,7 +406,8 @@ def main(argv: list[str] | None = None) -> None:
         "",
         f"{DATA} vehicles {', '.join(vehicles)}, fitting windows, all six IDM parameters, uniform "
         f"prior box; seed {args.seed}; BlackJAX {blackjax.__version__}, {args.blackjax_moves} "
-        "moves a stage. Agreement with the reference "
+        f"moves a stage, {'adapted' if args.blackjax_adapt else 'fixed'} random-walk scale. "
+        "Agreement with the reference "
         f"({args.reference}, {REFERENCE_ENGINE}): {CRITERION}, for every parameter of every "
         "vehicle (checks passed counts them). Run times exclude compilation; load avg is the "
         "1-minute load average before each run.",
