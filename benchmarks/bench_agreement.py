@@ -67,11 +67,11 @@ ENGINE_OPTIONS = {
 }
 
 
-def markdown(frame: pd.DataFrame) -> str:
-    """A pipe table; floats with 3 decimals."""
+def markdown(frame: pd.DataFrame, float_format: str = "{:.3f}") -> str:
+    """A pipe table; floats as ``float_format`` (3 decimals by default)."""
 
     def cell(value) -> str:
-        return f"{value:.3f}" if isinstance(value, float | np.floating) else str(value)
+        return float_format.format(value) if isinstance(value, float | np.floating) else str(value)
 
     rows = [" | ".join(map(str, frame.columns)), " | ".join("---" for _ in frame.columns)]
     rows += [" | ".join(cell(v) for v in row) for row in frame.itertuples(index=False)]

@@ -56,6 +56,9 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import xarray as xr
+
+# bench_agreement sits beside this file (benchmarks/ is on sys.path when run as a script).
+from bench_agreement import markdown
 from blackjax.smc.base import extend_params
 from blackjax.smc.resampling import systematic
 from blackjax.smc.tuning.from_kernel_info import update_scale_from_acceptance_rate
@@ -257,15 +260,6 @@ def run_nuts(key, arrays, vehicle, draws_per_chain):
     return tree, result.compile_time_s, result.wall_time_s, {"divergences": diverging}
 
 
-def markdown(frame: pd.DataFrame) -> str:
-    def cell(value) -> str:
-        return f"{value:.3g}" if isinstance(value, float | np.floating) else str(value)
-
-    rows = [" | ".join(map(str, frame.columns)), " | ".join("---" for _ in frame.columns)]
-    rows += [" | ".join(cell(v) for v in row) for row in frame.itertuples(index=False)]
-    return "\n".join(f"| {row} |" for row in rows)
-
-
 def integers(text: str) -> list[int]:
     return [int(v) for v in re.split(r"[,\s]+", text.strip()) if v]
 
@@ -412,7 +406,7 @@ def main(argv: list[str] | None = None) -> None:
         "vehicle (checks passed counts them). Run times exclude compilation; load avg is the "
         "1-minute load average before each run.",
         "",
-        markdown(shown),
+        markdown(shown, "{:.3g}"),
         "",
         "Least run time at which each sampler agrees:",
         "",
