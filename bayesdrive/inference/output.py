@@ -232,6 +232,8 @@ def build_tree(
 def _encode_attrs(attrs: Mapping[str, Any]) -> dict[str, Any]:
     encoded, as_json = {}, []
     for key, value in attrs.items():
+        # A loaded result's numbers are numpy scalars (netCDF): stored as the plain numbers.
+        value = value.item() if isinstance(value, np.generic) else value
         if isinstance(value, str | int | float) and not isinstance(value, bool):
             encoded[key] = value
         else:
