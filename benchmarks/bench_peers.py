@@ -69,13 +69,7 @@ from bayesdrive.data.registry import load
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import nuts, smc
-from bayesdrive.inference.agreement import (
-    CRITERION,
-    MC_TOLERANCE_SE,
-    MEAN_TOLERANCE_SD,
-    SD_TOLERANCE,
-    mcse_mean,
-)
+from bayesdrive.inference.agreement import CRITERION, judge, mcse_mean
 from bayesdrive.inference.kernels import Box, from_free, log_jacobian, to_free
 from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.output import set_metadata
@@ -211,18 +205,16 @@ def against_reference(tree: xr.DataTree, vehicle: str, reference: pd.DataFrame) 
         draws = np.asarray(posterior[ref.param].values, dtype=np.float64).ravel()
         mean, sd = draws.mean(), draws.std()
         se = float(mcse[ref.param].sel(vehicle=vehicle))
-        pooled_sd = np.sqrt((sd**2 + ref.sd**2) / 2.0)
-        tolerance = max(MEAN_TOLERANCE_SD * pooled_sd, MC_TOLERANCE_SE * np.hypot(se, ref.se))
-        sd_ratio = max(sd, ref.sd) / min(sd, ref.sd)
+        verdict = judge(ref.mean, ref.sd, ref.se, mean, sd, se)
         rows.append(
             {
                 "param": ref.param,
                 "mean": mean,
                 "sd": sd,
                 "se": se,
-                "mean_error_tol": abs(mean - ref.mean) / tolerance,
+                "mean_error_tol": abs(mean - ref.mean) / verdict.tolerance,
                 "sd_ratio": sd / ref.sd,
-                "agree": bool(abs(mean - ref.mean) <= tolerance and sd_ratio <= 1 + SD_TOLERANCE),
+                "agree": verdict.agree_mean and verdict.agree_sd,
             }
         )
     return rows

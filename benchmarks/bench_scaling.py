@@ -149,7 +149,6 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
             model=IDM,
             num_particles=args.particles,
             vehicle_batch=batch,
-            vehicle_chunk=max(32, batch),
         )
         row["inference_s"] = result.wall_time_s
         row["compile_s"] = result.compile_time_s

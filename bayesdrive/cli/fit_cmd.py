@@ -235,9 +235,7 @@ def fit(
         for name, value in (
             ("epochs", epochs),
             ("num_steps", steps),
-            # A chunk holds at least one batch (vehicles are padded up to it).
             ("vehicle_batch", vehicle_batch),
-            ("vehicle_chunk", vehicle_batch if vehicle_batch and vehicle_batch > 32 else None),
         )
         if value is not None
     }

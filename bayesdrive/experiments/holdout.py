@@ -136,9 +136,7 @@ class HoldoutConfig(NamedTuple):
 def holdout_scenarios(traj: Trajectories, max_scenarios: int | None) -> ScenarioSet:
     """The protocol's scenarios of a held-out data set (module docstring, point 1)."""
     found = platoon_scenarios(traj, vehicles_per_scenario=1, horizon_s=HORIZON_S)
-    if max_scenarios is None:
-        return found
-    return found._replace(scenarios=found.scenarios[:max_scenarios])
+    return found.first(max_scenarios)
 
 
 def population_from(trees: Mapping[str, xr.DataTree], name: str, *, draws: int, seed: int):
@@ -219,10 +217,7 @@ def evaluate_data_set(
         seed=config.fit_seed,
         vehicle_ids=found.simulated_ids,
     )
-    fitted = {str(v) for v in per_vehicle["posterior"]["vehicle"].values}
-    scenarios = found._replace(
-        scenarios=[s for s in found.scenarios if set(s.simulated_ids) <= fitted]
-    )
+    scenarios = found.within({str(v) for v in per_vehicle["posterior"]["vehicle"].values})
     if not scenarios.scenarios:
         return {"error": "no simulated follower has a usable step in its fitting window"}
     ids = scenarios.simulated_ids

@@ -175,25 +175,21 @@ def highway_data(name: str) -> dict[str, Trajectories]:
     return {f"{name}:human": traj.subset(human), f"{name}:acc-contrast": traj.subset(acc)}
 
 
-def _limit(scenarios: ScenarioSet, count: int | None) -> ScenarioSet:
-    return scenarios if count is None else scenarios._replace(scenarios=scenarios.scenarios[:count])
-
-
 def _highway_scenarios(label: str, traj: Trajectories, settings: Settings) -> ScenarioSet:
     """The platoon scenarios of a highway data set at its fixed size (module docstring)."""
     size = HIGHWAY_SIZES[label.split(":")[0]]
     found = platoon_scenarios(traj, vehicles_per_scenario=size, horizon_s=5.0)
-    return _limit(found, settings.max_scenarios)
+    return found.first(settings.max_scenarios)
 
 
 def _covered(scenarios: ScenarioSet, trees: dict[str, Any]) -> ScenarioSet:
     """Scenarios whose simulated vehicles all have a posterior in every tree (a vehicle whose
     fitting window has no usable step has none); every model is scored on this same set."""
-    fitted = set.intersection(
-        *({str(v) for v in t["posterior"]["vehicle"].values} for t in trees.values())
+    return scenarios.within(
+        set.intersection(
+            *({str(v) for v in t["posterior"]["vehicle"].values} for t in trees.values())
+        )
     )
-    kept = [s for s in scenarios.scenarios if set(s.simulated_ids) <= fitted]
-    return scenarios._replace(scenarios=kept)
 
 
 def fit_step(
@@ -317,8 +313,8 @@ def merge_step(out: Path, settings: Settings, force: bool) -> dict:
     baselines that need no fit, on the held-out merge episodes."""
     out.mkdir(parents=True, exist_ok=True)
     traj = registry.load(MERGE_DATA)
-    scenarios = _limit(
-        merge_scenarios(traj, horizon_s=5.0), settings.max_scenarios and 4 * settings.max_scenarios
+    scenarios = merge_scenarios(traj, horizon_s=5.0).first(
+        settings.max_scenarios and 4 * settings.max_scenarios
     )
     # The stays are short (median 3 s): each alone leaves the parameters near their prior, so
     # all of them share one parameter set (complete pooling).

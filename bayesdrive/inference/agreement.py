@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping
+from typing import NamedTuple
 
 import arviz
 import jax
@@ -53,6 +54,7 @@ __all__ = [
     "agreement_table",
     "convergence_table",
     "grid_posterior",
+    "judge",
     "mcse_mean",
     "same_data",
 ]
@@ -64,6 +66,33 @@ CRITERION = (
     f"|mean_b - mean_a| <= max({MEAN_TOLERANCE_SD} * pooled sd, {MC_TOLERANCE_SE} * "
     f"sqrt(mcse_a^2 + mcse_b^2)) and max(sd)/min(sd) <= {1 + SD_TOLERANCE}"
 )
+
+
+class Verdict(NamedTuple):
+    """The criterion on one parameter of two runs: the pooled sd s, the Monte Carlo part of the
+    tolerance, the tolerance on the means' difference, and whether means and sds agree."""
+
+    pooled_sd: float
+    mc_tolerance: float
+    tolerance: float
+    agree_mean: bool
+    agree_sd: bool
+
+
+def judge(
+    mean_a: float, sd_a: float, mcse_a: float, mean_b: float, sd_b: float, mcse_b: float
+) -> Verdict:
+    """:data:`CRITERION` for one parameter of runs a and b (module docstring)."""
+    pooled_sd = float(np.sqrt((sd_a**2 + sd_b**2) / 2.0))
+    mc_tolerance = MC_TOLERANCE_SE * float(np.hypot(mcse_a, mcse_b))
+    tolerance = max(MEAN_TOLERANCE_SD * pooled_sd, mc_tolerance)
+    return Verdict(
+        pooled_sd=pooled_sd,
+        mc_tolerance=mc_tolerance,
+        tolerance=tolerance,
+        agree_mean=bool(abs(mean_b - mean_a) <= tolerance),
+        agree_sd=bool(max(sd_a, sd_b) <= (1.0 + SD_TOLERANCE) * min(sd_a, sd_b)),
+    )
 
 
 def _posterior(tree: xr.DataTree) -> xr.Dataset:
@@ -181,14 +210,10 @@ def agreement_table(trees: Mapping[str, xr.DataTree]) -> pd.DataFrame:
                 draws_a, draws_b = draws(a, name, vehicle), draws(b, name, vehicle)
                 mean_a, mean_b = draws_a.mean(), draws_b.mean()
                 sd_a, sd_b = draws_a.std(), draws_b.std()
-                pooled_sd = float(np.sqrt((sd_a**2 + sd_b**2) / 2.0))
                 mcse_a, mcse_b = standard_error(a, name, vehicle), standard_error(b, name, vehicle)
-                mc_tolerance = MC_TOLERANCE_SE * float(np.hypot(mcse_a, mcse_b))
+                verdict = judge(mean_a, sd_a, mcse_a, mean_b, sd_b, mcse_b)
+                pooled_sd = verdict.pooled_sd
                 distance = float(scipy.stats.wasserstein_distance(draws_a, draws_b))
-                agree_mean = abs(mean_b - mean_a) <= max(
-                    MEAN_TOLERANCE_SD * pooled_sd, mc_tolerance
-                )
-                agree_sd = max(sd_a, sd_b) <= (1.0 + SD_TOLERANCE) * min(sd_a, sd_b)
                 rows.append(
                     {
                         "a": a,
@@ -205,10 +230,10 @@ def agreement_table(trees: Mapping[str, xr.DataTree]) -> pd.DataFrame:
                         "sd_ratio": float(sd_b / sd_a),
                         "wasserstein": distance,
                         "wasserstein_sd": distance / pooled_sd,
-                        "mc_tolerance": mc_tolerance,
-                        "agree_mean": bool(agree_mean),
-                        "agree_sd": bool(agree_sd),
-                        "agree": bool(agree_mean and agree_sd),
+                        "mc_tolerance": verdict.mc_tolerance,
+                        "agree_mean": verdict.agree_mean,
+                        "agree_sd": verdict.agree_sd,
+                        "agree": verdict.agree_mean and verdict.agree_sd,
                     }
                 )
     return pd.DataFrame(rows)

@@ -56,9 +56,10 @@ from numpyro.infer.util import constrain_fn, potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.nuts import INIT_RADIUS, NUTSConfig, sample_nuts
-from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.output import EngineResult, metadata, set_metadata
 from bayesdrive.inference.vehicles import prepare
 
 __all__ = [
@@ -208,11 +209,6 @@ def run(
     draws, theta, mu, tau, z_new, log_likelihood = jax.block_until_ready(compiled(key, series))
     run_time = time.perf_counter() - started
 
-    lower, width = np.asarray(box.lower), np.asarray(box.upper - box.lower)
-
-    def natural(z: np.ndarray) -> np.ndarray:
-        return lower + width / (1.0 + np.exp(-np.asarray(z, dtype=np.float64)))
-
     theta = np.asarray(theta, dtype=np.float64)
     per_draw = ("chain", "draw")
     population_dims = ("chain", "draw", "param")
@@ -229,8 +225,8 @@ def run(
             "step_size": (("chain",), np.asarray(draws.step_size)[:, -1]),
             "population_mu": (population_dims, np.asarray(mu, dtype=np.float64)),
             "population_tau": (population_dims, np.asarray(tau, dtype=np.float64)),
-            "population_median": (population_dims, natural(mu)),
-            "population_new_driver": (population_dims, natural(z_new)),
+            "population_median": (population_dims, _natural(mu, box)),
+            "population_new_driver": (population_dims, _natural(z_new, box)),
         },
         log_likelihood=np.asarray(log_likelihood),
         compile_time_s=compile_time,
@@ -295,6 +291,12 @@ def how_drivers_differ(tree: xr.DataTree) -> dict[str, dict[str, Any]]:
     return out
 
 
+def _natural(z: Array | np.ndarray, box: Any) -> np.ndarray:
+    """Logit-of-box values back in natural units (float64)."""
+    lower, width = np.asarray(box.lower), np.asarray(box.upper - box.lower)
+    return lower + width / (1.0 + np.exp(-np.asarray(z, dtype=np.float64)))
+
+
 def _logit_box_draws(tree: xr.DataTree, box: Any, names: Sequence[str]) -> np.ndarray:
     """Each vehicle's posterior draws on the logit-of-box scale, (vehicle, draw, param)."""
     posterior = tree["posterior"].to_dataset()
@@ -331,9 +333,6 @@ def two_stage(
     draws and a population much narrower than a vehicle's posterior the weights concentrate
     (``sample_stats/importance_ess`` reports the smallest effective sample size per vehicle).
     """
-    from bayesdrive.drivers.registry import get_model
-    from bayesdrive.inference.output import metadata, set_metadata
-
     meta = metadata(tree)
     names = tuple(tree["posterior"].data_vars)
     box = get_model(meta["model"]).prior(names)
@@ -390,22 +389,17 @@ def two_stage(
     draws, mu, tau, picked, ess, z_new = jax.block_until_ready(compiled(key))
     run_time = time.perf_counter() - started
 
-    lower, width = np.asarray(box.lower), np.asarray(box.upper - box.lower)
-
-    def natural(values: Array) -> np.ndarray:
-        return lower + width / (1.0 + np.exp(-np.asarray(values, dtype=np.float64)))
-
     picked = np.asarray(picked)
     chain_draw = tree["posterior"].to_dataset().sizes["draw"]
     source = {"chain": picked // chain_draw, "draw": picked % chain_draw}
 
-    vehicles = [str(v) for v in tree["posterior"]["vehicle"].values]
+    row_of = {str(v): i for i, v in enumerate(tree["posterior"]["vehicle"].values)}
 
     def shrunk(values: xr.DataArray) -> xr.DataArray:
         """The picked draw of each vehicle, along a ``vehicle`` dim or an ``obs`` dim whose
         ``vehicle`` coordinate names each observation's vehicle."""
         if "obs" in values.dims:
-            row = np.array([vehicles.index(str(v)) for v in values["vehicle"].values])
+            row = np.array([row_of[str(v)] for v in values["vehicle"].values])
             array = values.transpose("chain", "draw", "obs").values
             obs = np.arange(array.shape[-1])[None, None, :]
             taken = array[source["chain"][..., row], source["draw"][..., row], obs]
@@ -417,20 +411,15 @@ def two_stage(
         coords = {k: v for k, v in values.coords.items() if k not in ("chain", "draw")}
         return xr.DataArray(taken, dims=dims, coords=coords, attrs=values.attrs)
 
-    out = tree.copy(deep=True)
-    out["posterior"] = xr.DataTree(
-        tree["posterior"]
-        .to_dataset()
-        .map(shrunk)
-        .assign_coords(chain=np.arange(num_chains), draw=np.arange(picked.shape[1]))
-    )
-    if "log_likelihood" in tree.children:
-        out["log_likelihood"] = xr.DataTree(
-            tree["log_likelihood"]
-            .to_dataset()
-            .map(shrunk)
-            .assign_coords(chain=np.arange(num_chains), draw=np.arange(picked.shape[1]))
-        )
+    out = tree.copy()  # shallow: the groups replaced below are built anew
+    for group in ("posterior", "log_likelihood"):
+        if group in tree.children:
+            out[group] = xr.DataTree(
+                tree[group]
+                .to_dataset()
+                .map(shrunk)
+                .assign_coords(chain=np.arange(num_chains), draw=np.arange(picked.shape[1]))
+            )
     per_draw, population_dims = ("chain", "draw"), ("chain", "draw", "param")
     out["sample_stats"] = xr.DataTree(
         xr.Dataset(
@@ -440,8 +429,8 @@ def two_stage(
                 "importance_ess": (per_draw, np.asarray(ess)),
                 "population_mu": (population_dims, np.asarray(mu, dtype=np.float64)),
                 "population_tau": (population_dims, np.asarray(tau, dtype=np.float64)),
-                "population_median": (population_dims, natural(mu)),
-                "population_new_driver": (population_dims, natural(z_new)),
+                "population_median": (population_dims, _natural(mu, box)),
+                "population_new_driver": (population_dims, _natural(z_new, box)),
             },
             coords={"param": list(names)},
         )

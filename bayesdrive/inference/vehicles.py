@@ -217,22 +217,21 @@ def map_vehicles(
     With several local JAX devices (GPUs, or CPU devices from
     ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each chunk is sharded over them along
     the vehicle axis (``jax.shard_map``), every device taking whole batches, so a vehicle's draws
-    do not depend on the device count. The last chunk is padded by repeating its last vehicle, so the function compiles once, ahead
-    of time. ``cache_key`` (hashable, or None for no caching) must determine ``per_vehicle``
+    do not depend on the device count. A chunk holds at least one batch. The last chunk is padded
+    by repeating its last vehicle, so the function compiles once, ahead of time. ``cache_key`` (hashable, or None for no caching) must determine ``per_vehicle``
     completely: the compiled chunk is reused for the same key and input shapes, and the compile
     time is then 0. Returns the stacked numpy outputs, the compile time and the run time (compile
     excluded) in seconds; ``progress(done, total)`` is called after each chunk.
     """
     num_vehicles = jax.tree.leaves(inputs)[0].shape[0]
-    chunk = max(1, min(chunk, num_vehicles))
-    batch_size = None if batch is None or batch <= 1 else min(batch, chunk)
-    # Every device takes whole batches of a chunk: chunks are a multiple of (devices x batch), so
-    # vehicles are vectorised in the same consecutive batches whatever the device count.
-    devices = jax.local_device_count()
-    multiple = devices * (batch_size or 1)
-    chunk = -(-chunk // multiple) * multiple
-
+    batch_size = None if batch is None or batch <= 1 else min(batch, num_vehicles)
     size = batch_size or 1
+    # Every device takes whole batches of a chunk: chunks hold at least one batch and are a
+    # multiple of (devices x batch), so vehicles are vectorised in the same consecutive batches
+    # whatever the device count.
+    devices = jax.local_device_count()
+    multiple = devices * size
+    chunk = -(-max(1, min(chunk, num_vehicles), size) // multiple) * multiple
     batches = np.int32(chunk // multiple)  # per device
 
     def run_chunk(count, *chunk_inputs):
@@ -312,9 +311,8 @@ def map_vehicles(
         started = time.perf_counter()
         out = jax.block_until_ready(compiled(batches, *chunk_inputs))
         run_time += time.perf_counter() - started
-        out = computed(out)
         keep = min(chunk, num_vehicles - start)
-        pieces.append(jax.tree.map(lambda a, keep=keep: np.asarray(a)[:keep], out))
+        pieces.append(jax.tree.map(lambda a, keep=keep: a[:keep], computed(out)))
         if progress is not None:
             progress(start + keep, num_vehicles)
     stacked = jax.tree.map(lambda *parts: np.concatenate(parts), *pieces)

@@ -159,6 +159,16 @@ class ScenarioSet(NamedTuple):
         """Distinct simulated vehicle ids, in order of first appearance."""
         return list(dict.fromkeys(v for s in self.scenarios for v in s.simulated_ids))
 
+    def first(self, count: int | None) -> ScenarioSet:
+        """The first ``count`` scenarios in the selection rule's order (None: all of them)."""
+        return self if count is None else self._replace(scenarios=self.scenarios[:count])
+
+    def within(self, vehicle_ids: set[str]) -> ScenarioSet:
+        """The scenarios whose simulated vehicles are all among ``vehicle_ids`` (for example
+        those with a fit: a vehicle without a usable fitting step has none)."""
+        kept = [s for s in self.scenarios if set(s.simulated_ids) <= vehicle_ids]
+        return self._replace(scenarios=kept)
+
     def anchor_shift_summary(self) -> dict[str, float] | None:
         """Median and largest |shift| (m) that re-anchored observed positions (None: no scenes)."""
         if not self.scenarios:
