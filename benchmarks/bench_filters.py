@@ -234,10 +234,13 @@ def main() -> None:
             num_particles=m,
             vehicle_batch=batch,
             vehicle_chunk=count,
+            sequential=True,
         )
         steps = int(data.mask.sum())
         resampled = out.sample_stats["resampled"][1]
-        moves = out.options["num_moves"]
+        # A paired move (random walk + independent) scores the series twice.
+        per_move = 2 if out.options["independent"] else 1
+        moves = out.options["num_moves"] * per_move
         # A move scores the blocks of SCORE_BLOCK steps up to the current step. The closing
         # tempering stage scores each vehicle's whole series once for its fresh prior draws, then
         # temper_moves times per stage and, at the end, as many times as its closing moves ran.
@@ -247,7 +250,7 @@ def main() -> None:
         whole = (last_live // smc.SCORE_BLOCK + 1) * smc.SCORE_BLOCK
         stages = np.asarray(out.sample_stats["temper_stages"][1]).reshape(-1)[: len(whole)]
         final_moves = np.asarray(out.sample_stats["final_moves"][1]).reshape(-1)[: len(whole)]
-        closing_scans = 1 + stages * out.options["temper_moves"] + final_moves
+        closing_scans = 1 + per_move * (stages * out.options["temper_moves"] + final_moves)
         events = len(rejuvenated)
         padded = data.mask.shape[1]
         evaluations = data.mask.size * m + m * (

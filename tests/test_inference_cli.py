@@ -29,7 +29,8 @@ def test_fit_writes_result_summary_and_plots(data_dir, tmp_path):
     out = tmp_path / "fit"
     args = ["fit", str(data_dir / CHAIN), "--vehicles", "2", "--particles", "100"]
     args += ["--params", "v_des,sigma", "--seed", "3", "--out", str(out), "--json", "-"]
-    result = runner.invoke(app, args)
+    # --sequential: smc's pass along the data gives the per-step plots.
+    result = runner.invoke(app, [*args, "--sequential"])
     assert result.exit_code == 0, result.output
     printed = json.loads(result.stdout)  # nothing but the JSON on stdout
     assert printed == json.loads((out / "summary.json").read_text())

@@ -5,8 +5,8 @@ DATA is a file, a folder or a data set name; a held-out name is read from the he
 note: fitting its vehicles with fixed settings is evaluation, tuning anything on it is not.
 Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
 merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
-(:func:`bayesdrive.inference.fit.summary`) and, for the filters, the diagnostics ess.png,
-unique_particles.png and convergence.png, then manifest.json last (arguments, seed, complete);
+(:func:`bayesdrive.inference.fit.summary`) and, for pf and ``smc --sequential``, the per-step
+diagnostics ess.png, unique_particles.png and convergence.png, then manifest.json last (arguments, seed, complete);
 the folder is all of one run or none (:mod:`bayesdrive.data.outputs`: a complete one is replaced
 only with ``--force``). Bad input ends with a one-line ``error: ...`` on standard error and exit
 code 2; a fit that fails a convergence check (:mod:`bayesdrive.inference.convergence`) is still
@@ -183,6 +183,12 @@ def fit(
         None, "--vehicles", help="Only the first N vehicles with usable steps (quick runs)."
     ),
     epochs: int | None = typer.Option(None, "--epochs", help="pf only: epochs (default 1)."),
+    sequential: bool = typer.Option(
+        False,
+        "--sequential",
+        help="smc only: also run its pass along the data, for the per-step plots (ESS, distinct "
+        "particles, learning curve); the draws do not change.",
+    ),
     vehicle_batch: int | None = typer.Option(
         None,
         "--vehicle-batch",
@@ -211,6 +217,8 @@ def fit(
         )
     if epochs is not None and engine != "pf":
         raise fail("--epochs applies to --engine pf only")
+    if sequential and engine != "smc":
+        raise fail("--sequential applies to --engine smc only")
     if steps is not None and engine != "emcee":
         raise fail("--steps applies to --engine emcee only")
     if particles is not None and engine not in PARTICLE_ENGINES:
@@ -236,6 +244,7 @@ def fit(
             ("epochs", epochs),
             ("num_steps", steps),
             ("vehicle_batch", vehicle_batch),
+            ("sequential", sequential or None),
         )
         if value is not None
     }

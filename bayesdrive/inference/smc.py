@@ -1,45 +1,48 @@
 r"""``smc``, the default engine: exact sequential inference for static parameters.
 
-Two stages per vehicle, both exact up to Monte Carlo error.
+Per vehicle: adaptive tempering on the whole series, closing moves, and, on request, a
+sequential pass for per-step diagnostics. All exact up to Monte Carlo error.
 
-**Sequential pass.** Resample-move SMC, also known as IBIS (Chopin 2002, Biometrika 89:539).
-Particles start as prior draws. At step t every particle is reweighted by the exact one-step
-density of the observed transition (the incremental likelihood), so the weighted set targets
-:math:`p(\theta \mid y_{1:t})`. When the effective sample size falls below ``ess_threshold * N``
-the set is resampled (systematic) and rejuvenated by ``num_moves`` random-walk
-Metropolis-Hastings moves that leave :math:`p(\theta \mid y_{1:t})` invariant. Each move scores
-the likelihood of steps 1..t, vectorised over steps within blocks of :data:`SCORE_BLOCK` steps,
-so it costs about t steps, not the padded length. It gives the per-step diagnostics (ESS,
-distinct particles, the learning curve) and ``sequential_log_evidence``.
-
-**Closing tempering stage.** The returned draws come from adaptive tempering on the whole series
-(Del Moral, Doucet & Jasra 2006): fresh prior draws, targets
+**Tempering** (Del Moral, Doucet & Jasra 2006): prior draws, targets
 :math:`p(\theta)\, p(y_{1:T} \mid \theta)^\lambda` with each next :math:`\lambda` found by bisection
 so that the reweighting keeps an ESS of ``ess_threshold * N``, then resampling and
-``temper_moves`` moves per stage, up to :math:`\lambda = 1`. Why not the sequential pass's own
-particles: on real NGSIM followers the posterior along the data can switch modes. Vehicle 107
-(``benchmarks/bench_agreement.py``) is unimodal near v_des 8 at t = 100, bimodal at t = 150 (one
-of four NUTS chains on the truncated series sits in each mode) and in the other mode (v_des 30,
-d_min 1.7, 22 nats higher) at the end; after t = 100 the far mode held 0-5 of 4000 particles in
-three of four seeds, and no local move crosses back (distinct particles and acceptance stayed
-healthy throughout: 2000-2600 of 4000 and 0.2-0.3). Along :math:`\lambda` the final mode is
-favoured from the start, so tempering finds it in every seed tried. Its log-evidence
-(``log_evidence``, the product of the stages' mean incremental weights) is unbiased as well; a
-sequential one far below it flags such a switch.
+``temper_moves`` moves per stage, up to :math:`\lambda = 1`. Its log-evidence (``log_evidence``,
+the product of the stages' mean incremental weights) is unbiased. Why tempering rather than the
+particles of a pass along the data: on real NGSIM followers the posterior along the data can
+switch modes. Vehicle 107 (``benchmarks/bench_agreement.py``) is unimodal near v_des 8 at
+t = 100, bimodal at t = 150 and in the other mode (v_des 30, d_min 1.7, 22 nats higher) at the
+end; after t = 100 a pass along the data held 0-5 of 4000 particles in the far mode in three of
+four seeds, and no local move crosses back. Along :math:`\lambda` the final mode is favoured
+from the start, so tempering finds it in every seed tried.
 
-**Moves** (both stages) are the sampler core's (:mod:`bayesdrive.inference.kernels`, shared with
-the criticism's held-out continuation): random walks on u = logit((theta - lower) / (upper - lower)) where
-the prior has finite bounds (theta itself elsewhere), the target on u carrying the Jacobian, so
-parameters piled against a prior bound move freely. The proposal is Gaussian with the particles'
-weighted covariance of u times :math:`s^2`, starting from :math:`s = 2.38/\sqrt d` (Roberts,
-Gelman & Gilks 1997) and adapted per vehicle towards an acceptance rate of ``target_acceptance``
-(log s moves by acceptance - target after every move). After the last stage, moves under the full
-posterior run in blocks of ``final_moves`` until every parameter's draws correlate with their
-values at the start of this closing phase by at most ``decorrelation`` (or the noise level
-3.5 / sqrt(N) of that correlation, if larger; at most ``max_final_moves``): the correlation
-across particles is the kernel's autocorrelation at that lag, measured on the target. A fixed count was not enough: on NGSIM vehicle 140 80 moves left
-the tempering path's excess mass in the long v_des tail (mean 15.5 against 14.6 from 400 000
-NUTS draws), 240 moves removed it (14.64).
+**Moves** are the sampler core's (:mod:`bayesdrive.inference.kernels`, shared with the
+criticism's held-out continuation), on u = logit((theta - lower) / (upper - lower)) where the
+prior has finite bounds (theta itself elsewhere), the target on u carrying the Jacobian, so
+parameters piled against a prior bound move freely. One move is a pair: an independent
+Metropolis-Hastings move from a multivariate Student-t (``independent_df`` degrees of freedom)
+with the cloud's mean and covariance of u, which forgets the start whenever it is accepted, then
+a random walk with that covariance times :math:`s^2`, :math:`s` starting at
+:math:`2.38/\sqrt d` (Roberts, Gelman & Gilks 1997) and adapted towards an acceptance rate of
+``target_acceptance`` (log s moves by acceptance - target after every move), which explores
+locally where the t fits the posterior poorly. ``independent=False`` keeps the random walk alone
+(``benchmarks/bench_smc_moves.py`` compares the two against the NUTS reference).
+
+**Closing moves.** After the last stage, moves under the full posterior run in blocks of
+``final_moves`` until every parameter's draws correlate with their values at the start of this
+closing phase by at most ``decorrelation`` (or the noise level 3.5 / sqrt(N) of that correlation,
+if larger; at most ``max_final_moves``): the correlation across particles is the kernel's
+autocorrelation at that lag, measured on the target. A fixed count was not enough: on NGSIM
+vehicle 140 80 random-walk moves left the tempering path's excess mass in the long v_des tail
+(mean 15.5 against 14.6 from 400 000 NUTS draws), 240 removed it (14.64).
+
+**Sequential pass** (``sequential=True``, off by default; it changes no draw): resample-move SMC
+along the data, also known as IBIS (Chopin 2002, Biometrika 89:539), from its own prior draws.
+At step t every particle is reweighted by the exact one-step density of the observed transition,
+so the weighted set targets :math:`p(\theta \mid y_{1:t})`; when the ESS falls below
+``ess_threshold * N`` it is resampled (systematic) and rejuvenated by ``num_moves`` moves that
+score steps 1..t, in blocks of :data:`SCORE_BLOCK` steps. It gives the per-step diagnostics
+(ESS, distinct particles, the learning curve) and ``sequential_log_evidence``; one far below
+``log_evidence`` flags a mode switch like vehicle 107's.
 
 **Replicates.** Draws of one SMC run are correlated through resampling in a way no
 autocorrelation along the draw order measures. ``replicates`` independent runs (replicate r of a
@@ -49,11 +52,11 @@ posterior mean is the spread of the replicate means
 
 Vehicles are independent, each with its own key derived from the seed and its id
 (:mod:`bayesdrive.inference.vehicles`), so its draws are bit-identical whichever vehicles it is
-fitted with, in whatever order or chunk. One vehicle's whole filter is a ``lax.scan`` over steps
-with rejuvenation under ``lax.cond``. Vehicles run in compiled chunks; inside a chunk
-``vehicle_batch`` of them are vectorised together. With ``vehicle_batch = 1`` (the default)
-``lax.cond`` stays a real branch: under ``vmap`` it would turn into a select that pays for the
-O(N T) rejuvenation at every step of every vehicle (``benchmarks/bench_filters.py`` measures both).
+fitted with, in whatever order or chunk. Vehicles run in compiled chunks; inside a chunk
+``vehicle_batch`` of them are vectorised together: the tempering and closing loops then run until
+the batch's slowest vehicle is done, and the sequential pass's rejuvenation under ``lax.cond``
+becomes a select paid at every step (``benchmarks/bench_filters.py``), so on CPU cores one vehicle
+at a time (the default) is fastest.
 """
 
 from __future__ import annotations
@@ -71,8 +74,11 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.inference.kernels import (
     Box,
+    Independent,
     WalkState,
+    alternating,
     fixed_moves,
+    independent_step,
     moves_until_decorrelated,
     next_temperature,
     to_free,
@@ -107,12 +113,15 @@ class SMCConfig(NamedTuple):
 
     num_particles: int
     ess_threshold: float = 0.5
-    num_moves: int = 5
-    temper_moves: int = 20
-    final_moves: int = 80
-    max_final_moves: int = 2000
+    num_moves: int = 3
+    temper_moves: int = 3
+    final_moves: int = 5
+    max_final_moves: int = 1000
     decorrelation: float = 0.1
     target_acceptance: float = 0.234
+    independent: bool = True
+    independent_df: int = 5
+    sequential: bool = False
 
 
 class _Particles(NamedTuple):
@@ -123,21 +132,25 @@ class _Particles(NamedTuple):
     log_scale: Array  # () log of the random-walk scale s
 
 
-class _VehicleOutput(NamedTuple):
-    theta: Array  # (N, d) equally weighted posterior draws, from the tempering stage
-    log_evidence: Array  # () of the tempering stage
-    sequential_log_evidence: Array  # () of the sequential pass
-    temper_stages: Array  # ()
+class _SequentialPass(NamedTuple):
+    log_evidence: Array  # ()
     ess: Array  # (T,) before any resampling at that step
     resampled: Array  # (T,)
     acceptance: Array  # (T,) mean MH acceptance of the moves, NaN where none ran
     unique: Array  # (T,) distinct ancestors surviving resampling, NaN where none happened
     mean: Array  # (T, d) weighted particle mean after reweighting
     convergence: Array  # (T,)
+
+
+class _VehicleOutput(NamedTuple):
+    theta: Array  # (N, d) equally weighted posterior draws, from the tempering stage
+    log_evidence: Array  # () of the tempering stage
+    temper_stages: Array  # ()
     temper_acceptance: Array  # () mean over the tempering stages
     final_acceptance: Array  # () of the closing moves
     final_moves: Array  # () closing moves run until the draws decorrelated
     final_correlation: Array  # () largest |corr| between closing draws and their start
+    sequential: _SequentialPass | None  # only with ``config.sequential``
 
 
 def _smc_vehicle(
@@ -151,7 +164,8 @@ def _smc_vehicle(
     width: Array,
     config: SMCConfig,
 ) -> _VehicleOutput:
-    """The whole resample-move filter for one vehicle's (T,) series."""
+    """Tempering, closing moves and (with ``config.sequential``) the sequential pass for one
+    vehicle's (T,) series."""
     n = config.num_particles
     num_steps = series.mask.shape[0]
     step_index = jnp.arange(num_steps)
@@ -191,21 +205,23 @@ def _smc_vehicle(
         zero = jnp.zeros(particles.shape[0], particles.dtype)
         return jax.lax.fori_loop(0, last_step // SCORE_BLOCK + 1, add_block, zero)
 
-    def walker(chol: Array, last_step: Array, power=1.0):
-        """The kernels' random walk targeting p(theta) p(y_1..last_step | theta)^power."""
+    def walker(cloud: tuple[Array, Array], last_step: Array, power=1.0):
+        """The kernels' move targeting p(theta) p(y_1..last_step | theta)^power: a random walk
+        with the cloud's covariance, paired with an independent move from a Student-t fitted to
+        the cloud (``cloud``: its mean and the Cholesky factor of its covariance, free scale)."""
 
         def loglik(theta: Array) -> tuple[Array, Array]:
             return jnp.zeros(theta.shape[0], theta.dtype), log_lik_up_to(theta, last_step)
 
-        return functools.partial(
-            walk_step,
-            loglik=loglik,
-            prior_logpdf=log_prior_of,
-            power=power,
-            chol=chol,
-            box=box,
-            target_acceptance=config.target_acceptance,
+        target = dict(loglik=loglik, prior_logpdf=log_prior_of, power=power, box=box)
+        mean, chol = cloud
+        walk = functools.partial(
+            walk_step, chol=chol, target_acceptance=config.target_acceptance, **target
         )
+        if not config.independent:
+            return walk
+        proposal = Independent.of(mean, chol, config.independent_df)
+        return alternating(functools.partial(independent_step, proposal=proposal, **target), walk)
 
     def as_walk(state: _Particles) -> WalkState:
         zero = jnp.zeros_like(state.log_lik)
@@ -214,21 +230,21 @@ def _smc_vehicle(
     def from_walk(walk: WalkState, log_weight: Array) -> _Particles:
         return _Particles(walk.theta, log_weight, walk.tempered, walk.log_prior, walk.log_scale)
 
-    def moves(key: Array, state: _Particles, chol: Array, last_step: Array, count, power=1.0):
+    def moves(key: Array, state: _Particles, cloud, last_step: Array, count, power=1.0):
         """``count`` MH moves targeting p(theta) p(y_1..last_step | theta)^power; mean acceptance."""
-        walk, rate = fixed_moves(key, as_walk(state), walker(chol, last_step, power), count)
+        walk, rate = fixed_moves(key, as_walk(state), walker(cloud, last_step, power), count)
         return from_walk(walk, state.log_weight), rate
 
-    def proposal_chol(state: _Particles) -> Array:
-        _, cov = weighted_mean_cov(to_free(state.theta, box), state.log_weight)
-        return jnp.linalg.cholesky(cov + jitter)
+    def fit_cloud(state: _Particles) -> tuple[Array, Array]:
+        mean, cov = weighted_mean_cov(to_free(state.theta, box), state.log_weight)
+        return mean, jnp.linalg.cholesky(cov + jitter)
 
     def resample_move(
         key: Array, state: _Particles, last_step: Array, num_moves: int, power: Array = 1.0
     ):
         """Systematic resampling, then MH moves targeting p(theta) p(y_1..last_step | theta)^power."""
         key_resample, key_moves = jax.random.split(key)
-        chol = proposal_chol(state)
+        cloud = fit_cloud(state)
         parents = systematic(key_resample, state.log_weight)
         resampled = _Particles(
             state.theta[parents],
@@ -237,7 +253,7 @@ def _smc_vehicle(
             state.log_prior[parents],
             state.log_scale,
         )
-        moved, rate = moves(key_moves, resampled, chol, last_step, num_moves, power)
+        moved, rate = moves(key_moves, resampled, cloud, last_step, num_moves, power)
         return moved, rate, count_distinct_sorted(parents).astype(state.theta.dtype)
 
     def decorrelate(key: Array, state: _Particles, last_step: Array):
@@ -248,7 +264,7 @@ def _smc_vehicle(
         walk, acceptance, done, corr = moves_until_decorrelated(
             key,
             as_walk(state),
-            walker(proposal_chol(state), last_step),
+            walker(fit_cloud(state), last_step),
             box=box,
             block=config.final_moves,
             max_moves=config.max_final_moves,
@@ -282,11 +298,22 @@ def _smc_vehicle(
         log_prior=log_prior_of(theta),
         log_scale=jnp.log(2.38 / jnp.sqrt(theta.shape[-1])).astype(theta.dtype),
     )
-    (_, log_evidence), (ess, resampled, acceptance, unique, means) = jax.lax.scan(
-        step,
-        (start, jnp.zeros((), theta.dtype)),
-        (series, step_index, jax.random.split(key_steps, num_steps)),
-    )
+    sequential = None
+    if config.sequential:
+        (_, log_evidence), (ess, resampled, acceptance, unique, means) = jax.lax.scan(
+            step,
+            (start, jnp.zeros((), theta.dtype)),
+            (series, step_index, jax.random.split(key_steps, num_steps)),
+        )
+        sequential = _SequentialPass(
+            log_evidence=log_evidence,
+            ess=ess,
+            resampled=resampled,
+            acceptance=acceptance,
+            unique=unique,
+            mean=means,
+            convergence=convergence_curve(means, width),
+        )
     last_live = jnp.max(jnp.where(series.mask > 0, step_index, 0))
 
     def temper(carry):
@@ -328,18 +355,12 @@ def _smc_vehicle(
     return _VehicleOutput(
         theta=final.theta,
         log_evidence=tempered_log_evidence,
-        sequential_log_evidence=log_evidence,
         temper_stages=stages,
         temper_acceptance=accepted / stages,
         final_acceptance=final_acceptance,
         final_moves=final_moves,
         final_correlation=final_correlation,
-        ess=ess,
-        resampled=resampled,
-        acceptance=acceptance,
-        unique=unique,
-        mean=means,
-        convergence=convergence_curve(means, width),
+        sequential=sequential,
     )
 
 
@@ -354,17 +375,21 @@ def run(
     prior: Any = None,
     progress: Callable[[int, int], None] | None = None,
     ess_threshold: float = 0.5,
-    num_moves: int = 5,
-    temper_moves: int = 20,
-    final_moves: int = 80,
-    max_final_moves: int = 2000,
+    num_moves: int = 3,
+    temper_moves: int = 3,
+    final_moves: int = 5,
+    max_final_moves: int = 1000,
     decorrelation: float = 0.1,
     target_acceptance: float = 0.234,
     replicates: int = 1,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
+    independent: bool = True,
+    independent_df: int = 5,
+    sequential: bool = False,
 ) -> EngineResult:
-    """Resample-move SMC, then tempering, for every vehicle of ``arrays`` (module docstring).
+    """Tempering and closing moves (and, with ``sequential``, the per-step pass along the data)
+    for every vehicle of ``arrays`` (module docstring).
 
     ``prior`` is any object with ``logpdf(theta)`` and ``sample(key, shape)`` over the inferred
     parameters (default: the model's uniform prior box); if it has ``lower`` and ``upper`` the
@@ -379,6 +404,8 @@ def run(
         raise ValueError(
             f"max_final_moves ({max_final_moves}) must be at least final_moves ({final_moves})"
         )
+    if independent_df < 1 or int(independent_df) != independent_df:
+        raise ValueError(f"independent_df must be a whole number >= 1, got {independent_df}")
     if num_particles < 2 or min(num_moves, temper_moves, final_moves, replicates) < 1:
         raise ValueError(
             "need num_particles >= 2 and num_moves, temper_moves, final_moves, replicates >= 1, "
@@ -394,6 +421,9 @@ def run(
         max_final_moves=max_final_moves,
         decorrelation=decorrelation,
         target_acceptance=target_acceptance,
+        independent=independent,
+        independent_df=int(independent_df),
+        sequential=sequential,
     )
     per_vehicle = functools.partial(
         _smc_vehicle,
@@ -413,41 +443,37 @@ def run(
         progress=progress,
         cache_key=problem.cache_key("smc", config, static_key(problem.prior)),
     )
-    first = jax.tree.map(lambda a: a[0], out)  # the sequential pass of replicate 0
     theta = np.moveaxis(out.theta, 0, 1)  # (vehicle, replicate, particle, d)
     log_lik = problem.score(theta.reshape(problem.num_vehicles, -1, theta.shape[-1]))
-    vehicle_step = ("vehicle", "step")
-    return EngineResult(
-        posterior=posterior_draws(problem.names, theta),
-        sample_stats={
+    per_replicate = ("chain", "vehicle")
+    sample_stats = {
+        # The mean of unbiased evidence estimates is one, with the replicates' spread shown.
+        "log_evidence": (
+            ("vehicle",),
+            jax.nn.logsumexp(out.log_evidence, axis=0) - np.log(replicates),
+        ),
+        "replicate_log_evidence": (per_replicate, out.log_evidence),
+        "temper_stages": (per_replicate, out.temper_stages),
+        "temper_acceptance": (per_replicate, out.temper_acceptance),
+        "final_acceptance": (per_replicate, out.final_acceptance),
+        "final_moves": (per_replicate, out.final_moves),
+        "final_correlation": (per_replicate, out.final_correlation),
+    }
+    if sequential:
+        first = jax.tree.map(lambda a: a[0], out.sequential)  # replicate 0's pass
+        vehicle_step = ("vehicle", "step")
+        sample_stats |= {
             "particle_ess": (vehicle_step, first.ess),
             "resampled": (vehicle_step, first.resampled),
             "acceptance": (vehicle_step, first.acceptance),
             "unique_particles": (vehicle_step, first.unique),
             "particle_mean": (("vehicle", "step", "param"), first.mean),
             "convergence": (vehicle_step, first.convergence),
-            # The mean of unbiased evidence estimates is one, with the replicates' spread shown.
-            "log_evidence": (
-                ("vehicle",),
-                jax.nn.logsumexp(out.log_evidence, axis=0) - np.log(replicates),
-            ),
-            "replicate_log_evidence": (("chain", "vehicle"), out.log_evidence),
-            "sequential_log_evidence": (("vehicle",), first.sequential_log_evidence),
-            "temper_stages": (("chain", "vehicle"), out.temper_stages),
-            "temper_acceptance": (
-                ("chain", "vehicle"),
-                out.temper_acceptance,
-            ),
-            "final_acceptance": (
-                ("chain", "vehicle"),
-                out.final_acceptance,
-            ),
-            "final_moves": (("chain", "vehicle"), out.final_moves),
-            "final_correlation": (
-                ("chain", "vehicle"),
-                out.final_correlation,
-            ),
-        },
+            "sequential_log_evidence": (("vehicle",), first.log_evidence),
+        }
+    return EngineResult(
+        posterior=posterior_draws(problem.names, theta),
+        sample_stats=sample_stats,
         log_likelihood=log_likelihood_draws(log_lik.reshape(*theta.shape[:3], -1)),
         compile_time_s=compile_time,
         wall_time_s=run_time,
