@@ -15,6 +15,7 @@ import xarray as xr
 
 from bayesdrive.data import registry
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.drivers.registry import get_model
 from bayesdrive.experiments.holdout import (
     BASELINES,
     LEARNED,
@@ -22,6 +23,7 @@ from bayesdrive.experiments.holdout import (
     PROTOCOL,
     TRAINING_DATA,
     HoldoutConfig,
+    calibrate_data_set,
     evaluate_data_set,
     paired_difference,
     population_from,
@@ -29,8 +31,9 @@ from bayesdrive.experiments.holdout import (
 from bayesdrive.inference.fit import fit
 from bayesdrive.inference.output import load_result
 from bayesdrive.reports.html import Section
-from bayesdrive.reports.paper_report import holdout_section, holdout_table
+from bayesdrive.reports.paper_report import calibration_section, holdout_section, holdout_table
 from bayesdrive.simulation.blackbox import TrainConfig
+from bayesdrive.simulation.calibration import pit_summary
 from bayesdrive.simulation.posterior import population_policy
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
@@ -123,7 +126,10 @@ def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir,
                 assert paired["low"] <= paired["mean"] <= paired["high"]
     table = holdout_table(result)
     assert list(table["method"]) == list(models)
-    assert (table.loc[table["method"] != "idm-smc"].iloc[:, -1] != "-").all()
+    for learned in LEARNED:
+        column = f"{learned} minus this, position (m) [95%]"
+        assert (table.loc[table["method"] != learned, column] != "-").all()
+        assert (table.loc[table["method"] == learned, column] == "-").all()
     section = Section("held out")
     holdout_section(
         section,
@@ -132,3 +138,44 @@ def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir,
     page = "".join(section.parts)
     assert PROTOCOL in html.unescape(page) and "none: not evaluated: no leaders" in page
     assert "idm-smc minus this, position (m) [95%]" in page
+    assert "idm-population minus this, position (m) [95%]" in page
+
+
+def test_pit_summary_counts_coverage_exactly():
+    """Evenly spread PITs: the central 50% and 90% intervals hold exactly those shares and the
+    histogram is flat; PITs piled in the tails cover too little and fail the chi-square."""
+    even = pit_summary((np.arange(1000) + 0.5) / 1000)
+    assert even["coverage_50"] == 0.5 and even["coverage_90"] == 0.9
+    assert even["pit_counts"] == [100] * 10 and even["pit_chi2_p"] == 1.0
+    tails = pit_summary(np.r_[np.full(400, 0.01), np.full(400, 0.99), np.full(200, 0.5)])
+    assert tails["coverage_90"] == 0.2 and tails["pit_chi2_p"] < 1e-6
+    assert pit_summary(np.zeros(0))["coverage_50"] is None
+
+
+@pytest.mark.realdata
+def test_calibration_on_two_vehicles_gives_coverage_per_model_and_horizon(holdout_dir, tmp_path):
+    held_out = registry.load_holdout(HELD_OUT, holdout_dir=holdout_dir)
+    pairs = list(pd.unique(held_out.scenes["scene_id"]))[:2]
+    traj = held_out.subset(
+        held_out.scenes.loc[held_out.scenes["scene_id"].isin(pairs), "vehicle_id"]
+    )
+    config = HoldoutConfig(
+        particles=32, rollouts=20, max_scenarios=None, fit_seed=1, rollout_seed=2, baseline_seed=3
+    )
+    delayed = get_model("idm+reaction_delay")
+    result = calibrate_data_set(traj, config, (IDM, delayed))
+    assert result["horizons_s"] == [0.1, 5.0]
+    for model in (IDM, delayed):
+        entry = result["models"][model.name]
+        assert entry["vehicles"] >= 1 and entry["rollouts"] == 20
+        one_step, five = entry["horizons"]["0.1"], entry["horizons"]["5"]
+        # Every scored held-out step is a one-step window; 5 s windows are fewer.
+        assert one_step["windows"] > five["windows"] >= 1
+        for h in (one_step, five):
+            assert sum(h["pit_counts"]) == h["windows"]
+            assert 0.0 <= h["coverage_50"] <= h["coverage_90"] <= 1.0
+    section = Section("calibration")
+    calibration = {"data_sets": {HELD_OUT: {**result, "training_data": "t"}}}
+    calibration_section(section, calibration, tmp_path)
+    assert (tmp_path / "holdout_pit.png").exists()
+    assert "90% interval covers" in "".join(section.parts)

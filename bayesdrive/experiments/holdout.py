@@ -27,7 +27,13 @@ with the documented defaults and scoring them on their later held-out windows is
    experiment builds them): ``idm-default``, ``idm-lm`` (the IDM fitted by Levenberg-Marquardt
    per follower on its fitting window), ``cv`` and ``blackbox`` (trained on the fitting windows
    of every vehicle of the held-out data set).
-6. **Metrics** (:func:`~bayesdrive.simulation.metrics.evaluate_policy`, one rollout key for every
+6. **Calibration** (:func:`calibrate_data_set`, a step of its own): the IDM and the final model
+   that ``criticize`` chose on the training data set of the same kind (never chosen on held-out
+   data), each fitted by ``smc`` (defaults) to the same simulated followers' fitting windows;
+   the coverage of the 50% and 90% central predictive intervals and the PIT histogram of the
+   position one step (one sample interval) and :data:`HORIZON_S` ahead, over every held-out
+   window of those followers (:func:`~bayesdrive.simulation.calibration.predictive_calibration`).
+7. **Metrics** (:func:`~bayesdrive.simulation.metrics.evaluate_policy`, one rollout key for every
    method, so methods differ by their parameters only): RMSE of position and speed at each
    scenario's last step and collisions. **Paired intervals**: per scenario, the RMSE of the
    learned model minus that of the other method (negative: the learned model is closer), their
@@ -46,12 +52,15 @@ import numpy as np
 import xarray as xr
 
 from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.views import scored_series
+from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.fit import fit
 from bayesdrive.inference.output import metadata
 from bayesdrive.inference.population import two_stage
 from bayesdrive.simulation.baselines import Policy, baseline_policy
 from bayesdrive.simulation.blackbox import TrainConfig
+from bayesdrive.simulation.calibration import predictive_calibration
 from bayesdrive.simulation.metrics import evaluate_policy
 from bayesdrive.simulation.posterior import pooled_policy, population_policy, posterior_policy
 from bayesdrive.simulation.scenarios import ScenarioSet, platoon_scenarios
@@ -65,6 +74,7 @@ __all__ = [
     "PROTOCOL",
     "TRAINING_DATA",
     "HoldoutConfig",
+    "calibrate_data_set",
     "evaluate_data_set",
     "holdout_scenarios",
     "paired_difference",
@@ -275,3 +285,37 @@ def evaluate_data_set(
         "models": models,
         "paired": paired,
     }
+
+
+def calibrate_data_set(
+    traj: Trajectories, config: HoldoutConfig, models: tuple[DriverModel, ...]
+) -> dict[str, Any]:
+    """Point 6 of the protocol on one held-out data set read as ``traj``: for each of ``models``
+    (the IDM and the training set's final model), smc fits of the protocol's simulated followers
+    on their fitting windows and the calibration of their predictive on the held-out windows, one
+    step and :data:`HORIZON_S` ahead. Returns ``{"error": reason}`` without such followers."""
+    found = holdout_scenarios(traj, config.max_scenarios)
+    if not found.scenarios:
+        return {"error": f"no {HORIZON_S:g} s leader-follower window in its held-out part"}
+    series = scored_series(traj, vehicle_ids=found.simulated_ids)
+    horizons = (float(series.dt), HORIZON_S)
+    results = {}
+    for model in models:
+        tree = fit(
+            jax.random.key(config.fit_seed),
+            traj,
+            model=model,
+            engine="smc",
+            num_particles=config.particles,
+            seed=config.fit_seed,
+            vehicle_ids=list(series.vehicle_ids),
+        )
+        results[model.name] = predictive_calibration(
+            jax.random.key(config.rollout_seed),
+            model,
+            tree,
+            series,
+            horizons_s=horizons,
+            num_rollouts=config.rollouts,
+        )
+    return {"horizons_s": list(horizons), "models": results}

@@ -44,6 +44,7 @@ from bayesdrive.experiments.holdout import (
     PROTOCOL,
     TRAINING_DATA,
     HoldoutConfig,
+    calibrate_data_set,
     evaluate_data_set,
     population_from,
 )
@@ -542,14 +543,8 @@ def scenes_step(
     }
 
 
-def holdout_step(out: Path, smc_trees: dict[str, Any], settings: Settings, force: bool) -> dict:
-    """Generalisation to new drivers and new roads: the protocol of
-    :mod:`bayesdrive.experiments.holdout` on every held-out data set, each set's result cached
-    in ``out`` beside the population fits. ``smc_trees`` are the highway experiment's per-vehicle
-    fits: their vehicles are the populations' training drivers, and the NGSIM I-80 one gives the
-    earlier pooled row. Nothing is tuned here: the held-out fits use the fixed defaults."""
-    out.mkdir(parents=True, exist_ok=True)
-    config = HoldoutConfig(
+def _holdout_config(settings: Settings) -> HoldoutConfig:
+    return HoldoutConfig(
         particles=settings.smc_particles,
         rollouts=settings.rollouts,
         max_scenarios=settings.holdout_max_scenarios,
@@ -557,6 +552,49 @@ def holdout_step(out: Path, smc_trees: dict[str, Any], settings: Settings, force
         rollout_seed=SEEDS["holdout"],
         baseline_seed=SEEDS["baselines"],
     )
+
+
+def calibration_step(
+    out: Path, final_models: dict[str, str], settings: Settings, force: bool
+) -> dict:
+    """Calibration on the held-out windows (:func:`~bayesdrive.experiments.holdout.calibrate_data_set`)
+    of every held-out data set, for the IDM and the final model the criticism chose on the
+    training data set of the same kind (``final_models``, by highway label), each set cached in
+    ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    config = _holdout_config(settings)
+    rows = {}
+    for name in registry.HOLDOUT:
+        training = TRAINING_DATA[name]
+        final = next(
+            (m for label, m in final_models.items() if label.split(":")[0] == training), None
+        )
+        models = (IDM,) if final in (None, IDM.name) else (IDM, get_model(final))
+        try:
+            traj = registry.load_holdout(name)
+        except DataError as error:
+            rows[name] = {"error": str(error)}
+            continue
+        rows[name] = cached(
+            out,
+            name,
+            lambda t=traj, m=models, d=training: {
+                **calibrate_data_set(t, config, m),
+                "training_data": d,
+            },
+            force,
+        )
+    return {"fit_seed": SEEDS["holdout_fit"], "seed": SEEDS["holdout"], "data_sets": rows}
+
+
+def holdout_step(out: Path, smc_trees: dict[str, Any], settings: Settings, force: bool) -> dict:
+    """Generalisation to new drivers and new roads: the protocol of
+    :mod:`bayesdrive.experiments.holdout` on every held-out data set, each set's result cached
+    in ``out`` beside the population fits. ``smc_trees`` are the highway experiment's per-vehicle
+    fits: their vehicles are the populations' training drivers, and the NGSIM I-80 one gives the
+    earlier pooled row. Nothing is tuned here: the held-out fits use the fixed defaults."""
+    out.mkdir(parents=True, exist_ok=True)
+    config = _holdout_config(settings)
     populations = {}
     for training in sorted(set(TRAINING_DATA.values())):
         path = out / f"population_{training}.nc"
@@ -793,6 +831,15 @@ def run_all(
         out,
         "holdout_evaluation",
         lambda: holdout_step(out / "holdout", smc_trees, settings, force),
+        force,
+    )
+    progress("calibration on held-out data sets")
+    # Only the highway labels the criticism ran on: their final models are the chosen ones.
+    chosen = {k: v for k, v in results["final_models"].items() if k in criticism}
+    results["holdout_calibration"] = cached(
+        out,
+        "holdout_calibration",
+        lambda: calibration_step(out / "holdout" / "calibration", chosen, settings, force),
         force,
     )
     progress("prior sensitivity")

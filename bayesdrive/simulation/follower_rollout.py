@@ -80,12 +80,17 @@ def heldout_windows(series: FollowerArrays, horizon_s: float) -> RolloutWindows:
     return RolloutWindows(np.asarray(rows, int), np.asarray(starts, int), horizon)
 
 
-def _window_buffer(data: Series, start: Array, history: int, horizon: int) -> Series:
-    """The vehicle's arrays from ``history`` steps before ``start`` to the end of the window."""
-    first = start - history
-    return jax.tree.map(
-        lambda a: jax.lax.dynamic_slice_in_dim(a, first, history + horizon + 1), data
-    )
+def _window_buffer(data: Series, row: Array, start: Array, history: int, horizon: int) -> Series:
+    """Vehicle ``row``'s arrays from ``history`` steps before ``start`` to the end of the window,
+    sliced straight from the (vehicle, step) arrays: gathering the row first would hold a whole
+    series per window, which runs out of memory with one-step windows on long recordings."""
+    length = history + horizon + 1
+
+    def cut(a: Array) -> Array:
+        corner = (row, start - history) + (0,) * (a.ndim - 2)
+        return jax.lax.dynamic_slice(a, corner, (1, length, *a.shape[2:]))[0]
+
+    return jax.tree.map(cut, data)
 
 
 def _one_rollout(
@@ -172,9 +177,7 @@ def rollout(
     rows = jnp.asarray(windows.row)
     thetas = jnp.asarray(theta, dtype=data.v.dtype)[rows[:, None], picks]
     buffers = jax.vmap(
-        lambda row, start: _window_buffer(
-            jax.tree.map(lambda a: a[row], data), start + history, history, windows.horizon
-        )
+        lambda row, start: _window_buffer(data, row, start + history, history, windows.horizon)
     )(rows, jnp.asarray(windows.start))
     offsets, crashed = _rollout_windows(
         jax.random.split(key_noise, (num_windows, num_rollouts)),
