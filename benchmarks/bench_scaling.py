@@ -43,6 +43,9 @@ if str(ROOT) not in sys.path:
 FOLLOWERS_PER_PLATOON = 10
 MAX_GENERATED = 1000
 MODES = ("plain", "batched", "cluster")
+# smc's moves since the paired independent + random-walk move; rows without it had the random
+# walk alone (20 moves a stage, closing blocks of 80) and its pass along the data.
+SMC_MOVES = "paired"
 
 
 def machine() -> str:
@@ -168,6 +171,7 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
     row["peak_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     row["per_vehicle_s"] = row["inference_s"] / size
     row["machine"] = machine()
+    row["smc_moves"] = SMC_MOVES
     row["jax"] = jax.__version__
     row["python"] = platform.python_version()
     return row
@@ -186,21 +190,23 @@ def write_report(out: Path) -> str:
         key=lambda r: (
             r["machine"],
             r.get("source", "trafficgen"),
+            r.get("smc_moves", "random walk"),
             MODES.index(r["mode"]),
             r["vehicles"],
         ),
     )
     lines = [
-        "| machine | data | mode | vehicles | steps | inference (s) | per vehicle (s) | compile (s) "
-        "| whole (s) | peak memory (MiB) | worker peak (MiB) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| machine | data | smc moves | mode | vehicles | steps | inference (s) | per vehicle (s) "
+        "| compile (s) | whole (s) | peak memory (MiB) | worker peak (MiB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         mode = r["mode"] + (f" (batch {r['batch']})" if r.get("batch", 1) > 1 else "")
         compile_s = "in workers" if r["compile_s"] is None else f"{r['compile_s']:.1f}"
         worker = f"{r['worker_peak_mib']:.0f}" if "worker_peak_mib" in r else ""
         lines.append(
-            f"| {r['machine']} | {r.get('source', 'trafficgen')} | {mode} | {r['vehicles']} | {r['steps']} | {r['inference_s']:.1f} "
+            f"| {r['machine']} | {r.get('source', 'trafficgen')} | {r.get('smc_moves', 'random walk')} "
+            f"| {mode} | {r['vehicles']} | {r['steps']} | {r['inference_s']:.1f} "
             f"| {r['per_vehicle_s']:.3f} | {compile_s} | {r['whole_s']:.1f} | {r['peak_mib']:.0f} "
             f"| {worker} |"
         )
@@ -247,14 +253,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown mode(s) {unknown}; known: {list(MODES)}")
     here = machine()
     done = {
-        (r["machine"], r.get("source", "trafficgen"), r["mode"], r["vehicles"])
+        (r["machine"], r.get("source", "trafficgen"), r.get("smc_moves"), r["mode"], r["vehicles"])
         for r in load_rows(args.out / "runs.jsonl")
     }
     with tempfile.TemporaryDirectory() as scratch:
         workdir = args.workdir or scratch
         for size in sorted(int(s) for s in args.sizes.split(",")):
             for mode in modes:
-                if (here, args.source, mode, size) in done:
+                if (here, args.source, SMC_MOVES, mode, size) in done:
                     continue
                 command = [
                     sys.executable,

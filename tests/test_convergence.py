@@ -50,8 +50,22 @@ def named(report) -> set[tuple[str, str, str]]:
 
 def test_independent_chains_pass_every_check():
     report = check_convergence(tree(independent(1), "nuts"))
-    assert report.checks == ["rhat", "ess_bulk", "ess_tail"] and report.unchecked is None
+    assert report.checks == ["spread", "rhat", "ess_bulk", "ess_tail"]
+    assert report.unchecked is None
     assert report.problems == []
+
+
+def test_a_collapsed_posterior_is_named_for_every_engine():
+    """All draws of one vehicle's parameter equal (a particle set descended from one particle):
+    named as collapsed, for smc with one replicate too, where nothing else is checked."""
+    posterior = independent(6, chains=1)
+    posterior["v_des"][:, :, 0] = 12.5
+    for engine in ("smc", "pf", "nuts"):
+        report = check_convergence(tree(posterior, engine))
+        assert ("a", "v_des", "spread") in named(report)
+        assert not any(p.vehicle == "b" and p.check == "spread" for p in report.problems)
+    smc = check_convergence(tree(posterior, "smc"))
+    assert smc.unchecked and "collapsed" in smc.problems[0].message()
 
 
 def test_a_shifted_chain_fails_rhat_for_that_vehicle_and_parameter():
@@ -100,7 +114,8 @@ def test_an_emcee_run_shorter_than_50_autocorrelation_times_is_flagged(tau, fail
 
 def test_smc_replicates_that_disagree_are_flagged_and_one_replicate_is_unchecked():
     single = check_convergence(tree(independent(6, chains=1), "smc"))
-    assert single.checks == [] and single.problems == [] and "replicates" in single.unchecked
+    assert single.checks == ["spread"] and single.problems == []
+    assert "replicates" in single.unchecked
 
     options = {"replicates": CHAINS}
     agreeing = check_convergence(tree(independent(7), "smc", engine_options=options))

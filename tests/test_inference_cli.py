@@ -51,7 +51,7 @@ def test_fit_writes_result_summary_and_plots(data_dir, tmp_path):
     assert tree["posterior"]["sigma"].shape == (1, 100, 2)
     assert list(printed["vehicles"]) == [str(v) for v in tree["posterior"]["vehicle"].values]
     # One smc run has no second chain or replicate to check against, and says so.
-    assert printed["convergence"]["checks"] == [] and printed["convergence"]["unchecked"]
+    assert printed["convergence"]["checks"] == ["spread"] and printed["convergence"]["unchecked"]
     assert printed["num_particles"] == 100 and printed["units"]["v_des"] == "m/s"
 
 

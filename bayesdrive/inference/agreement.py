@@ -143,7 +143,9 @@ def convergence_table(tree: xr.DataTree) -> pd.DataFrame:
             row |= {key: float(values[key][i]) for key in stats if key != "rhat"}
             row["sd"] = float(posterior[name].values[:, :, i].std())
             # The ESS the mean's standard error implies (the replicate one for smc).
-            row["ess_mean"] = (row["sd"] / row["mcse_mean"]) ** 2
+            # NaN where every draw is equal (sd and MCSE 0): no ESS to speak of.
+            mcse = row["mcse_mean"]
+            row["ess_mean"] = (row["sd"] / mcse) ** 2 if mcse > 0.0 else float("nan")
             if sample_stats is not None:
                 row |= _engine_extras(sample_stats, i, k)
             rows.append(row)

@@ -11,10 +11,13 @@ Each check applies where it means something, per vehicle and parameter (numbers 
 * ``autocorr``: an emcee run shorter than 50 integrated autocorrelation times of the parameter
   after burn-in (:data:`~bayesdrive.inference.ensemble.AUTOCORR_RELIABLE_FACTOR`);
 * ``replicate_spread``: with several SMC replicates, the ESS that the spread of their means
-  implies (:func:`~bayesdrive.inference.agreement.mcse_mean`) below :data:`ESS_MIN`.
+  implies (:func:`~bayesdrive.inference.agreement.mcse_mean`) below :data:`ESS_MIN`;
+* ``spread``, for every engine: a parameter whose draws are all equal has collapsed onto one
+  value (a particle set descended from one particle that never moved, a chain that never
+  accepted), which no posterior of these models is.
 
-One-replicate smc, pf and lm have nothing to check against: :func:`check_convergence` says so
-in its ``unchecked`` note rather than passing them silently.
+Beyond ``spread``, one-replicate smc, pf and lm have nothing to check against:
+:func:`check_convergence` says so in its ``unchecked`` note rather than passing them silently.
 """
 
 from __future__ import annotations
@@ -58,6 +61,11 @@ class ConvergenceProblem(NamedTuple):
     limit: float
 
     def message(self) -> str:
+        if self.check == "spread":
+            return (
+                f"vehicle {self.vehicle}, parameter {self.param}: every draw is the same value "
+                "(the posterior collapsed onto one point)"
+            )
         relation = "above" if self.check == "rhat" else "below"
         what = {
             "rhat": "R-hat",
@@ -94,7 +102,11 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
     replicates = (meta.get("engine_options") or {}).get("replicates", 1)
     table = convergence_table(tree)
     checks: list[str] = []
-    problems: list[ConvergenceProblem] = []
+    problems: list[ConvergenceProblem] = [
+        ConvergenceProblem(row.vehicle, row.param, "spread", float(row.sd), 0.0)
+        for row in table.itertuples()
+        if not row.sd > 0.0
+    ]
 
     def flag(check: str, column: str, limit: float, above: bool) -> None:
         checks.append(check)
@@ -121,7 +133,7 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
             f"{engine} with one chain of independent-looking draws: no R-hat, ESS or replicate "
             "check applies (smc: use replicates > 1)"
         )
-    return ConvergenceReport(checks, problems, unchecked)
+    return ConvergenceReport(["spread", *checks], problems, unchecked)
 
 
 def log_problems(report: ConvergenceReport) -> None:
