@@ -47,6 +47,7 @@ def tree(arrays):
         num_particles=PARTICLES,
         fixed={"tau": 1.0, "b_pref": 2.0},
         seed=5,
+        sequential=True,  # the per-step statistics are part of the layout checked here
     )
 
 
