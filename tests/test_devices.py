@@ -1,8 +1,9 @@
-"""Vehicles sharded over JAX devices give the same bits as one device (issue 17, item 3).
+"""Vehicles split over JAX devices give the same bits as one device (issue 17, item 3).
 
 A subprocess started with ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (two CPU devices)
-fits three simulated followers by smc, one after another and vectorised in batches of two; this
-process (one device) fits them the same two ways, and vehicle a alone with one replicate (a chunk
+fits three simulated followers by smc, one after another, vectorised in batches of two, and one
+after another with the paired independent moves; this process (one device) fits them the same three
+ways, and vehicle a alone with one replicate (a chunk
 of one vehicle, which XLA would otherwise compile into different float operations). Each way's
 posterior draws must be bit-identical on one and two devices, and vehicle a's alone as in a
 chunk. (Vectorising is a setting of its own: batches of two may differ from one at a time in the
@@ -34,11 +35,11 @@ FIT = textwrap.dedent(
         simulated = simulate_following(jax.random.key(11), IDM, params, num_steps=40)
         return simulated._replace(vehicle_ids=("a", "b", "c"))
 
-    def fit(seed, arrays, chunk, batch):
+    def fit(seed, arrays, chunk, batch, independent=False):
         result = smc.run(
             jax.random.key(seed), arrays, model=IDM, params=("v_des", "sigma"),
             num_particles=64, num_moves=1, temper_moves=2, final_moves=4, max_final_moves=8,
-            vehicle_chunk=chunk, vehicle_batch=batch,
+            vehicle_chunk=chunk, vehicle_batch=batch, independent=independent,
         )
         return np.stack([result.posterior["v_des"], result.posterior["sigma"]])
     """
@@ -54,6 +55,7 @@ def _in_subprocess(devices: int) -> dict:
             "devices": jax.device_count(),
             "plain": fit({SEED}, arrays, 2, 1).tolist(),
             "batched": fit({SEED}, arrays, 4, 2).tolist(),
+            "paired": fit({SEED}, arrays, 2, 1, True).tolist(),
         }}))
         """
     )
@@ -72,6 +74,7 @@ def test_sharded_fits_match_one_device_bit_for_bit():
     here = {
         "plain": namespace["fit"](SEED, arrays, 2, 1),
         "batched": namespace["fit"](SEED, arrays, 4, 2),
+        "paired": namespace["fit"](SEED, arrays, 2, 1, True),
     }
     alone = namespace["fit"](SEED, arrays.subset(np.asarray([0])), 1, 1)
     sharded = _in_subprocess(2)

@@ -13,6 +13,7 @@ from scipy import stats
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import IDM, STOP_SPEED, idm_acceleration
+from bayesdrive.inference.likelihood import StepInputs
 
 DT = 0.1
 # Textbook parameters used in the hand computations below.
@@ -97,29 +98,63 @@ def _mean_acc(params, v, inputs):
     return np.asarray(_model_mean(params, jnp.asarray(v, dtype=float), inputs), dtype=np.float64)
 
 
-def test_step_logpdf_matches_an_independent_scipy_formula():
+def _scipy_case(n: int = 400):
+    """Steps with observed increments within +-3 sd of the prediction, every 4th an observed
+    stop, and their log-densities by scipy (an independent formula)."""
     rng = np.random.default_rng(20240611)
-    n = 400
     params = IDM.defaults()
     sigma = float(params.sigma)
     v = rng.uniform(0.0, 30.0, n)
     inputs = _step_inputs(rng.uniform(2.0, 60.0, n), rng.uniform(0.0, 30.0, n))
     a = _mean_acc(params, v, inputs)
-    # Observed increments within +-3 sd of the prediction; every 4th step an observed stop.
     predicted = v * DT + 0.5 * a * DT**2
     dx = predicted + rng.uniform(-3, 3, n) * sigma * DT**2 / 2
     stopped = np.arange(n) % 4 == 0
     next_v = np.where(stopped, 0.0, np.maximum(v + a * DT, 1.0))
-
     expected = np.where(
         stopped,
         # P(v + a' dt <= STOP_SPEED) for a' ~ N(a, sigma^2)
         stats.norm.logcdf((STOP_SPEED - v - a * DT) / (sigma * DT)),
         stats.norm.logpdf(dx, loc=predicted, scale=sigma * DT**2 / 2),
     )
+    return params, v, dx, next_v, inputs, stopped, expected
+
+
+# float32 increments of ~3 m carry ~2e-7 m rounding = 1e-4 sd: well under 2e-3 nats.
+SCIPY_TOL = {"atol": 2e-3, "rtol": 1e-5}
+
+
+def test_step_logpdf_matches_an_independent_scipy_formula():
+    params, v, dx, next_v, inputs, _, expected = _scipy_case()
     got = _logpdf(params, v, dx, next_v, inputs)
-    # float32 increments of ~3 m carry ~2e-7 m rounding = 1e-4 sd: well under 2e-3 nats.
-    np.testing.assert_allclose(got, expected, atol=2e-3, rtol=1e-5)
+    np.testing.assert_allclose(got, expected, **SCIPY_TOL)
+
+
+def test_series_logpdf_matches_the_scipy_formula_with_and_without_stops():
+    # The whole-series density skips the stop term on a series without a stop: on one with stops
+    # it must score them, on the moving steps alone it must give the moving densities.
+    params, v, dx, next_v, inputs, stopped, expected = _scipy_case()
+
+    def series(rows):
+        def f(values):
+            return jnp.asarray(np.asarray(values)[rows], dtype=float)
+
+        steps = StepInputs(
+            v=f(v),
+            next_v=f(next_v),
+            dx=f(dx),
+            mask=f(np.ones(len(v))),
+            inputs=jax.tree.map(lambda a: a[rows], inputs),
+        )
+        return np.asarray(jax.jit(IDM.series_logpdf)(params, steps), dtype=np.float64)
+
+    everything = np.arange(len(v))
+    np.testing.assert_allclose(series(everything), expected, **SCIPY_TOL)
+    moving = np.flatnonzero(~stopped)
+    np.testing.assert_allclose(series(moving), expected[moving], **SCIPY_TOL)
+    # Negative control: the stop steps scored as moving ones are far from their stop mass.
+    as_moving = _logpdf(params, v, dx, np.where(stopped, 1.0, next_v), inputs)
+    assert np.min(np.abs(as_moving[stopped] - expected[stopped])) > 1.0
 
 
 # A state that splits its mass between stopping and moving: v=0.4 m/s, 1.6 m behind a stopped

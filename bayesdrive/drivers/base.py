@@ -19,6 +19,12 @@ ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and
   (identity unless the state remembers more than position and speed, e.g. the last noise).
 * ``filter(params, steps) -> (T,)``: for a model with a hidden state, the one-step predictive log
   densities of one vehicle's steps from a state filter; None when each step is scored on its own.
+* ``series_logpdf(params, steps) -> (T,)``: optional, for a model without a hidden state whose
+  lift is the identity: ``transition_logpdf`` of every step of one vehicle's series at once, from
+  its observed states, where the model can do that faster than step by step (the execution-noise
+  models skip the stop probability on series without a stop). None: engines map
+  ``transition_logpdf`` over the steps. A model made by replacing ``transition_logpdf`` must
+  replace or clear it too.
 
 States are kept *relative to the current step*: engines pass ``x = 0`` and the observed increment
 ``dx = x[t+1] - x[t]`` (computed in float64 by the data layer), so float32 never subtracts two
@@ -182,6 +188,7 @@ class DriverModel(NamedTuple):
     lift: Callable[[Any, EgoState, Any], Any] = observed_lift
     filter: Callable[[Any, Any], Array] | None = None
     reads_history: bool = False
+    series_logpdf: Callable[[Any, Any], Array] | None = None
 
     @property
     def param_names(self) -> tuple[str, ...]:

@@ -155,10 +155,13 @@ def step_loglik(
 def step_logpdfs(model: DriverModel, params: Any, steps: StepInputs) -> Array:
     """One-step log predictive density of every step of one vehicle's (T,) series -> (T,).
 
-    Exactly observed models score each step on its own (from the lifted state); models with a
-    hidden state run their filter over the vehicle's steps in order. Nothing is masked here."""
+    Exactly observed models score each step on its own (from the lifted state), or the whole
+    series at once where the model has a faster ``series_logpdf``; models with a hidden state run
+    their filter over the vehicle's steps in order. Nothing is masked here."""
     if model.filter is not None:
         return model.filter(params, steps)
+    if model.series_logpdf is not None:
+        return model.series_logpdf(params, steps)
 
     def one(v, next_v, dx, inputs):
         state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
@@ -179,10 +182,10 @@ def series_loglik(
 ) -> Array:
     """Every step of one vehicle's series scored for one parameter vector: -> (T,) (0 where
     masked; through the model's state filter where it has one)."""
-    if model.filter is not None:
-        logp = model.filter(fill_params(model, names, theta, fixed), series)
-        return jnp.where(series.mask > 0, logp, 0.0)
-    return jax.vmap(lambda step: step_loglik(model, names, fixed, theta, step))(series)
+    if model.filter is None and model.series_logpdf is None:
+        return jax.vmap(lambda step: step_loglik(model, names, fixed, theta, step))(series)
+    logp = step_logpdfs(model, fill_params(model, names, theta, fixed), series)
+    return jnp.where(series.mask > 0, logp, 0.0)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))

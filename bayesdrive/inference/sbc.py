@@ -127,11 +127,23 @@ def sd_doubled(model: DriverModel) -> DriverModel:
     if noise is None:
         raise ValueError(f"model {model.name!r} marks no execution-noise sd to double")
 
-    def transition_logpdf(params, state, next_state, inputs):
-        doubled = params._replace(**{noise: 2.0 * getattr(params, noise)})
-        return model.transition_logpdf(doubled, state, next_state, inputs)
+    def doubled(params):
+        return params._replace(**{noise: 2.0 * getattr(params, noise)})
 
-    return model._replace(name=f"{model.name}-sd-doubled", transition_logpdf=transition_logpdf)
+    def transition_logpdf(params, state, next_state, inputs):
+        return model.transition_logpdf(doubled(params), state, next_state, inputs)
+
+    series_logpdf = None
+    if model.series_logpdf is not None:
+
+        def series_logpdf(params, steps):
+            return model.series_logpdf(doubled(params), steps)
+
+    return model._replace(
+        name=f"{model.name}-sd-doubled",
+        transition_logpdf=transition_logpdf,
+        series_logpdf=series_logpdf,
+    )
 
 
 def simulate_replications(

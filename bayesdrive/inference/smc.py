@@ -29,9 +29,9 @@ covariance of u, which forgets the start whenever it is accepted. With ``temper_
 final_moves=5, max_final_moves=1000, num_moves=3`` it agreed with the NUTS reference as the
 random walk does, 1.6x faster (``benchmarks/bench_smc_moves.py``; fewer moves a stage left a
 tempering-path bias that closing moves do not remove: on vehicle 140, 3 paired moves a stage put
-the v_des mean at 17.7 against 14.6). It is not the default because its draws change in the last
-bits with the number of devices a chunk is sharded over (``tests/test_devices.py`` holds the
-default to the same bits), which breaks the rule that how work is split never changes a draw.
+the v_des mean at 17.7 against 14.6). The random walk stays the default: its agreement and
+calibration are the ones the reports rerun, and once the likelihood got cheap (integer powers, the
+stop term only on series with a stop) most of the paired moves' gain went with it.
 
 **Closing moves.** After the last stage, moves under the full posterior run in blocks of
 ``final_moves`` until every parameter's draws correlate with their values at the start of this
@@ -68,6 +68,7 @@ at a time (the default) is fastest.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -169,6 +170,7 @@ def _smc_vehicle(
     prior: Any,
     width: Array,
     config: SMCConfig,
+    length_buckets: bool,
 ) -> _VehicleOutput:
     """Tempering, closing moves and (with ``config.sequential``) the sequential pass for one
     vehicle's (T,) series."""
@@ -189,13 +191,22 @@ def _smc_vehicle(
     # A floor on the proposal covariance keeps moves alive when resampling leaves one survivor.
     jitter = jnp.diag(jnp.full(width.shape, 1e-6, width.dtype))
 
-    # Moves score steps 0..t in blocks, so their cost grows with t instead of the padded length.
-    extra = -num_steps % SCORE_BLOCK
+    # The sequential pass's moves score steps 0..t in blocks, so their cost grows with t instead
+    # of the padded length. Tempering and closing moves score the whole series in one call on the
+    # shortest of the lengths SCORE_BLOCK * 2^k that covers the vehicle's last usable step: a loop
+    # over blocks ran several times slower on CPU, and a length chosen by the vehicle alone keeps
+    # its draws independent of how far its chunk is padded. Under ``vmap`` (vehicle batches) a
+    # branch on the length would run every branch, so there the padded series is scored whole.
+    buckets = max(1, math.ceil(num_steps / SCORE_BLOCK)).bit_length()
+    if 2 ** (buckets - 1) * SCORE_BLOCK < num_steps:
+        buckets += 1
+    lengths = [SCORE_BLOCK * 2**k for k in range(buckets)]
     # Only the step axis is padded (merge scenes carry a trailing merge-slot axis).
     padded = jax.tree.map(
-        lambda a: jnp.pad(a, [(0, extra)] + [(0, 0)] * (a.ndim - 1), mode="edge"), series
+        lambda a: jnp.pad(a, [(0, lengths[-1] - num_steps)] + [(0, 0)] * (a.ndim - 1), mode="edge"),
+        series,
     )
-    padded = padded._replace(mask=jnp.pad(series.mask, (0, extra)))  # the extra steps are unused
+    padded = padded._replace(mask=jnp.pad(series.mask, (0, lengths[-1] - num_steps)))
 
     def log_lik_up_to(particles: Array, last_step: Array) -> Array:
         def add_block(block, total):
@@ -211,13 +222,27 @@ def _smc_vehicle(
         zero = jnp.zeros(particles.shape[0], particles.dtype)
         return jax.lax.fori_loop(0, last_step // SCORE_BLOCK + 1, add_block, zero)
 
-    def walker(cloud: tuple[Array, Array], last_step: Array, power=1.0):
-        """The kernels' move targeting p(theta) p(y_1..last_step | theta)^power: a random walk
-        with the cloud's covariance, paired with an independent move from a Student-t fitted to
-        the cloud (``cloud``: its mean and the Cholesky factor of its covariance, free scale)."""
+    def log_lik_first(length: int, particles: Array) -> Array:
+        first = jax.tree.map(lambda a: a[:length], padded)
+        return jax.vmap(lambda th: series_loglik(model, names, fixed, th, first).sum())(particles)
+
+    last_live = jnp.max(jnp.where(series.mask > 0, step_index, 0))
+    if length_buckets:
+        shortest = jnp.searchsorted(jnp.asarray(lengths), last_live, side="right")
+        branches = [functools.partial(log_lik_first, length) for length in lengths]
+
+        def log_lik_whole(particles: Array) -> Array:
+            return jax.lax.switch(shortest, branches, particles)
+    else:
+        log_lik_whole = functools.partial(log_lik_first, num_steps)
+
+    def walker(cloud: tuple[Array, Array], log_lik: Callable[[Array], Array], power=1.0):
+        """The kernels' move targeting p(theta) exp(log_lik(theta))^power: a random walk with the
+        cloud's covariance, paired with an independent move from a Student-t fitted to the cloud
+        (``cloud``: its mean and the Cholesky factor of its covariance, free scale)."""
 
         def loglik(theta: Array) -> tuple[Array, Array]:
-            return jnp.zeros(theta.shape[0], theta.dtype), log_lik_up_to(theta, last_step)
+            return jnp.zeros(theta.shape[0], theta.dtype), log_lik(theta)
 
         target = dict(loglik=loglik, prior_logpdf=log_prior_of, power=power, box=box)
         mean, chol = cloud
@@ -236,19 +261,17 @@ def _smc_vehicle(
     def from_walk(walk: WalkState, log_weight: Array) -> _Particles:
         return _Particles(walk.theta, log_weight, walk.tempered, walk.log_prior, walk.log_scale)
 
-    def moves(key: Array, state: _Particles, cloud, last_step: Array, count, power=1.0):
-        """``count`` MH moves targeting p(theta) p(y_1..last_step | theta)^power; mean acceptance."""
-        walk, rate = fixed_moves(key, as_walk(state), walker(cloud, last_step, power), count)
+    def moves(key: Array, state: _Particles, cloud, log_lik, count, power=1.0):
+        """``count`` MH moves targeting p(theta) exp(log_lik(theta))^power; mean acceptance."""
+        walk, rate = fixed_moves(key, as_walk(state), walker(cloud, log_lik, power), count)
         return from_walk(walk, state.log_weight), rate
 
     def fit_cloud(state: _Particles) -> tuple[Array, Array]:
         mean, cov = weighted_mean_cov(to_free(state.theta, box), state.log_weight)
         return mean, jnp.linalg.cholesky(cov + jitter)
 
-    def resample_move(
-        key: Array, state: _Particles, last_step: Array, num_moves: int, power: Array = 1.0
-    ):
-        """Systematic resampling, then MH moves targeting p(theta) p(y_1..last_step | theta)^power."""
+    def resample_move(key: Array, state: _Particles, log_lik, num_moves: int, power: Array = 1.0):
+        """Systematic resampling, then MH moves targeting p(theta) exp(log_lik(theta))^power."""
         key_resample, key_moves = jax.random.split(key)
         cloud = fit_cloud(state)
         parents = systematic(key_resample, state.log_weight)
@@ -259,10 +282,10 @@ def _smc_vehicle(
             state.log_prior[parents],
             state.log_scale,
         )
-        moved, rate = moves(key_moves, resampled, cloud, last_step, num_moves, power)
+        moved, rate = moves(key_moves, resampled, cloud, log_lik, num_moves, power)
         return moved, rate, count_distinct_sorted(parents).astype(state.theta.dtype)
 
-    def decorrelate(key: Array, state: _Particles, last_step: Array):
+    def decorrelate(key: Array, state: _Particles):
         """Moves under the full posterior until the draws decorrelate from their start (module
         docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess mass
         in the long v_des tail. Below about 3.5 / sqrt(N) the largest of d sample correlations
@@ -270,7 +293,7 @@ def _smc_vehicle(
         walk, acceptance, done, corr = moves_until_decorrelated(
             key,
             as_walk(state),
-            walker(fit_cloud(state), last_step),
+            walker(fit_cloud(state), log_lik_whole),
             box=box,
             block=config.final_moves,
             max_moves=config.max_final_moves,
@@ -292,7 +315,9 @@ def _smc_vehicle(
         nan = jnp.full((), jnp.nan, state.theta.dtype)
         state, acceptance, unique = jax.lax.cond(
             rejuvenate,
-            lambda: resample_move(key, state, t, config.num_moves),
+            lambda: resample_move(
+                key, state, functools.partial(log_lik_up_to, last_step=t), config.num_moves
+            ),
             lambda: (state, nan, nan),
         )
         return (state, log_evidence), (ess, rejuvenate, acceptance, unique, mean)
@@ -320,7 +345,6 @@ def _smc_vehicle(
             mean=means,
             convergence=convergence_curve(means, width),
         )
-    last_live = jnp.max(jnp.where(series.mask > 0, step_index, 0))
 
     def temper(carry):
         """One tempering stage: the next power by bisection, reweight, resample and move."""
@@ -331,7 +355,7 @@ def _smc_vehicle(
         state, rate, _ = resample_move(
             key_move,
             state._replace(log_weight=increment),
-            last_live,
+            log_lik_whole,
             config.temper_moves,
             new_power,
         )
@@ -347,17 +371,13 @@ def _smc_vehicle(
     key_prior, key_temper, key_closing = jax.random.split(key_final, 3)
     theta = prior.sample(key_prior, (n,))
     zero = jnp.zeros((), theta.dtype)
-    fresh = start._replace(
-        theta=theta, log_lik=log_lik_up_to(theta, last_live), log_prior=log_prior_of(theta)
-    )
+    fresh = start._replace(theta=theta, log_lik=log_lik_whole(theta), log_prior=log_prior_of(theta))
     tempered, _, tempered_log_evidence, _, stages, accepted = jax.lax.while_loop(
         lambda carry: carry[1] < 1.0,
         temper,
         (fresh, zero, zero, key_temper, jnp.zeros((), jnp.int32), zero),
     )
-    final, final_acceptance, final_moves, final_correlation = decorrelate(
-        key_closing, tempered, last_live
-    )
+    final, final_acceptance, final_moves, final_correlation = decorrelate(key_closing, tempered)
     return _VehicleOutput(
         theta=final.theta,
         log_evidence=tempered_log_evidence,
@@ -439,6 +459,7 @@ def run(
         prior=problem.prior,
         width=problem.box.upper - problem.box.lower,
         config=config,
+        length_buckets=vehicle_batch <= 1,
     )
     out, compile_time, run_time = problem.run(
         per_vehicle,

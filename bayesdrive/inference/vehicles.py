@@ -215,9 +215,13 @@ def map_vehicles(
     Inside a chunk, ``batch`` vehicles are vectorised together (None or 1: one after another, which
     keeps ``lax.cond`` a real branch; under ``vmap`` it becomes a select that runs both sides).
     With several local JAX devices (GPUs, or CPU devices from
-    ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each chunk is sharded over them along
-    the vehicle axis (``jax.shard_map``), every device taking whole batches, so a vehicle's draws
-    do not depend on the device count. A chunk holds at least one batch. The last chunk is padded
+    ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each chunk is split over them along
+    the vehicle axis, every device taking whole batches and running the same single-device
+    program, compiled once per device, on its share (dispatched asynchronously, so the devices
+    work at once). The same program, not a partitioned one: a chunk sharded by ``shard_map``
+    compiled into other float operations and changed draws in the last bits with the device
+    count. So a vehicle's draws do not depend on the device count. A chunk holds at least one
+    batch. The last chunk is padded
     by repeating its last vehicle, so the function compiles once, ahead of time. ``cache_key`` (hashable, or None for no caching) must determine ``per_vehicle``
     completely: the compiled chunk is reused for the same key and input shapes, and the compile
     time is then 0. Returns the stacked numpy outputs, the compile time and the run time (compile
@@ -229,26 +233,25 @@ def map_vehicles(
     # Every device takes whole batches of a chunk: chunks hold at least one batch and are a
     # multiple of (devices x batch), so vehicles are vectorised in the same consecutive batches
     # whatever the device count.
-    devices = jax.local_device_count()
-    multiple = devices * size
+    devices = jax.local_devices()
+    multiple = len(devices) * size
     chunk = -(-max(1, min(chunk, num_vehicles), size) // multiple) * multiple
-    batches = np.int32(chunk // multiple)  # per device
+    per_device = chunk // len(devices)
+    batches = np.int32(per_device // size)
 
-    def run_chunk(count, *chunk_inputs):
-        # The trip count is an argument, and every device's rows end with one batch never
-        # computed, so the compiler can neither unroll the loop nor hoist a loop-invariant slice
-        # out of it: either fuses the work with its surroundings and changes float bits (a
-        # vehicle fitted alone would differ from the same vehicle in a longer chunk).
+    def run_share(count, *share):
+        # The trip count is an argument, and every share ends with one batch never computed, so
+        # the compiler can neither unroll the loop nor hoist a loop-invariant slice out of it:
+        # either fuses the work with its surroundings and changes float bits (a vehicle fitted
+        # alone would differ from the same vehicle in a longer chunk).
         def one(i):
-            rows = jax.tree.map(
-                lambda a: jax.lax.dynamic_slice_in_dim(a, i * size, size), chunk_inputs
-            )
+            rows = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, i * size, size), share)
             if batch_size is None:  # no vmap: lax.cond stays a branch
                 alone = per_vehicle(*jax.tree.map(lambda a: a[0], rows))
                 return jax.tree.map(lambda a: a[None], alone)
             return jax.vmap(per_vehicle)(*rows)
 
-        length = jax.tree.leaves(chunk_inputs)[0].shape[0]
+        length = jax.tree.leaves(share)[0].shape[0]
         empty = jax.tree.map(
             lambda s: jnp.zeros((length, *s.shape[1:]), s.dtype), jax.eval_shape(one, 0)
         )
@@ -262,41 +265,23 @@ def map_vehicles(
 
         return jax.lax.fori_loop(0, count, fill, empty)
 
-    if devices > 1:
-        spec = jax.sharding.PartitionSpec("vehicle")
-        run_chunk = jax.shard_map(
-            run_chunk,
-            mesh=jax.make_mesh((devices,), ("vehicle",), axis_types=(jax.sharding.AxisType.Auto,)),
-            in_specs=(jax.sharding.PartitionSpec(), *(spec,) * len(inputs)),
-            out_specs=spec,
-            check_vma=False,  # vehicles share nothing: no cross-device value to check
-        )
+    def shares_at(start: int) -> list[Any]:
+        """Each device's rows of the chunk starting at ``start``, with its unused batch, on it."""
+        rows = start + np.arange(chunk).reshape(len(devices), per_device)
+        rows = np.minimum(np.concatenate([rows, rows[:, -size:]], axis=1), num_vehicles - 1)
+        return [
+            jax.device_put(jax.tree.map(lambda a, r=r: a[r], inputs), device)
+            for r, device in zip(rows, devices, strict=True)
+        ]
 
-    per_device = chunk // devices
-
-    def chunk_at(start: int):
-        rows = start + np.arange(chunk).reshape(devices, per_device)
-        rows = np.concatenate([rows, rows[:, -size:]], axis=1)  # the unused batch
-        return jax.tree.map(lambda a: a[np.minimum(rows.ravel(), num_vehicles - 1)], inputs)
-
-    def computed(out):
-        """The chunk's outputs in vehicle order, each device's unused batch dropped."""
-        return jax.tree.map(
-            lambda a: (
-                np.asarray(a)
-                .reshape(devices, per_device + size, *a.shape[1:])[:, :per_device]
-                .reshape(chunk, *a.shape[1:])
-            ),
-            out,
-        )
-
-    first = chunk_at(0)
-    shapes = jax.tree.map(lambda a: (a.shape, str(a.dtype)), first)
-    key = None if cache_key is None else (cache_key, chunk, batch_size, devices, str(shapes))
+    first = shares_at(0)
+    shapes = jax.tree.map(lambda a: (a.shape, str(a.dtype)), first[0])
+    key = None if cache_key is None else (cache_key, chunk, batch_size, len(devices), str(shapes))
     compile_time = 0.0
     if key is None or key not in _COMPILED:
         started = time.perf_counter()
-        compiled = jax.jit(run_chunk).lower(batches, *first).compile()
+        jitted = jax.jit(run_share)
+        compiled = [jitted.lower(batches, *share).compile() for share in first]
         compile_time = time.perf_counter() - started
         if key is not None:
             if len(_COMPILED) >= _COMPILED_MAX:
@@ -307,12 +292,17 @@ def map_vehicles(
 
     pieces, run_time = [], 0.0
     for start in range(0, num_vehicles, chunk):
-        chunk_inputs = first if start == 0 else chunk_at(start)
+        shares = first if start == 0 else shares_at(start)
         started = time.perf_counter()
-        out = jax.block_until_ready(compiled(batches, *chunk_inputs))
+        outs = [program(batches, *share) for program, share in zip(compiled, shares, strict=True)]
+        outs = jax.block_until_ready(outs)
         run_time += time.perf_counter() - started
+        # Each device's outputs without its unused batch, in vehicle order.
+        out = jax.tree.map(
+            lambda *parts: np.concatenate([np.asarray(p)[:per_device] for p in parts]), *outs
+        )
         keep = min(chunk, num_vehicles - start)
-        pieces.append(jax.tree.map(lambda a, keep=keep: a[:keep], computed(out)))
+        pieces.append(jax.tree.map(lambda a, keep=keep: a[:keep], out))
         if progress is not None:
             progress(start + keep, num_vehicles)
     stacked = jax.tree.map(lambda *parts: np.concatenate(parts), *pieces)
