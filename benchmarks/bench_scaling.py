@@ -43,9 +43,21 @@ if str(ROOT) not in sys.path:
 FOLLOWERS_PER_PLATOON = 10
 MAX_GENERATED = 1000
 MODES = ("plain", "batched", "cluster")
-# smc's moves since the paired independent + random-walk move; rows without it had the random
-# walk alone (20 moves a stage, closing blocks of 80) and its pass along the data.
-SMC_MOVES = "paired"
+# smc's default moves; rows without this field had the random walk with the pass along the data,
+# rows marked "paired" the paired independent + random-walk moves (defaults between e1d9eb0 and
+# 0b67778). Rows record the commit they ran at: the likelihood got about 5x cheaper at c4a39fe.
+SMC_MOVES = "random walk"
+
+
+def commit() -> str:
+    """The library's commit, marked dirty when the work tree differs from it."""
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", *args], cwd=ROOT, capture_output=True, text=True, check=False
+        ).stdout.strip()
+
+    return git("rev-parse", "--short", "HEAD") + ("-dirty" if git("status", "--porcelain") else "")
 
 
 def machine() -> str:
@@ -172,6 +184,7 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
     row["per_vehicle_s"] = row["inference_s"] / size
     row["machine"] = machine()
     row["smc_moves"] = SMC_MOVES
+    row["commit"] = commit()
     row["jax"] = jax.__version__
     row["python"] = platform.python_version()
     return row
@@ -191,14 +204,15 @@ def write_report(out: Path) -> str:
             r["machine"],
             r.get("source", "trafficgen"),
             r.get("smc_moves", "random walk"),
+            r.get("commit", ""),
             MODES.index(r["mode"]),
             r["vehicles"],
         ),
     )
     lines = [
-        "| machine | data | smc moves | mode | vehicles | steps | inference (s) | per vehicle (s) "
-        "| compile (s) | whole (s) | peak memory (MiB) | worker peak (MiB) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| machine | data | smc moves | commit | mode | vehicles | steps | inference (s) "
+        "| per vehicle (s) | compile (s) | whole (s) | peak memory (MiB) | worker peak (MiB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         mode = r["mode"] + (f" (batch {r['batch']})" if r.get("batch", 1) > 1 else "")
@@ -206,7 +220,7 @@ def write_report(out: Path) -> str:
         worker = f"{r['worker_peak_mib']:.0f}" if "worker_peak_mib" in r else ""
         lines.append(
             f"| {r['machine']} | {r.get('source', 'trafficgen')} | {r.get('smc_moves', 'random walk')} "
-            f"| {mode} | {r['vehicles']} | {r['steps']} | {r['inference_s']:.1f} "
+            f"| {r.get('commit', '')} | {mode} | {r['vehicles']} | {r['steps']} | {r['inference_s']:.1f} "
             f"| {r['per_vehicle_s']:.3f} | {compile_s} | {r['whole_s']:.1f} | {r['peak_mib']:.0f} "
             f"| {worker} |"
         )
@@ -253,14 +267,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown mode(s) {unknown}; known: {list(MODES)}")
     here = machine()
     done = {
-        (r["machine"], r.get("source", "trafficgen"), r.get("smc_moves"), r["mode"], r["vehicles"])
+        (r["machine"], r.get("source", "trafficgen"), r.get("commit"), r["mode"], r["vehicles"])
         for r in load_rows(args.out / "runs.jsonl")
     }
+    version = commit()
     with tempfile.TemporaryDirectory() as scratch:
         workdir = args.workdir or scratch
         for size in sorted(int(s) for s in args.sizes.split(",")):
             for mode in modes:
-                if (here, args.source, SMC_MOVES, mode, size) in done:
+                if (here, args.source, version, mode, size) in done:
                     continue
                 command = [
                     sys.executable,
