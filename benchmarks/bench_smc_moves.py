@@ -35,6 +35,7 @@ from bayesdrive.inference.agreement import CRITERION, judge, mcse_mean  # noqa: 
 from bayesdrive.inference.fit import fit  # noqa: E402
 from bayesdrive.inference.output import metadata  # noqa: E402
 from benchmarks.bench_agreement import DATA, choose_vehicles, markdown  # noqa: E402
+from benchmarks.bench_scaling import commit  # noqa: E402
 
 # The paired moves with the move counts they were measured at (10 a stage: fewer left a bias).
 PAIRED = {
@@ -81,6 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "agreement")
     args = parser.parse_args(argv)
 
+    version = commit()
     saved = pd.read_csv(args.out / "agreement.csv")
     reference = saved[(saved["a"] == "smc") & (saved["b"] == "nuts")]
     traj = load(DATA)
@@ -133,6 +135,8 @@ def main(argv: list[str] | None = None) -> None:
     ]
     lines = [
         "# smc's moves against the saved NUTS reference (benchmarks/bench_smc_moves.py)",
+        "",
+        f"Run at commit {version}.",
         "",
         f"{len(vehicles)} vehicles ({', '.join(vehicles)}), fitting windows of {DATA}, six IDM "
         f"parameters, 1000 particles, {args.replicates} replicates, seed {args.seed}; both "

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 from typing import NamedTuple
 
 import typer
@@ -129,5 +130,24 @@ def main(
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(message)s")
 
 
-if __name__ == "__main__":
+def one_device_per_core() -> None:
+    """Give JAX one CPU device per available core, unless ``XLA_FLAGS`` sets a device count.
+
+    Engines split each chunk of vehicles over the local devices, each running the same program,
+    so this changes no result bit; one device per core keeps every core busy where XLA's own
+    threads leave most of the second idle (``reports/scaling.md``). No effect on a GPU, whose
+    devices JAX uses instead. It must run before JAX starts its CPU backend."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" not in flags:
+        cores = len(os.sched_getaffinity(0))
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={cores}".strip()
+
+
+def entry() -> None:
+    """The ``bayesdrive`` console script."""
+    one_device_per_core()
     app()
+
+
+if __name__ == "__main__":
+    entry()

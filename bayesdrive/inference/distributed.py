@@ -77,6 +77,16 @@ def _cores() -> list[int]:
     return sorted(os.sched_getaffinity(0))
 
 
+def _one_device_flags() -> str:
+    """This process's ``XLA_FLAGS`` with one CPU device: a local worker owns one core."""
+    kept = [
+        flag
+        for flag in os.environ.get("XLA_FLAGS", "").split()
+        if not flag.startswith("--xla_force_host_platform_device_count")
+    ]
+    return " ".join([*kept, "--xla_force_host_platform_device_count=1"])
+
+
 def _one_core_each(cores: list[int]) -> Any:
     """A worker plugin confining local worker ``name`` to one of ``cores`` as it starts (a
     worker restarted after a crash too), before JAX does, so XLA and every other pool size
@@ -150,6 +160,7 @@ def open_cluster(cluster: str) -> Iterator[Any]:
             processes=True,
             dashboard_address=None,
             silence_logs=logging.ERROR,
+            env={"XLA_FLAGS": _one_device_flags()},
         ) as local,
         Client(local) as client,
     ):

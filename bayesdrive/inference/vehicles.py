@@ -23,6 +23,7 @@ import hashlib
 import time
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import jax
@@ -281,7 +282,10 @@ def map_vehicles(
     if key is None or key not in _COMPILED:
         started = time.perf_counter()
         jitted = jax.jit(run_share)
-        compiled = [jitted.lower(batches, *share).compile() for share in first]
+        lowered = [jitted.lower(batches, *share) for share in first]
+        # XLA compiles outside the GIL: one thread per device keeps the compile time that of one.
+        with ThreadPoolExecutor(len(lowered)) as pool:
+            compiled = list(pool.map(lambda program: program.compile(), lowered))
         compile_time = time.perf_counter() - started
         if key is not None:
             if len(_COMPILED) >= _COMPILED_MAX:
