@@ -8,7 +8,9 @@ size) runs in a fresh subprocess, so its peak resident memory is its own; the cl
 reports the largest worker's peak as well. Wall time is inference only (compilation reported
 apart), so rows of different sizes compare the cost per vehicle. Modes:
 
-* ``plain``: ``vehicle_batch=1``, vehicles one after another in compiled chunks (the default);
+* ``plain``: ``vehicle_batch=1``, vehicles one after another in compiled chunks, one JAX device;
+* ``devices``: as ``plain`` with one JAX CPU device per core (what the ``bayesdrive`` command
+  sets up): each chunk is split over the devices, the same bits as ``plain``;
 * ``batched``: ``vehicle_batch=--batch`` vehicles vectorised together (``vmap``: ``lax.cond``
   becomes a select, so every step pays for a rejuvenation; a GPU has the width to absorb it);
 * ``cluster``: ``fit_on_cluster`` on a ``LocalCluster`` of 2 one-core process workers, chunks of
@@ -42,7 +44,7 @@ if str(ROOT) not in sys.path:
 
 FOLLOWERS_PER_PLATOON = 10
 MAX_GENERATED = 1000
-MODES = ("plain", "batched", "cluster")
+MODES = ("plain", "devices", "batched", "cluster")
 # smc's default moves; rows without this field had the random walk with the pass along the data,
 # rows marked "paired" the paired independent + random-walk moves (defaults between e1d9eb0 and
 # 0b67778). Rows record the commit they ran at: the likelihood got about 5x cheaper at c4a39fe.
@@ -157,7 +159,7 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
             row["worker_peak_mib"] = max(workers.values())
         row["compile_s"] = None  # inside every worker's first chunk
     else:
-        batch = 1 if mode == "plain" else args.batch
+        batch = args.batch if mode == "batched" else 1
         result = smc.run(
             key,
             arrays,
@@ -168,6 +170,7 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
         row["inference_s"] = result.wall_time_s
         row["compile_s"] = result.compile_time_s
         row["batch"] = batch
+        row["devices"] = jax.local_device_count()
         if args.means:
             summary = {
                 name: {
@@ -216,6 +219,8 @@ def write_report(out: Path) -> str:
     ]
     for r in rows:
         mode = r["mode"] + (f" (batch {r['batch']})" if r.get("batch", 1) > 1 else "")
+        if r.get("devices", 1) > 1:
+            mode += f" ({r['devices']} devices)"
         compile_s = "in workers" if r["compile_s"] is None else f"{r['compile_s']:.1f}"
         worker = f"{r['worker_peak_mib']:.0f}" if "worker_peak_mib" in r else ""
         lines.append(
@@ -299,7 +304,13 @@ def main(argv: list[str] | None = None) -> int:
                     str(args.out),
                     *(["--means"] if args.means else []),
                 ]
-                finished = subprocess.run(command, capture_output=True, text=True, check=False)
+                env = dict(os.environ)
+                if mode == "devices":
+                    cores = len(os.sched_getaffinity(0))
+                    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={cores}"
+                finished = subprocess.run(
+                    command, capture_output=True, text=True, check=False, env=env
+                )
                 if finished.returncode != 0:
                     print(finished.stderr[-3000:], file=sys.stderr)
                     return finished.returncode
