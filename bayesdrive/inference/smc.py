@@ -26,12 +26,12 @@ by acceptance - target after every move).
 ``independent=True`` pairs each random-walk move with an independent Metropolis-Hastings move
 from a multivariate Student-t (``independent_df`` degrees of freedom) with the cloud's mean and
 covariance of u, which forgets the start whenever it is accepted. With ``temper_moves=10,
-final_moves=5, max_final_moves=1000, num_moves=3`` it agreed with the NUTS reference as the
-random walk does, 1.6x faster (``benchmarks/bench_smc_moves.py``; fewer moves a stage left a
-tempering-path bias that closing moves do not remove: on vehicle 140, 3 paired moves a stage put
-the v_des mean at 17.7 against 14.6). The random walk stays the default: its agreement and
-calibration are the ones the reports rerun, and once the likelihood got cheap (integer powers, the
-stop term only on series with a stop) most of the paired moves' gain went with it.
+final_moves=5, max_final_moves=1000, num_moves=3`` it agrees with the NUTS reference as the
+random walk does (``benchmarks/bench_smc_moves.py``; fewer moves a stage left a tempering-path
+bias that closing moves do not remove: on vehicle 140, 3 paired moves a stage put the v_des mean
+at 17.7 against 14.6). The random walk stays the default: it was faster per move than the
+likelihood once the likelihood got cheap (integer powers, the stop term only on series with a
+stop), so the paired moves' fewer closing moves no longer pay (``reports/agreement/smc_moves.md``).
 
 **Closing moves.** After the last stage, moves under the full posterior run in blocks of
 ``final_moves`` until every parameter's draws correlate with their values at the start of this
