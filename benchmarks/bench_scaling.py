@@ -187,7 +187,6 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
     row["per_vehicle_s"] = row["inference_s"] / size
     row["machine"] = machine()
     row["smc_moves"] = SMC_MOVES
-    row["commit"] = commit()
     row["jax"] = jax.__version__
     row["python"] = platform.python_version()
     return row
@@ -315,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(finished.stderr[-3000:], file=sys.stderr)
                     return finished.returncode
                 row = json.loads(finished.stdout.strip().splitlines()[-1])
+                row["commit"] = version  # before this run's own rows made the tree dirty
                 with open(args.out / "runs.jsonl", "a") as handle:
                     handle.write(json.dumps(row) + "\n")
                 print(f"{mode:8s} {size:6d} vehicles: {row['inference_s']:.1f} s", flush=True)
