@@ -28,6 +28,12 @@ another generator version or sampler are neither reused nor reported. The table 
     PYTHONPATH=. python benchmarks/bench_detection.py                  # the study (hours)
     PYTHONPATH=. python benchmarks/bench_detection.py --dev --replications 2 --sizes large
     PYTHONPATH=. python benchmarks/bench_detection.py --report-only
+
+**Many cores.** ``--shard K/N`` runs every N-th replication of the plan from the K-th (0-based), so
+N processes, each pinned to a core, share one study; they may append to one runs file (each row is
+one ``write`` on a file opened for appending). ``--stop-at EPOCH`` starts no replication after that
+time, so a machine lent for a fixed time ends with whole rows. Which replications a process runs
+changes no row: a replication's bits depend on its cell, size and seed alone.
 """
 
 from __future__ import annotations
@@ -336,6 +342,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dev", action="store_true", help="development seeds and files")
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
+    parser.add_argument("--shard", default="0/1", help="K/N: every N-th replication from the K-th")
+    parser.add_argument(
+        "--stop-at", type=float, default=None, help="start no replication after this Unix time"
+    )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     runs_path = args.out / ("detection_dev_runs.csv" if args.dev else "detection_runs.csv")
@@ -363,15 +373,24 @@ def main(argv: list[str] | None = None) -> int:
             & (previous["code"] == CODE)
         ]
         done = set(zip(current["cell"], current["size"], current["seed"], strict=True))
-    todo = []
-    for r in range(max(args.replications, args.null_replications)):
-        for cell, size in planned_cells(args.cells.split(","), args.sizes.split(",")):
-            wanted = args.null_replications if cell == NULL else args.replications
-            if r < wanted and (cell, size, seeds[r]) not in done:
-                todo.append((cell, size, seeds[r]))
-    print(f"{len(done)} replications done, {len(todo)} to go", flush=True)
+    shard, shards = (int(part) for part in args.shard.split("/"))
+    if not 0 <= shard < shards:
+        parser.error(f"--shard {args.shard}: K must be in 0..N-1")
+    plan = [
+        (cell, size, seeds[r])
+        for r in range(max(args.replications, args.null_replications))
+        for cell, size in planned_cells(args.cells.split(","), args.sizes.split(","))
+        if r < (args.null_replications if cell == NULL else args.replications)
+    ]
+    # Sliced before the finished rows are dropped, so a shard's share never depends on when it
+    # started or on what the others have finished.
+    todo = [item for item in plan[shard::shards] if item not in done]
+    print(f"{len(done)} replications done, {len(todo)} to go in shard {args.shard}", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         for i, (cell, size, seed) in enumerate(todo, 1):
+            if args.stop_at is not None and time.time() > args.stop_at:
+                print(f"stopped at --stop-at with {len(todo) - i + 1} to go", flush=True)
+                break
             try:
                 row = run_one(cell, size, seed, Path(tmp))
             except Exception as error:  # a crash on independent data is a miss, kept on record
@@ -381,7 +400,8 @@ def main(argv: list[str] | None = None) -> int:
                 row["verdict"] = f"error: {type(error).__name__}: {error}"[:200]
             append_row(runs_path, row)
             print(f"[{i}/{len(todo)}] {row}", flush=True)
-    print(write_report(runs_path, args.out, dev=args.dev))
+    if runs_path.exists():  # a shard stopped before its first row has nothing to report
+        print(write_report(runs_path, args.out, dev=args.dev))
     return 0
 
 

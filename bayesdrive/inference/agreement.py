@@ -119,19 +119,25 @@ def mcse_mean(tree: xr.DataTree) -> xr.Dataset:
     return arviz.mcse(tree, method="mean").to_dataset()
 
 
-def convergence_table(tree: xr.DataTree) -> pd.DataFrame:
-    """One row per vehicle and parameter: R-hat (NaN with one chain), ESS, MCSE, engine extras."""
+def convergence_table(tree: xr.DataTree, *, statistics: bool = True) -> pd.DataFrame:
+    """One row per vehicle and parameter: R-hat (NaN with one chain), ESS, MCSE, engine extras.
+
+    ``statistics=False`` gives the draws' sd and the engine extras only: the ESS and MCSE
+    estimators cost seconds per hundred vehicles, and a caller with no check to run on them
+    (one-chain filters) need not pay for them."""
     posterior = _posterior(tree)
     names = list(posterior.data_vars)
     multi_chain = posterior.sizes["chain"] >= 2
-    stats = {
-        "ess_bulk": arviz.ess(tree, method="bulk"),
-        "ess_tail": arviz.ess(tree, method="tail"),
-        "mcse_mean": mcse_mean(tree),
-        "mcse_sd": arviz.mcse(tree, method="sd"),
-    }
-    if multi_chain:
-        stats["rhat"] = arviz.rhat(tree)
+    stats = {}
+    if statistics:
+        stats = {
+            "ess_bulk": arviz.ess(tree, method="bulk"),
+            "ess_tail": arviz.ess(tree, method="tail"),
+            "mcse_mean": mcse_mean(tree),
+            "mcse_sd": arviz.mcse(tree, method="sd"),
+        }
+        if multi_chain:
+            stats["rhat"] = arviz.rhat(tree)
     sample_stats = tree["sample_stats"].to_dataset() if "sample_stats" in tree.children else None
     vehicles = [str(v) for v in posterior["vehicle"].values]
     rows = []
@@ -139,13 +145,15 @@ def convergence_table(tree: xr.DataTree) -> pd.DataFrame:
         values = {key: _per_vehicle(result, name) for key, result in stats.items()}
         for i, vehicle in enumerate(vehicles):
             row = {"vehicle": vehicle, "param": name}
-            row["rhat"] = float(values["rhat"][i]) if multi_chain else float("nan")
-            row |= {key: float(values[key][i]) for key in stats if key != "rhat"}
+            if statistics:
+                row["rhat"] = float(values["rhat"][i]) if multi_chain else float("nan")
+                row |= {key: float(values[key][i]) for key in stats if key != "rhat"}
             row["sd"] = float(posterior[name].values[:, :, i].std())
-            # The ESS the mean's standard error implies (the replicate one for smc).
-            # NaN where every draw is equal (sd and MCSE 0): no ESS to speak of.
-            mcse = row["mcse_mean"]
-            row["ess_mean"] = (row["sd"] / mcse) ** 2 if mcse > 0.0 else float("nan")
+            if statistics:
+                # The ESS the mean's standard error implies (the replicate one for smc).
+                # NaN where every draw is equal (sd and MCSE 0): no ESS to speak of.
+                mcse = row["mcse_mean"]
+                row["ess_mean"] = (row["sd"] / mcse) ** 2 if mcse > 0.0 else float("nan")
             if sample_stats is not None:
                 row |= _engine_extras(sample_stats, i, k)
             rows.append(row)

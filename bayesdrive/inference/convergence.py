@@ -100,7 +100,12 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
     meta = metadata(tree)
     engine = meta.get("engine")
     replicates = (meta.get("engine_options") or {}).get("replicates", 1)
-    table = convergence_table(tree)
+    multi_chain = tree["posterior"].sizes["chain"] >= 2
+    replicated_smc = engine == "smc" and replicates > 1
+    # Only the spread check applies to one-chain filters: no ESS or MCSE is estimated for them.
+    table = convergence_table(
+        tree, statistics=multi_chain or engine in MARKOV_ENGINES or replicated_smc
+    )
     checks: list[str] = []
     problems: list[ConvergenceProblem] = [
         ConvergenceProblem(row.vehicle, row.param, "spread", float(row.sd), 0.0)
@@ -115,7 +120,7 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
             if math.isnan(value) or (value > limit if above else value < limit):
                 problems.append(ConvergenceProblem(row.vehicle, row.param, check, value, limit))
 
-    if tree["posterior"].sizes["chain"] >= 2:
+    if multi_chain:
         flag("rhat", "rhat", RHAT_MAX, above=True)
     if engine in MARKOV_ENGINES:
         flag("ess_bulk", "ess_bulk", ESS_MIN, above=False)
@@ -125,7 +130,7 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
         sampled = options["num_steps"] - options["num_burn"]
         table["run_over_tau"] = sampled / table["autocorr_time"]
         flag("autocorr", "run_over_tau", AUTOCORR_RELIABLE_FACTOR, above=False)
-    if engine == "smc" and replicates > 1:
+    if replicated_smc:
         flag("replicate_spread", "ess_mean", ESS_MIN, above=False)
     unchecked = None
     if not checks:
