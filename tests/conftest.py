@@ -4,6 +4,10 @@
 ``$BAYESDRIVE_HOLDOUT_DIR`` or ``<repo>/../shared/holdout``. When the folder is missing, a test
 using it fails in CI (``$CI`` set) and is skipped, with the reason shown, elsewhere.
 
+Tests marked ``slow`` are collected first: with two workers (``-n 2 --dist worksteal``) the
+longest ones then start at once and the other worker takes the rest, instead of one of them
+starting last while the other worker has nothing left to do.
+
 Hypothesis: with ``$CI`` set the ``ci`` profile is loaded, derandomized, so a CI run draws the
 same examples every time (a failure there is reproducible, never a flake).
 """
@@ -21,6 +25,11 @@ if os.environ.get("CI"):
     settings.load_profile("ci")
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def pytest_collection_modifyitems(config, items):
+    """Slow tests first, otherwise the collection's order (a stable sort)."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 def _shared_folder(env: str, default: Path) -> Path:

@@ -32,7 +32,7 @@ NOT_RUN = {
     "--out results": "the main job (26 min on 2 cores); tests/test_reproduce.py runs its quick "
     "form, `reproduce --quick`, and `report` on what it wrote",
     'python3.12 -m venv .venv && .venv/bin/pip install -e ".[test]" && .venv/bin/ruff check . && '
-    ".venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --durations=20": "the test "
+    ".venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --dist worksteal --durations=20": "the test "
     "command: CI runs it (.ci/run reads it from the README)",
     "dask scheduler --port 8786                       # on one machine": "starts a Dask "
     "cluster; tests/test_cluster.py runs `fit --cluster` on a local one, through its address",

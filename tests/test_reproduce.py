@@ -24,6 +24,7 @@ SECTIONS = (
 )
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_path, monkeypatch):
     monkeypatch.setenv("BAYESDRIVE_DATA_DIR", str(data_dir))
