@@ -373,7 +373,10 @@ def main(argv: list[str] | None = None) -> int:
             & (previous["code"] == CODE)
         ]
         done = set(zip(current["cell"], current["size"], current["seed"], strict=True))
-    shard, shards = (int(part) for part in args.shard.split("/"))
+    try:
+        shard, shards = (int(part) for part in args.shard.split("/"))
+    except ValueError:
+        parser.error(f"--shard {args.shard!r}: give K/N, two integers")
     if not 0 <= shard < shards:
         parser.error(f"--shard {args.shard}: K must be in 0..N-1")
     plan = [
