@@ -8,6 +8,10 @@ Tests marked ``slow`` are collected first: with two workers (``-n 2 --dist works
 longest ones then start at once and the other worker takes the rest, instead of one of them
 starting last while the other worker has nothing left to do.
 
+JAX's persistent compilation cache: a run of the suite compiles each program once into a fresh
+folder that every worker and every ``bayesdrive`` subprocess shares (the environment carries it),
+and removes the folder at the end; a ``JAX_COMPILATION_CACHE_DIR`` already set is used instead.
+
 Hypothesis: with ``$CI`` set the ``ci`` profile is loaded, derandomized, so a CI run draws the
 same examples every time (a failure there is reproducible, never a flake).
 """
@@ -15,16 +19,50 @@ same examples every time (a failure there is reproducible, never a flake).
 from __future__ import annotations
 
 import os
+import shutil
+import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
+
+from bayesdrive.cli.main import CACHE_MIN_COMPILE_S
 
 settings.register_profile("ci", derandomize=True, deadline=None, print_blob=True)
 if os.environ.get("CI"):
     settings.load_profile("ci")
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"
+_created_cache: list[str] = []
+
+
+def pytest_configure(config):
+    """Share one fresh compilation cache across the run (module docstring). Runs in the xdist
+    controller before it starts the workers, which inherit the environment."""
+    if CACHE_ENV not in os.environ:
+        folder = tempfile.mkdtemp(prefix="bayesdrive-jax-cache-")
+        _created_cache.append(folder)
+        os.environ[CACHE_ENV] = folder
+        os.environ.setdefault(
+            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(CACHE_MIN_COMPILE_S)
+        )
+    if "jax" in sys.modules:  # imported before this hook: JAX read its environment already
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", os.environ[CACHE_ENV])
+        jax.config.update(
+            "jax_persistent_cache_min_compile_time_secs",
+            float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
+        )
+
+
+def pytest_unconfigure(config):
+    for folder in _created_cache:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -5,7 +5,8 @@ The issue asks for the quick main job run twice with identical bits; ``reproduce
 once, at a load average of about 20), far over a test's budget. So the test runs the subset every number of the report starts from: an smc
 fit of real NGSIM vehicles through ``bayesdrive fit`` (2 vehicles, 100 particles, v_des and
 sigma), once in this process and once in a fresh one, and requires every array of the result to
-be bit-identical and every attribute equal except :data:`RUN_DEPENDENT_ATTRS` (creation time and
+be bit-identical (also between a fresh process that compiles and one that reads JAX's persistent
+compilation cache) and every attribute equal except :data:`RUN_DEPENDENT_ATTRS` (creation time and
 measured timings). Negative control: another seed changes the posterior.
 """
 
@@ -21,7 +22,7 @@ import pytest
 import xarray as xr
 from typer.testing import CliRunner
 
-from bayesdrive.cli.main import app
+from bayesdrive.cli.main import COMPILATION_CACHE_ENV, app
 from bayesdrive.inference.output import RUN_DEPENDENT_ATTRS, load_result, metadata
 
 CHAIN = "ngsim_i80_chains/115_124_136_140_146_162.csv"
@@ -50,25 +51,40 @@ def _stable_attrs(tree: xr.DataTree) -> dict:
 def test_a_fit_repeated_in_a_fresh_process_is_bit_identical(data_dir, tmp_path):
     first = CliRunner().invoke(app, _fit_args(data_dir, tmp_path / "a", seed=3))
     assert first.exit_code == 0, first.output
-    script = "import sys; from bayesdrive.cli.main import app; sys.argv[0] = 'bayesdrive'; app()"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
-    for out, seed in ((tmp_path / "b", 3), (tmp_path / "other_seed", 4)):
+    # Fresh processes as the console script starts them: without a compilation cache ("b"), then
+    # filling an empty one ("other_seed": the seed is an argument, not part of the program) and
+    # reading it back ("warm").
+    script = (
+        "import sys; from bayesdrive.cli.main import entry; sys.argv[0] = 'bayesdrive'; entry()"
+    )
+    base = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    base["PYTHONPATH"] = os.pathsep.join(sys.path)
+    cache = tmp_path / "cache"
+    for out, seed, folder in (
+        (tmp_path / "b", 3, "off"),
+        (tmp_path / "other_seed", 4, str(cache)),
+        (tmp_path / "warm", 3, str(cache)),
+    ):
         second = subprocess.run(
             [sys.executable, "-c", script, *_fit_args(data_dir, out, seed)],
             capture_output=True,
             text=True,
-            env=env,
+            env={**base, COMPILATION_CACHE_ENV: folder},
             check=False,
         )
         assert second.returncode == 0, second.stderr
+    assert any(cache.iterdir()), "the compilation cache was not written"
 
-    a, b = (load_result(tmp_path / name / "result.nc") for name in ("a", "b"))
-    arrays_a, arrays_b = _arrays(a), _arrays(b)
-    assert arrays_a.keys() == arrays_b.keys()
-    for name, values in arrays_a.items():
-        assert values.dtype == arrays_b[name].dtype, name
-        assert values.tobytes() == arrays_b[name].tobytes(), f"{name} differs between the runs"
-    assert _stable_attrs(a) == _stable_attrs(b)
+    a = load_result(tmp_path / "a" / "result.nc")
+    arrays_a = _arrays(a)
+    for name in ("b", "warm"):
+        b = load_result(tmp_path / name / "result.nc")
+        arrays_b = _arrays(b)
+        assert arrays_a.keys() == arrays_b.keys()
+        for array, values in arrays_a.items():
+            assert values.dtype == arrays_b[array].dtype, array
+            assert values.tobytes() == arrays_b[array].tobytes(), f"{array} differs in {name}"
+        assert _stable_attrs(a) == _stable_attrs(b)
     assert metadata(a)["code"]["version"] is not None  # the code that made it is recorded
 
     summaries = [json.loads((tmp_path / n / "summary.json").read_text()) for n in ("a", "b")]

@@ -143,9 +143,35 @@ def one_device_per_core() -> None:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={cores}".strip()
 
 
+COMPILATION_CACHE_ENV = "BAYESDRIVE_COMPILATION_CACHE"
+# Programs that compile faster than this are not worth a disk entry.
+CACHE_MIN_COMPILE_S = 0.1
+
+
+def compilation_cache() -> None:
+    """Keep JAX's compiled programs on disk, so a later run with the same shapes skips compiling.
+
+    The folder is ``$BAYESDRIVE_COMPILATION_CACHE``, or ``$XDG_CACHE_HOME/bayesdrive/jax`` (else
+    ``~/.cache/bayesdrive/jax``); ``BAYESDRIVE_COMPILATION_CACHE=off`` turns it off. A
+    ``JAX_COMPILATION_CACHE_DIR`` already set is left as it is. A cached program is the compiled
+    one, so results are the same bits with or without it (``tests/test_determinism.py``). It must
+    run before JAX is imported, which reads these variables then."""
+    if "JAX_COMPILATION_CACHE_DIR" in os.environ:
+        return
+    folder = os.environ.get(COMPILATION_CACHE_ENV)
+    if folder == "off":
+        return
+    if not folder:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        folder = os.path.join(base, "bayesdrive", "jax")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = folder
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(CACHE_MIN_COMPILE_S))
+
+
 def entry() -> None:
     """The ``bayesdrive`` console script."""
     one_device_per_core()
+    compilation_cache()
     app()
 
 
