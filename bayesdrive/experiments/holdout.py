@@ -45,6 +45,7 @@ with the documented defaults and scoring them on their later held-out windows is
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
@@ -56,7 +57,7 @@ from bayesdrive.data.views import scored_series
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import metadata
+from bayesdrive.inference.output import load_result, metadata, save_result
 from bayesdrive.inference.population import two_stage
 from bayesdrive.simulation.baselines import Policy, baseline_policy
 from bayesdrive.simulation.blackbox import TrainConfig
@@ -76,6 +77,7 @@ __all__ = [
     "HoldoutConfig",
     "calibrate_data_set",
     "evaluate_data_set",
+    "fit_followers",
     "holdout_scenarios",
     "paired_difference",
     "population_from",
@@ -200,16 +202,45 @@ def _row(policy: Policy, result: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def fit_followers(
+    traj: Trajectories,
+    config: HoldoutConfig,
+    model: DriverModel,
+    scenarios: ScenarioSet,
+    path: Path | None = None,
+) -> xr.DataTree:
+    """smc fits (defaults, the protocol's seed) of ``model`` to the fitting windows of the
+    simulated followers of ``scenarios``. With ``path``, a fit saved there is read instead, else
+    the new fit is saved there: the evaluation's per-vehicle IDM fit then serves the calibration,
+    which fits the same followers the same way (the caller removes a stale file)."""
+    if path is not None and path.exists():
+        return load_result(path)
+    tree = fit(
+        jax.random.key(config.fit_seed),
+        traj,
+        model=model,
+        engine="smc",
+        num_particles=config.particles,
+        seed=config.fit_seed,
+        vehicle_ids=scenarios.simulated_ids,
+    )
+    if path is not None:
+        save_result(tree, path)
+    return tree
+
+
 def evaluate_data_set(
     name: str,
     traj: Trajectories,
     config: HoldoutConfig,
     population: xr.DataTree,
     pooled: xr.DataTree | None = None,
+    fit_path: Path | None = None,
 ) -> dict[str, Any]:
     """The protocol (module docstring) on one held-out data set ``name`` read as ``traj``, with
     ``population`` the population of its training data set (:func:`population_from`) and
-    ``pooled`` the NGSIM I-80 per-vehicle smc fit for the earlier pooled row (None: no such row).
+    ``pooled`` the NGSIM I-80 per-vehicle smc fit for the earlier pooled row (None: no such row);
+    the per-vehicle fit is kept in ``fit_path`` (:func:`fit_followers`).
 
     Returns ``{"error": reason}`` when the data hold no scenario, else the scenario set, the
     per-method rows (``models``), the paired differences (``paired[learned][other]`` for each
@@ -218,15 +249,7 @@ def evaluate_data_set(
     found = holdout_scenarios(traj, config.max_scenarios)
     if not found.scenarios:
         return {"error": f"no {HORIZON_S:g} s leader-follower window in its held-out part"}
-    per_vehicle = fit(
-        jax.random.key(config.fit_seed),
-        traj,
-        model=IDM,
-        engine="smc",
-        num_particles=config.particles,
-        seed=config.fit_seed,
-        vehicle_ids=found.simulated_ids,
-    )
+    per_vehicle = fit_followers(traj, config, IDM, found, fit_path)
     scenarios = found.within({str(v) for v in per_vehicle["posterior"]["vehicle"].values})
     if not scenarios.scenarios:
         return {"error": "no simulated follower has a usable step in its fitting window"}
@@ -288,11 +311,15 @@ def evaluate_data_set(
 
 
 def calibrate_data_set(
-    traj: Trajectories, config: HoldoutConfig, models: tuple[DriverModel, ...]
+    traj: Trajectories,
+    config: HoldoutConfig,
+    models: tuple[DriverModel, ...],
+    fit_paths: Mapping[str, Path] | None = None,
 ) -> dict[str, Any]:
     """Point 6 of the protocol on one held-out data set read as ``traj``: for each of ``models``
     (the IDM and the training set's final model), smc fits of the protocol's simulated followers
-    on their fitting windows and the calibration of their predictive on the held-out windows, one
+    on their fitting windows (kept in ``fit_paths[model.name]`` where given, see
+    :func:`fit_followers`) and the calibration of their predictive on the held-out windows, one
     step and :data:`HORIZON_S` ahead. Returns ``{"error": reason}`` without such followers."""
     found = holdout_scenarios(traj, config.max_scenarios)
     if not found.scenarios:
@@ -301,15 +328,7 @@ def calibrate_data_set(
     horizons = (float(series.dt), HORIZON_S)
     results = {}
     for model in models:
-        tree = fit(
-            jax.random.key(config.fit_seed),
-            traj,
-            model=model,
-            engine="smc",
-            num_particles=config.particles,
-            seed=config.fit_seed,
-            vehicle_ids=list(series.vehicle_ids),
-        )
+        tree = fit_followers(traj, config, model, found, (fit_paths or {}).get(model.name))
         results[model.name] = predictive_calibration(
             jax.random.key(config.rollout_seed),
             model,

@@ -19,6 +19,7 @@ Every choice below was fixed before any result was seen, and none was made on he
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import time
@@ -554,13 +555,25 @@ def _holdout_config(settings: Settings) -> HoldoutConfig:
     )
 
 
+def _kept_fit(path: Path, force: bool) -> Path:
+    """Where a held-out fit is kept; a forced run removes the earlier one."""
+    if force:
+        path.unlink(missing_ok=True)
+    return path
+
+
 def calibration_step(
-    out: Path, final_models: dict[str, str], settings: Settings, force: bool
+    out: Path,
+    final_models: dict[str, str],
+    settings: Settings,
+    force: bool,
+    load: Callable[[str], Trajectories],
+    evaluation_fits: Path,
 ) -> dict:
     """Calibration on the held-out windows (:func:`~bayesdrive.experiments.holdout.calibrate_data_set`)
-    of every held-out data set, for the IDM and the final model the criticism chose on the
-    training data set of the same kind (``final_models``, by highway label), each set cached in
-    ``out``."""
+    of every held-out data set (read by ``load``), for the IDM and the final model the criticism
+    chose on the training data set of the same kind (``final_models``, by highway label), each set
+    cached in ``out``. The IDM's fits are the evaluation's, kept in ``evaluation_fits``."""
     out.mkdir(parents=True, exist_ok=True)
     config = _holdout_config(settings)
     rows = {}
@@ -571,15 +584,22 @@ def calibration_step(
         )
         models = (IDM,) if final in (None, IDM.name) else (IDM, get_model(final))
         try:
-            traj = registry.load_holdout(name)
+            traj = load(name)
         except DataError as error:
             rows[name] = {"error": str(error)}
             continue
+        fits = {IDM.name: evaluation_fits / f"{name}_idm_smc.nc"}
+        fits.update(
+            {
+                m.name: _kept_fit(out / f"{name}_{m.name.replace('+', '_')}_smc.nc", force)
+                for m in models[1:]
+            }
+        )
         rows[name] = cached(
             out,
             name,
-            lambda t=traj, m=models, d=training: {
-                **calibrate_data_set(t, config, m),
+            lambda t=traj, m=models, d=training, f=fits: {
+                **calibrate_data_set(t, config, m, f),
                 "training_data": d,
             },
             force,
@@ -587,10 +607,16 @@ def calibration_step(
     return {"fit_seed": SEEDS["holdout_fit"], "seed": SEEDS["holdout"], "data_sets": rows}
 
 
-def holdout_step(out: Path, smc_trees: dict[str, Any], settings: Settings, force: bool) -> dict:
+def holdout_step(
+    out: Path,
+    smc_trees: dict[str, Any],
+    settings: Settings,
+    force: bool,
+    load: Callable[[str], Trajectories],
+) -> dict:
     """Generalisation to new drivers and new roads: the protocol of
-    :mod:`bayesdrive.experiments.holdout` on every held-out data set, each set's result cached
-    in ``out`` beside the population fits. ``smc_trees`` are the highway experiment's per-vehicle
+    :mod:`bayesdrive.experiments.holdout` on every held-out data set (read by ``load``), each
+    set's result cached in ``out`` beside the population fits and the per-vehicle fits. ``smc_trees`` are the highway experiment's per-vehicle
     fits: their vehicles are the populations' training drivers, and the NGSIM I-80 one gives the
     earlier pooled row. Nothing is tuned here: the held-out fits use the fixed defaults."""
     out.mkdir(parents=True, exist_ok=True)
@@ -607,16 +633,17 @@ def holdout_step(out: Path, smc_trees: dict[str, Any], settings: Settings, force
     rows = {}
     for name in registry.HOLDOUT:
         try:
-            traj = registry.load_holdout(name)
+            traj = load(name)
         except DataError as error:  # a folder this reader cannot read is reported
             rows[name] = {"error": str(error)}
             continue
         population = load_result(populations[TRAINING_DATA[name]])
+        fit_path = _kept_fit(out / f"{name}_idm_smc.nc", force)
         rows[name] = cached(
             out,
             name,
-            lambda n=name, t=traj, p=population: evaluate_data_set(
-                n, t, config, p, smc_trees["ngsim_i80_chains"]
+            lambda n=name, t=traj, p=population, f=fit_path: evaluate_data_set(
+                n, t, config, p, smc_trees["ngsim_i80_chains"], fit_path=f
             ),
             force,
         )
@@ -826,11 +853,13 @@ def run_all(
         out, "scenes", lambda: scenes_step(out / "scenes", main_trees, main_data, settings), force
     )
     progress("generalisation on held-out data sets")
+    # Both held-out steps read every held-out set: once.
+    load_holdout = functools.cache(registry.load_holdout)
     # Not "holdout": results of the earlier layout (one pooled row, no fits) are not reused.
     results["holdout"] = cached(
         out,
         "holdout_evaluation",
-        lambda: holdout_step(out / "holdout", smc_trees, settings, force),
+        lambda: holdout_step(out / "holdout", smc_trees, settings, force, load_holdout),
         force,
     )
     progress("calibration on held-out data sets")
@@ -839,7 +868,14 @@ def run_all(
     results["holdout_calibration"] = cached(
         out,
         "holdout_calibration",
-        lambda: calibration_step(out / "holdout" / "calibration", chosen, settings, force),
+        lambda: calibration_step(
+            out / "holdout" / "calibration",
+            chosen,
+            settings,
+            force,
+            load_holdout,
+            evaluation_fits=out / "holdout",
+        ),
         force,
     )
     progress("prior sensitivity")
