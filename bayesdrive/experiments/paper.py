@@ -616,9 +616,10 @@ def holdout_step(
 ) -> dict:
     """Generalisation to new drivers and new roads: the protocol of
     :mod:`bayesdrive.experiments.holdout` on every held-out data set (read by ``load``), each
-    set's result cached in ``out`` beside the population fits and the per-vehicle fits. ``smc_trees`` are the highway experiment's per-vehicle
-    fits: their vehicles are the populations' training drivers, and the NGSIM I-80 one gives the
-    earlier pooled row. Nothing is tuned here: the held-out fits use the fixed defaults."""
+    set's result cached in ``out`` beside the population fits and the per-vehicle fits.
+    ``smc_trees`` are the highway experiment's per-vehicle fits: their vehicles are the
+    populations' training drivers, and the NGSIM I-80 one gives the earlier pooled row. Nothing is
+    tuned here: the held-out fits use the fixed defaults."""
     out.mkdir(parents=True, exist_ok=True)
     config = _holdout_config(settings)
     populations = {}
