@@ -5,8 +5,8 @@ The issue asks for the quick main job run twice with identical bits; ``reproduce
 once, at a load average of about 20), far over a test's budget. So the test runs the subset every number of the report starts from: an smc
 fit of real NGSIM vehicles through ``bayesdrive fit`` (2 vehicles, 100 particles, v_des and
 sigma), once in this process and once in a fresh one, and requires every array of the result to
-be bit-identical (also between a fresh process that compiles and one that reads JAX's persistent
-compilation cache) and every attribute equal except :data:`RUN_DEPENDENT_ATTRS` (creation time and
+be bit-identical (also between a fresh process that compiles into JAX's persistent compilation cache and
+one that reads the compiled programs back from it) and every attribute equal except :data:`RUN_DEPENDENT_ATTRS` (creation time and
 measured timings). Negative control: another seed changes the posterior.
 """
 
@@ -49,27 +49,23 @@ def _stable_attrs(tree: xr.DataTree) -> dict:
 
 @pytest.mark.realdata
 def test_a_fit_repeated_in_a_fresh_process_is_bit_identical(data_dir, tmp_path):
-    first = CliRunner().invoke(app, _fit_args(data_dir, tmp_path / "a", seed=3))
-    assert first.exit_code == 0, first.output
-    # Fresh processes as the console script starts them: without a compilation cache ("b"), then
-    # filling an empty one ("other_seed": the seed is an argument, not part of the program) and
-    # reading it back ("warm").
+    for out, seed in ((tmp_path / "a", 3), (tmp_path / "other_seed", 4)):
+        result = CliRunner().invoke(app, _fit_args(data_dir, out, seed))
+        assert result.exit_code == 0, result.output
+    # Fresh processes as the console script starts them, with an empty compilation cache: "b"
+    # compiles and fills it, "warm" reads its programs back.
     script = (
         "import sys; from bayesdrive.cli.main import entry; sys.argv[0] = 'bayesdrive'; entry()"
     )
-    base = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    base["PYTHONPATH"] = os.pathsep.join(sys.path)
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     cache = tmp_path / "cache"
-    for out, seed, folder in (
-        (tmp_path / "b", 3, "off"),
-        (tmp_path / "other_seed", 4, str(cache)),
-        (tmp_path / "warm", 3, str(cache)),
-    ):
+    env.update({"PYTHONPATH": os.pathsep.join(sys.path), COMPILATION_CACHE_ENV: str(cache)})
+    for name in ("b", "warm"):
         second = subprocess.run(
-            [sys.executable, "-c", script, *_fit_args(data_dir, out, seed)],
+            [sys.executable, "-c", script, *_fit_args(data_dir, tmp_path / name, 3)],
             capture_output=True,
             text=True,
-            env={**base, COMPILATION_CACHE_ENV: folder},
+            env=env,
             check=False,
         )
         assert second.returncode == 0, second.stderr

@@ -128,10 +128,26 @@ class Settings:
     criticism_particles: int
     criticism_rollouts: int
     criticism_seconds: float
+    # Held-out data sets evaluated per training data set (None: every one).
+    holdout_sets_per_kind: int | None = None
 
 
 FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 128, 32, 120.0)
-QUICK = Settings("quick", 256, 256, 1, 10, 3, 4, 2, 2, 1, 128, 8, 45.0)
+QUICK = Settings("quick", 128, 128, 1, 6, 2, 2, 1, 2, 1, 64, 4, 30.0, holdout_sets_per_kind=1)
+
+
+def holdout_names(settings: Settings) -> list[str]:
+    """The held-out data sets a run evaluates: every one, or the first
+    ``holdout_sets_per_kind`` of each training data set's kind (:data:`TRAINING_DATA`)."""
+    limit = settings.holdout_sets_per_kind
+    taken: dict[str, int] = {}
+    names = []
+    for name in registry.HOLDOUT:
+        kind = TRAINING_DATA[name]
+        if limit is None or taken.get(kind, 0) < limit:
+            taken[kind] = taken.get(kind, 0) + 1
+            names.append(name)
+    return names
 
 
 def _save_json(path: Path, payload: Any) -> None:
@@ -577,7 +593,7 @@ def calibration_step(
     out.mkdir(parents=True, exist_ok=True)
     config = _holdout_config(settings)
     rows = {}
-    for name in registry.HOLDOUT:
+    for name in holdout_names(settings):
         training = TRAINING_DATA[name]
         final = next(
             (m for label, m in final_models.items() if label.split(":")[0] == training), None
@@ -632,7 +648,7 @@ def holdout_step(
             save_result(population, path)
         populations[training] = path
     rows = {}
-    for name in registry.HOLDOUT:
+    for name in holdout_names(settings):
         try:
             traj = load(name)
         except DataError as error:  # a folder this reader cannot read is reported
