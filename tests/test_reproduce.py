@@ -37,6 +37,13 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
     for section in SECTIONS:
         assert html.escape(section) in page
     assert page.count("data:image/png;base64,") >= 6
+    # The quick run evaluates one held-out set per training data set and names the others.
+    holdout = json.loads((out / "holdout_evaluation.json").read_text())
+    assert holdout["left_out_by_settings"] and set(holdout["left_out_by_settings"]).isdisjoint(
+        holdout["data_sets"]
+    )
+    for name in holdout["left_out_by_settings"]:
+        assert name in page
 
     highway = json.loads((out / "highway" / "ngsim_i80_chains" / "evaluation.json").read_text())
     models = highway["models"]

@@ -666,6 +666,8 @@ def holdout_step(
         )
     return {
         "protocol": PROTOCOL,
+        "sets_per_training_data": settings.holdout_sets_per_kind,
+        "left_out_by_settings": [n for n in registry.HOLDOUT if n not in rows],
         "fit_seed": SEEDS["holdout_fit"],
         "seed": SEEDS["holdout"],
         "rollouts": settings.rollouts,

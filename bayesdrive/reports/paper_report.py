@@ -198,6 +198,12 @@ def holdout_section(section: Section, holdout: dict[str, Any]) -> None:
         "data than the method of its row. The row idm-smc-pooled-ngsim is what this section reported "
         "before: the pooled NGSIM I-80 posterior applied to every driver of every data set."
     )
+    if holdout.get("left_out_by_settings"):
+        section.note(
+            f"Not evaluated in this run, whose settings take the first "
+            f"{holdout['sets_per_training_data']} held-out data set(s) per training data set: "
+            f"{', '.join(holdout['left_out_by_settings'])}."
+        )
     for name, entry in holdout["data_sets"].items():
         if "error" in entry:
             section.note(f"{name}: not evaluated: {entry['error'][:160]}")
