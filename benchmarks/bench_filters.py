@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bayesdrive.cli.main import COMPILATION_CACHE_ENV
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.views import FollowerArrays, follower_arrays
@@ -101,10 +102,10 @@ def reference_spec() -> dict:
     }
 
 
-def timed_process(command: list[str]) -> float:
+def timed_process(command: list[str], env: dict[str, str] | None = None) -> float:
     """Wall seconds of a fresh process, from its start to its exit (start-up included)."""
     started = time.perf_counter()
-    done = subprocess.run(command, capture_output=True, text=True)
+    done = subprocess.run(command, capture_output=True, text=True, env=env)
     seconds = time.perf_counter() - started
     if done.returncode != 0:
         raise RuntimeError(f"{command} failed ({done.returncode}):\n{done.stderr[-2000:]}")
@@ -114,9 +115,11 @@ def timed_process(command: list[str]) -> float:
 def whole_process(data: str, particles: int, repeats: int) -> tuple[list[float], list[float]]:
     """Fresh processes, alternated: `bayesdrive fit DATA --engine pf` (imports, reading,
     compilation, filtering, diagnostics, the netCDF result) against the NumPy reference's
-    process (imports, reading, filtering, saving the particles). Compilation is not cached
-    between processes: each fit compiles."""
+    process (imports, reading, filtering, saving the particles). The command's persistent
+    compilation cache is turned off, so each fit compiles."""
     bayesdrive = str(Path(sys.executable).with_name("bayesdrive"))
+    compiling = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    compiling[COMPILATION_CACHE_ENV] = "off"
     script = str(Path(__file__).resolve().with_name("numpy_pf_reference.py"))
     ours, theirs = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -126,7 +129,7 @@ def whole_process(data: str, particles: int, repeats: int) -> tuple[list[float],
             out = Path(tmp) / f"fit-{attempt}"
             fit = [bayesdrive, "fit", data, "--engine", "pf", "--params", ",".join(PARAMS)]
             fit += ["--particles", str(particles), "--window", "all", "--seed", str(SEED)]
-            ours.append(timed_process([*fit, "--out", str(out)]))
+            ours.append(timed_process([*fit, "--out", str(out)], compiling))
             shutil.rmtree(out)
             numpy_run = [sys.executable, script, data, "--particles", str(particles)]
             numpy_run += ["--grid", str(grid_file), "--seed", str(SEED)]

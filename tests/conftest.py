@@ -20,14 +20,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
 
-from bayesdrive.cli.main import CACHE_MIN_COMPILE_S
+from bayesdrive.cli.main import COMPILATION_CACHE_ENV, compilation_cache
 
 settings.register_profile("ci", derandomize=True, deadline=None, print_blob=True)
 if os.environ.get("CI"):
@@ -41,23 +40,14 @@ _created_cache: list[str] = []
 
 
 def pytest_configure(config):
-    """Share one fresh compilation cache across the run (module docstring). Runs in the xdist
-    controller before it starts the workers, which inherit the environment."""
+    """Share one fresh compilation cache across the run (module docstring), set up as the
+    ``bayesdrive`` command sets up its own. Runs in the xdist controller before it starts the
+    workers, which inherit the environment; no plugin has imported JAX yet, so JAX reads it."""
     if CACHE_ENV not in os.environ:
         folder = tempfile.mkdtemp(prefix="bayesdrive-jax-cache-")
         _created_cache.append(folder)
-        os.environ[CACHE_ENV] = folder
-        os.environ.setdefault(
-            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(CACHE_MIN_COMPILE_S)
-        )
-    if "jax" in sys.modules:  # imported before this hook: JAX read its environment already
-        import jax
-
-        jax.config.update("jax_compilation_cache_dir", os.environ[CACHE_ENV])
-        jax.config.update(
-            "jax_persistent_cache_min_compile_time_secs",
-            float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
-        )
+        os.environ[COMPILATION_CACHE_ENV] = folder
+        compilation_cache()
 
 
 def pytest_unconfigure(config):

@@ -5,9 +5,10 @@ The issue asks for the quick main job run twice with identical bits; ``reproduce
 once, at a load average of about 20), far over a test's budget. So the test runs the subset every number of the report starts from: an smc
 fit of real NGSIM vehicles through ``bayesdrive fit`` (2 vehicles, 100 particles, v_des and
 sigma), once in this process and once in a fresh one, and requires every array of the result to
-be bit-identical (also between a fresh process that compiles into JAX's persistent compilation cache and
-one that reads the compiled programs back from it) and every attribute equal except :data:`RUN_DEPENDENT_ATTRS` (creation time and
-measured timings). Negative control: another seed changes the posterior.
+be bit-identical (also between a fresh process that compiles into JAX's persistent compilation
+cache and one that reads the compiled programs back from it) and every attribute equal except
+:data:`RUN_DEPENDENT_ATTRS` (creation time and measured timings). Negative control: another seed
+changes the posterior.
 """
 
 from __future__ import annotations
