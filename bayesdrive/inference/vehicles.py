@@ -222,8 +222,9 @@ def map_vehicles(
     work at once). The same program, not a partitioned one: a chunk sharded by ``shard_map``
     compiled into other float operations and changed draws in the last bits with the device
     count. So a vehicle's draws do not depend on the device count. A chunk holds at least one
-    batch. The last chunk is padded
-    by repeating its last vehicle, so the function compiles once, ahead of time. ``cache_key`` (hashable, or None for no caching) must determine ``per_vehicle``
+    batch; fewer vehicles than ``chunk`` make a chunk of the next power of two. A chunk's rows
+    past the last vehicle repeat it but are not computed, so the function compiles once, ahead of
+    time. ``cache_key`` (hashable, or None for no caching) must determine ``per_vehicle``
     completely: the compiled chunk is reused for the same key and input shapes, and the compile
     time is then 0. Returns the stacked numpy outputs, the compile time and the run time (compile
     excluded) in seconds; ``progress(done, total)`` is called after each chunk.
@@ -236,9 +237,19 @@ def map_vehicles(
     # whatever the device count.
     devices = jax.local_devices()
     multiple = len(devices) * size
-    chunk = -(-max(1, min(chunk, num_vehicles), size) // multiple) * multiple
+    wanted = max(1, min(chunk, num_vehicles), size)
+    if wanted < chunk:
+        # Fewer vehicles than a chunk: a power of two, so fits of similar size share one
+        # compiled program (in this process and in JAX's persistent cache); rows past the last
+        # vehicle cost nothing, as each call runs only the batches that hold vehicles.
+        wanted = min(chunk, 1 << (wanted - 1).bit_length())
+    chunk = -(-wanted // multiple) * multiple
     per_device = chunk // len(devices)
-    batches = np.int32(per_device // size)
+
+    def batches_at(start: int) -> list[np.int32]:
+        """Each device's count of batches holding vehicles in the chunk starting at ``start``."""
+        held = np.clip(num_vehicles - start - per_device * np.arange(len(devices)), 0, per_device)
+        return [np.int32(-(-n // size)) for n in held]
 
     def run_share(count, *share):
         # The trip count is an argument, and every share ends with one batch never computed, so
@@ -282,7 +293,7 @@ def map_vehicles(
     if key is None or key not in _COMPILED:
         started = time.perf_counter()
         jitted = jax.jit(run_share)
-        lowered = [jitted.lower(batches, *share) for share in first]
+        lowered = [jitted.lower(np.int32(0), *share) for share in first]
         # XLA compiles outside the GIL: one thread per device keeps the compile time that of one.
         with ThreadPoolExecutor(len(lowered)) as pool:
             compiled = list(pool.map(lambda program: program.compile(), lowered))
@@ -298,7 +309,10 @@ def map_vehicles(
     for start in range(0, num_vehicles, chunk):
         shares = first if start == 0 else shares_at(start)
         started = time.perf_counter()
-        outs = [program(batches, *share) for program, share in zip(compiled, shares, strict=True)]
+        outs = [
+            program(count, *share)
+            for program, count, share in zip(compiled, batches_at(start), shares, strict=True)
+        ]
         outs = jax.block_until_ready(outs)
         run_time += time.perf_counter() - started
         # Each device's outputs without its unused batch, in vehicle order.
