@@ -1,4 +1,5 @@
-"""``fit --cluster``: the same bits as the plain fit, and an interrupted run resumes (issue 17).
+"""``fit --cluster``: the same bits as the plain fit, and an interrupted run resumes (issue 17);
+``evaluate --cluster``: the same numbers as the plain evaluation.
 
 Real data (four followers of an NGSIM I-80 chain, smc with 64 particles, seed 0). One 2-worker
 ``LocalCluster`` made by :func:`~bayesdrive.inference.distributed.open_cluster` (``local:2``,
@@ -123,3 +124,27 @@ def test_bad_cluster_options_are_refused_before_any_work(tmp_path, extra, messag
     assert result.exit_code == 2
     assert message in " ".join(result.output.split())
     assert not out.exists() and not staging_path(out).exists()
+
+
+def _evaluate(data_dir, *extra: str) -> dict:
+    args = ["evaluate", str(data_dir / CHAIN), "--model", "idm-default", "--rollouts", "3"]
+    result = runner.invoke(app, [*args, "--vehicles-per-scenario", "1", *extra, "--json", "-"])
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+@pytest.mark.realdata
+def test_cluster_evaluation_is_bit_identical(data_dir, address):
+    # Each scenario keeps its own key, so chunks of one scenario on two workers give the plain
+    # run's numbers exactly (JSON floats round-trip); another seed is the negative control.
+    plain = _evaluate(data_dir)
+    assert plain["scenarios"] >= 3
+    assert _evaluate(data_dir, "--cluster", address, "--chunk-size", "1") == plain
+    assert _evaluate(data_dir, "--seed", "1", "--cluster", address) != plain
+
+
+def test_evaluate_refuses_bad_cluster_options_before_any_work():
+    result = runner.invoke(app, ["evaluate", "x.csv", "--model", "cv", "--chunk-size", "2"])
+    assert result.exit_code == 2 and "--chunk-size applies to --cluster only" in result.output
+    result = runner.invoke(app, ["evaluate", "x.csv", "--model", "cv", "--cluster", "local:0"])
+    assert result.exit_code == 2 and "positive integer" in " ".join(result.output.split())

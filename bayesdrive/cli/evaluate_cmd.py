@@ -17,6 +17,7 @@ from rich.table import Table
 
 from bayesdrive.cli.common import check_json_out, console, emit_json, err_console, fail
 from bayesdrive.data.errors import DataError
+from bayesdrive.inference import distributed
 from bayesdrive.simulation import evaluation
 from bayesdrive.simulation.baselines import BASELINES
 
@@ -117,9 +118,29 @@ def evaluate(
         None, "--data-dir", help="Folder holding the data sets (held-out ones for a held-out name)."
     ),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    cluster: str | None = typer.Option(
+        None,
+        "--cluster",
+        help="Roll out chunks of scenarios on Dask: local[:N] starts N single-threaded process "
+        "workers (default: one per core), tcp://HOST:PORT uses a running scheduler. Same result "
+        "as without.",
+    ),
+    chunk_size: int | None = typer.Option(
+        None,
+        "--chunk-size",
+        min=1,
+        help=f"With --cluster: scenarios per task (default {evaluation.DEFAULT_SCENARIO_CHUNK}).",
+    ),
 ) -> None:
     """Roll a model out closed loop on the held-out windows and print the metric table."""
     check_json_out(json_out)
+    if chunk_size is not None and cluster is None:
+        raise fail("--chunk-size applies to --cluster only")
+    if cluster is not None:
+        try:
+            distributed.cluster_workers(cluster)
+        except ValueError as error:
+            raise fail(escape(str(error))) from None
     with _progress() as bar:
         tasks: dict[str, Any] = {}
 
@@ -129,19 +150,28 @@ def evaluate(
                 tasks[stage] = bar.add_task(label, total=total)
             bar.update(tasks[stage], completed=done, total=total)
 
+        options = {
+            "model": model,
+            "posterior": posterior,
+            "horizon_s": horizon,
+            "num_rollouts": rollouts,
+            "vehicles_per_scenario": vehicles_per_scenario,
+            "seed": seed,
+            "data_dir": data_dir,
+            "progress": progress,
+        }
         try:
-            result = evaluation.evaluate(
-                jax.random.key(seed),
-                data,
-                model=model,
-                posterior=posterior,
-                horizon_s=horizon,
-                num_rollouts=rollouts,
-                vehicles_per_scenario=vehicles_per_scenario,
-                seed=seed,
-                data_dir=data_dir,
-                progress=progress,
-            )
+            if cluster is None:
+                result = evaluation.evaluate(jax.random.key(seed), data, **options)
+            else:
+                with distributed.open_cluster(cluster) as client:
+                    result = evaluation.evaluate(
+                        jax.random.key(seed),
+                        data,
+                        **options,
+                        client=client,
+                        chunk_size=chunk_size or evaluation.DEFAULT_SCENARIO_CHUNK,
+                    )
         except (DataError, OSError, KeyError, ValueError) as error:
             raise fail(escape(str(error))) from None
     if not emit_json(result, json_out):

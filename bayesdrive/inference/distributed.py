@@ -24,7 +24,7 @@ import json
 import logging
 import os
 import shutil
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -52,6 +52,7 @@ __all__ = [
     "fit_on_cluster",
     "open_cluster",
     "remove_chunks",
+    "run_tasks",
 ]
 
 log = logging.getLogger(__name__)
@@ -178,10 +179,31 @@ def _by_name(model: DriverModel) -> DriverModel | str:
         return model
 
 
-def _fit_chunk(key: Array, arrays: FollowerArrays, options: dict[str, Any]) -> xr.DataTree:
+def run_tasks(
+    client: Any,
+    task: Callable[[Any, Any], Any],
+    shared: Any,
+    inputs: Mapping[int, Any],
+    on_done: Callable[[int, Any], None],
+) -> None:
+    """``task(shared, inputs[i])`` for every ``i`` on the Dask ``client``; ``shared`` is sent once
+    to every worker, which hands every task the same object (a model not in the registry then
+    compiles once per worker and run, not once per task). ``on_done(i, result)`` runs in this
+    process as each task finishes, in whatever order they finish."""
+    from distributed import as_completed
+
+    [sent] = client.scatter([shared], broadcast=True, hash=False)
+    futures = {client.submit(task, sent, value, pure=False): i for i, value in inputs.items()}
+    for future in as_completed(futures):
+        on_done(futures[future], future.result())
+        future.release()
+
+
+def _fit_chunk(options: dict[str, Any], chunk: tuple[Array, FollowerArrays]) -> xr.DataTree:
     """One task: ``fit`` on a chunk's vehicles (runs on a worker)."""
     if isinstance(options["model"], str):
         options = {**options, "model": get_model(options["model"])}
+    key, arrays = chunk
     return fit(key, arrays, **options)
 
 
@@ -258,8 +280,6 @@ def fit_on_cluster(
     """:func:`~bayesdrive.inference.fit.fit` of ``data`` in chunks on the Dask ``client``
     (module docstring); ``folder`` keeps the chunks. ``options`` are ``fit``'s other keyword
     arguments. ``progress(done, total)`` counts vehicles, chunks already in ``folder`` included."""
-    from distributed import as_completed
-
     if engine in JOINT_ENGINES:
         raise ValueError(f"engine {engine} fits all vehicles jointly; it cannot run in chunks")
     if isinstance(data, Trajectories):
@@ -291,34 +311,28 @@ def fit_on_cluster(
         progress(done, total)
     if todo:
         log.info("fitting %d of %d chunk(s) on the cluster", len(todo), len(chunks))
-    # Sent once to every worker, which hands every task the same objects (a model not in the
-    # registry then compiles once per worker and run, not once per chunk).
-    [shared] = client.scatter(
-        [
-            {
-                **options,
-                "model": _by_name(model),
-                "engine": engine,
-                "window": window,
-                "source": source,
-            }
-        ],
-        broadcast=True,
-        hash=False,
-    )
-    futures = {
-        client.submit(
-            _fit_chunk, key, arrays.subset(np.asarray(rows[index])), shared, pure=False
-        ): index
-        for index in todo
-    }
-    for future in as_completed(futures):
-        index = futures[future]
-        save_result(future.result(), _chunk_path(folder, index))
-        future.release()
+
+    def save(index: int, tree: xr.DataTree) -> None:
+        nonlocal done
+        save_result(tree, _chunk_path(folder, index))
         done += len(chunks[index])
         if progress is not None:
             progress(done, total)
+
+    shared = {
+        **options,
+        "model": _by_name(model),
+        "engine": engine,
+        "window": window,
+        "source": source,
+    }
+    run_tasks(
+        client,
+        _fit_chunk,
+        shared,
+        {index: (key, arrays.subset(np.asarray(rows[index]))) for index in todo},
+        save,
+    )
 
     trees = [load_result(_chunk_path(folder, index)) for index in range(len(chunks))]
     tree = _combine(trees)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
 import xarray as xr
 from jax import Array
 
@@ -26,6 +27,7 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.registry import get_model
+from bayesdrive.inference.distributed import chunk_rows, run_tasks
 from bayesdrive.inference.output import load_result, metadata
 from bayesdrive.simulation.baselines import (
     BASELINES,
@@ -34,9 +36,17 @@ from bayesdrive.simulation.baselines import (
     Policy,
     baseline_policy,
 )
-from bayesdrive.simulation.metrics import evaluate_policy
+from bayesdrive.simulation.metrics import (
+    DistributionSamples,
+    ScenarioMetrics,
+    evaluate_policy,
+    evaluate_scenario,
+    scenario_keys,
+    summarize,
+)
 from bayesdrive.simulation.posterior import posterior_policy
 from bayesdrive.simulation.scenarios import (
+    Scenario,
     ScenarioSet,
     merge_scenarios,
     platoon_scenarios,
@@ -51,6 +61,8 @@ MERGE_FORMAT = "merge_episodes"
 # progress(stage, done, total): stage "fit" (a baseline's per-vehicle fits) or "rollouts"
 # (scenarios rolled out); total is None while unknown.
 Progress = Callable[[str, int, int | None], None]
+# Scenarios per Dask task with a client: a few seconds of rollouts each.
+DEFAULT_SCENARIO_CHUNK = 8
 
 
 def evaluation_data(
@@ -228,6 +240,53 @@ def _baseline(
     )
 
 
+def _scenario_chunk(
+    shared: tuple[Policy, int], chunk: list[tuple[np.ndarray, Scenario]]
+) -> list[tuple[ScenarioMetrics, DistributionSamples]]:
+    """One task: the scenarios of a chunk, each with its key's data (runs on a worker)."""
+    policy, num_rollouts = shared
+    return [
+        evaluate_scenario(
+            jax.random.wrap_key_data(key_data), policy, scenario, num_rollouts=num_rollouts
+        )
+        for key_data, scenario in chunk
+    ]
+
+
+def _evaluate_on_cluster(
+    client: Any,
+    key: Array,
+    policy: Policy,
+    scenarios: ScenarioSet,
+    *,
+    num_rollouts: int,
+    chunk_size: int,
+    progress: Callable[[int], None],
+) -> dict[str, Any]:
+    """:func:`~bayesdrive.simulation.metrics.evaluate_policy` with chunks of scenarios as Dask
+    tasks; ``progress(done)`` counts finished scenarios."""
+    key_data = np.asarray(jax.random.key_data(scenario_keys(key, scenarios)))
+    rows = chunk_rows(len(scenarios.scenarios), chunk_size)
+    finished: dict[int, list] = {}
+
+    def collect(index: int, results: list) -> None:
+        finished[index] = results
+        progress(sum(len(r) for r in finished.values()))
+
+    run_tasks(
+        client,
+        _scenario_chunk,
+        (policy, num_rollouts),
+        {
+            index: [(key_data[i], scenarios.scenarios[i]) for i in row]
+            for index, row in enumerate(rows)
+        },
+        collect,
+    )
+    ordered = [result for index in range(len(rows)) for result in finished[index]]
+    return summarize([m for m, _ in ordered], [s for _, s in ordered])
+
+
 def evaluate(
     key: Array,
     data: str | Path | Trajectories,
@@ -240,6 +299,8 @@ def evaluate(
     seed: int | None = None,
     data_dir: str | None = None,
     progress: Progress | None = None,
+    client: Any = None,
+    chunk_size: int = DEFAULT_SCENARIO_CHUNK,
 ) -> dict[str, Any]:
     """Roll ``model`` out closed loop on the held-out windows of ``data`` and score it.
 
@@ -249,6 +310,9 @@ def evaluate(
     recorded beside the key's data. Returns the JSON-ready result: the metrics of
     :func:`~bayesdrive.simulation.metrics.summarize`, the scenario set and the rules that chose
     it, and ``skipped`` (scenarios left out for want of posterior draws; None if none were).
+    With a Dask ``client`` the scenarios are rolled out in chunks of ``chunk_size`` on its workers
+    (the policy is built here, then sent once to each); each scenario keeps its own key, so the
+    result is bit-identical to the run without.
     """
     say = progress or (lambda stage, done, total: None)
     key_policy, key_rollouts = jax.random.split(key)
@@ -266,14 +330,25 @@ def evaluate(
         )
     total = len(scenarios.scenarios)
     say("rollouts", 0, total)
-    done = iter(range(1, total + 1))
-    summary = evaluate_policy(
-        key_rollouts,
-        policy,
-        scenarios,
-        num_rollouts=num_rollouts,
-        on_scenario=lambda _: say("rollouts", next(done), total),
-    )
+    if client is None:
+        done = iter(range(1, total + 1))
+        summary = evaluate_policy(
+            key_rollouts,
+            policy,
+            scenarios,
+            num_rollouts=num_rollouts,
+            on_scenario=lambda _: say("rollouts", next(done), total),
+        )
+    else:
+        summary = _evaluate_on_cluster(
+            client,
+            key_rollouts,
+            policy,
+            scenarios,
+            num_rollouts=num_rollouts,
+            chunk_size=chunk_size,
+            progress=lambda done: say("rollouts", done, total),
+        )
     return {
         "model": model,
         "policy": policy.description,

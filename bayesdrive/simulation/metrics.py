@@ -47,9 +47,11 @@ __all__ = [
     "distribution_distance",
     "distribution_samples",
     "evaluate_policy",
+    "evaluate_scenario",
     "kde",
     "observed_data",
     "rmse_by_step",
+    "scenario_keys",
     "scenario_metrics",
     "speed_density",
     "summarize",
@@ -301,6 +303,27 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
     }
 
 
+def evaluate_scenario(
+    key: Array, policy: Policy, scenario: Scenario, *, num_rollouts: int
+) -> tuple[ScenarioMetrics, DistributionSamples]:
+    """Run ``policy`` on one scenario: ``key`` splits into a parameter-draw key and a rollout
+    key. Returns the scenario's metrics and its distribution samples."""
+    key_params, key_rollout = jax.random.split(key)
+    params = policy.params_for(key_params, scenario.simulated_ids, num_rollouts)
+    simulated = rollout(
+        key_rollout, policy.model, params, scene_arrays(scenario), num_rollouts=num_rollouts
+    )
+    data = observed_data(scenario)
+    return scenario_metrics(scenario.scenario_id, simulated, data), distribution_samples(
+        simulated, data
+    )
+
+
+def scenario_keys(key: Array, scenarios: ScenarioSet) -> Array:
+    """One key per scenario, in the set's order (what :func:`evaluate_policy` gives each)."""
+    return jax.random.split(key, len(scenarios.scenarios))
+
+
 def evaluate_policy(
     key: Array,
     policy: Policy,
@@ -309,25 +332,21 @@ def evaluate_policy(
     num_rollouts: int,
     on_scenario: Callable[[ScenarioMetrics], None] | None = None,
 ) -> dict[str, Any]:
-    """Run ``policy`` on every scenario and summarize (:func:`summarize`).
-
-    The key splits into one key per scenario, each into a parameter-draw key and a rollout key.
-    ``on_scenario`` is called after each scenario (progress display).
+    """Run ``policy`` on every scenario (:func:`evaluate_scenario` with its key from
+    :func:`scenario_keys`) and summarize (:func:`summarize`). ``on_scenario`` is called after
+    each scenario (progress display).
     """
     if not scenarios.scenarios:
         raise ValueError(f"{scenarios.source}: no scenarios to evaluate")
     metrics, samples = [], []
     for scenario, scenario_key in zip(
-        scenarios.scenarios, jax.random.split(key, len(scenarios.scenarios)), strict=True
+        scenarios.scenarios, scenario_keys(key, scenarios), strict=True
     ):
-        key_params, key_rollout = jax.random.split(scenario_key)
-        params = policy.params_for(key_params, scenario.simulated_ids, num_rollouts)
-        simulated = rollout(
-            key_rollout, policy.model, params, scene_arrays(scenario), num_rollouts=num_rollouts
+        scored, sampled = evaluate_scenario(
+            scenario_key, policy, scenario, num_rollouts=num_rollouts
         )
-        data = observed_data(scenario)
-        metrics.append(scenario_metrics(scenario.scenario_id, simulated, data))
-        samples.append(distribution_samples(simulated, data))
+        metrics.append(scored)
+        samples.append(sampled)
         if on_scenario is not None:
-            on_scenario(metrics[-1])
+            on_scenario(scored)
     return summarize(metrics, samples)
