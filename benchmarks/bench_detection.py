@@ -273,10 +273,38 @@ def _ranges(seeds: list[int]) -> str:
     return ", ".join(parts)
 
 
+# What a replication found: a rerun of the same cell, size and seed must give the same values.
+RESULT_COLUMNS = ["verdict", "model", "right", "best_right_gain", "best_right_se", "screened_in"]
+
+
+def reruns(runs: pd.DataFrame) -> list[str]:
+    """Per other library version: how many of its replications the current one ran again (same
+    cell, size and seed) and how many of those found exactly the same (:data:`RESULT_COLUMNS`).
+    A change that moved no verdict shows here as every rerun identical; the rows still back
+    nothing until the current version has its own."""
+    key = ["cell", "size", "seed"]
+    current = runs[runs["code"] == CODE]
+    lines = []
+    for code, rows in runs[runs["code"] != CODE].groupby("code"):
+        both = current.merge(rows, on=key, suffixes=("", "_before"))
+        if both.empty:
+            continue
+        same = np.ones(len(both), bool)
+        for column in RESULT_COLUMNS:
+            now, before = both[column], both[f"{column}_before"]
+            same &= ((now == before) | (now.isna() & before.isna())).to_numpy()
+        differing = [" ".join(map(str, row)) for row in both.loc[~same, key].itertuples(False)]
+        lines.append(
+            f"- {code}: {len(both)} replication(s) rerun, {int(same.sum())} identical"
+            + (f"; differing: {', '.join(differing)}" if differing else "")
+        )
+    return lines
+
+
 def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
     """The markdown table of the current sampler's rows: for the study, of the current generator
     only; for the development pilot, of every generator version it ran (marked)."""
-    runs = pd.read_csv(runs_path)
+    runs = pd.read_csv(runs_path, dtype={"generator": str, "code": str})
     runs = runs[runs["sampler"] == sampler_label()]
     if not dev:
         runs = runs[runs["generator"] == GENERATOR]
@@ -325,6 +353,13 @@ def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
         + (", ".join(f"{r.cell} {r.size}" for r in reliable.itertuples()) or "none yet")
         + ".\n"
     )
+    rerun = reruns(runs)
+    if rerun:
+        text += (
+            f"\nReplications of other library versions rerun at {CODE} (same cell, size and "
+            "seed; identical = the same verdict, final model, rightness, best right gain and its "
+            "SE, and screening):\n\n" + "\n".join(rerun) + "\n"
+        )
     write_text_atomic(out / ("detection_dev.md" if dev else "detection.md"), text)
     return text
 
