@@ -172,6 +172,20 @@ def column_map_options(
     return COLUMN_MAP_FORMAT, options
 
 
+def check_cluster_options(cluster: str | None, chunk_size: int | None) -> None:
+    """Refuse ``--chunk-size`` without ``--cluster``, and a malformed ``--cluster`` or one without
+    Dask installed, before any work."""
+    if chunk_size is not None and cluster is None:
+        raise fail("--chunk-size applies to --cluster only")
+    if cluster is not None:
+        from bayesdrive.inference.distributed import cluster_workers  # imports JAX: not at start-up
+
+        try:
+            cluster_workers(cluster)
+        except ValueError as error:
+            raise fail(str(error)) from None
+
+
 def fail(message: str, code: int = 2) -> typer.Exit:
     err_console.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
     return typer.Exit(code)

@@ -15,7 +15,14 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from bayesdrive.cli.common import check_json_out, console, emit_json, err_console, fail
+from bayesdrive.cli.common import (
+    check_cluster_options,
+    check_json_out,
+    console,
+    emit_json,
+    err_console,
+    fail,
+)
 from bayesdrive.data.errors import DataError
 from bayesdrive.inference import distributed
 from bayesdrive.simulation import evaluation
@@ -134,13 +141,7 @@ def evaluate(
 ) -> None:
     """Roll a model out closed loop on the held-out windows and print the metric table."""
     check_json_out(json_out)
-    if chunk_size is not None and cluster is None:
-        raise fail("--chunk-size applies to --cluster only")
-    if cluster is not None:
-        try:
-            distributed.cluster_workers(cluster)
-        except ValueError as error:
-            raise fail(escape(str(error))) from None
+    check_cluster_options(cluster, chunk_size)
     with _progress() as bar:
         tasks: dict[str, Any] = {}
 

@@ -29,6 +29,7 @@ from bayesdrive.cli.common import (
     COLUMNS_HELP,
     FORCE_HELP,
     UNITS_HELP,
+    check_cluster_options,
     check_json_out,
     column_map_options,
     console,
@@ -225,19 +226,13 @@ def fit(
         raise fail(
             f"--particles applies to {' and '.join(PARTICLE_ENGINES)}; {engine} takes --draws"
         )
-    if chunk_size is not None and cluster is None:
-        raise fail("--chunk-size applies to --cluster only")
+    check_cluster_options(cluster, chunk_size)
     if vehicle_batch is not None and engine not in BATCHED_ENGINES:
         raise fail(f"--vehicle-batch applies to {' and '.join(BATCHED_ENGINES)} only")
     if vehicle_batch is not None and vehicle_batch < 1:
         raise fail(f"--vehicle-batch must be at least 1, got {vehicle_batch}")
-    if cluster is not None:
-        if engine in distributed.JOINT_ENGINES:
-            raise fail(f"--cluster fits vehicles apart; --engine {engine} fits them jointly")
-        try:
-            distributed.cluster_workers(cluster)
-        except ValueError as error:
-            raise fail(str(error)) from None
+    if cluster is not None and engine in distributed.JOINT_ENGINES:
+        raise fail(f"--cluster fits vehicles apart; --engine {engine} fits them jointly")
     options = {
         name: value
         for name, value in (
