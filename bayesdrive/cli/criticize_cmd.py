@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -11,6 +12,7 @@ from rich.table import Table
 
 from bayesdrive.cli.common import (
     FORCE_HELP,
+    check_cluster_options,
     check_json_out,
     console,
     emit_json,
@@ -84,6 +86,23 @@ def criticize_command(
         str | None, typer.Option("--json", help="Write the report as JSON (- = stdout).")
     ] = None,
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
+    cluster: Annotated[
+        str | None,
+        typer.Option(
+            "--cluster",
+            help="Fit chunks of vehicles on Dask: local[:N] starts N single-threaded process "
+            "workers (default: one per core), tcp://HOST:PORT uses a running scheduler. Same "
+            "result as without.",
+        ),
+    ] = None,
+    chunk_size: Annotated[
+        int | None,
+        typer.Option(
+            "--chunk-size",
+            min=1,
+            help="With --cluster: vehicles per task (default: as fit --cluster's).",
+        ),
+    ] = None,
 ) -> None:
     """Fit the base model, run the checks, fit the extensions they point to, name the cause."""
     # Imported here so `bayesdrive --help` stays fast (JAX is heavy to import).
@@ -96,6 +115,7 @@ def criticize_command(
     from bayesdrive.inference.likelihood import check_model
 
     check_json_out(json_out)
+    check_cluster_options(cluster, chunk_size)
     results = None if out is None else results_folder(out, "criticize", force=force)
     try:
         traj = _load(data, format)
@@ -156,41 +176,54 @@ def criticize_command(
         )
 
     quiet = json_out == "-"
-    with Progress(
-        SpinnerColumn(),
-        TextColumn("{task.description}"),
-        TimeElapsedColumn(),
-        console=err_console,
-        disable=quiet,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("reading", total=None)
-        try:
-            result = criticize(
-                traj,
-                seed=seed,
-                model=base,
-                config=config,
-                max_vehicles=vehicles,
-                progress=lambda message: bar.update(task, description=message),
-            )
-        except (DataError, ValueError) as error:
-            raise fail(str(error)) from None
-    if results is not None:
-        from bayesdrive.reports.criticism_plots import plot_criticism
+    with ExitStack() as stack:
+        client = None
+        if cluster is not None:
+            from bayesdrive.inference.distributed import open_cluster
 
-        written = plot_criticism(result, results.path)
-        written += _write_final_model(result, traj, seed, results.path, final_particles)
-        results.commit()
-        result.report["figures"] = [str(out / p.relative_to(results.path)) for p in written]
+            client = stack.enter_context(open_cluster(cluster))
+        with Progress(
+            SpinnerColumn(),
+            TextColumn("{task.description}"),
+            TimeElapsedColumn(),
+            console=err_console,
+            disable=quiet,
+            transient=True,
+        ) as bar:
+            task = bar.add_task("reading", total=None)
+            try:
+                result = criticize(
+                    traj,
+                    seed=seed,
+                    model=base,
+                    config=config,
+                    max_vehicles=vehicles,
+                    progress=lambda message: bar.update(task, description=message),
+                    client=client,
+                    chunk_size=chunk_size,
+                )
+            except (DataError, ValueError) as error:
+                raise fail(str(error)) from None
+        if results is not None:
+            from bayesdrive.reports.criticism_plots import plot_criticism
+
+            written = plot_criticism(result, results.path)
+            written += _write_final_model(
+                result, traj, seed, results.path, final_particles, client, chunk_size
+            )
+            results.commit()
+            result.report["figures"] = [str(out / p.relative_to(results.path)) for p in written]
     if emit_json(result.report, json_out):
         return
     print_report(result.report)
 
 
-def _write_final_model(result, traj, seed: int, folder: Path, num_particles: int) -> list[Path]:
+def _write_final_model(
+    result, traj, seed: int, folder: Path, num_particles: int, client, chunk_size: int | None
+) -> list[Path]:
     """The final model fitted by smc (its defaults) to the criticized vehicles' fitting windows,
-    as a result file ``final_model.nc`` beside its model card ``final_model.md``."""
+    as a result file ``final_model.nc`` beside its model card ``final_model.md``; with a Dask
+    ``client``, in chunks on its cluster (the same result)."""
     import jax
 
     from bayesdrive.criticism.criticize import named_key
@@ -203,16 +236,28 @@ def _write_final_model(result, traj, seed: int, folder: Path, num_particles: int
     report = result.report
     model = get_model(report["model"])
     err_console.print(f"fitting the final model {model.name} with smc for final_model.nc")
-    tree = fit(
-        named_key(jax.random.key(seed), "final_model"),
-        traj,
-        model=model,
-        engine="smc",
-        num_particles=num_particles,
-        window="fit",
-        seed=seed,
-        vehicle_ids=list(result.series.vehicle_ids),
-    )
+    options = {
+        "model": model,
+        "engine": "smc",
+        "num_particles": num_particles,
+        "window": "fit",
+        "seed": seed,
+        "vehicle_ids": list(result.series.vehicle_ids),
+    }
+    key = named_key(jax.random.key(seed), "final_model")
+    if client is None:
+        tree = fit(key, traj, **options)
+    else:
+        from bayesdrive.inference.distributed import (
+            DEFAULT_CHUNK_SIZE,
+            fit_on_cluster,
+            remove_chunks,
+        )
+
+        tree = fit_on_cluster(
+            client, key, traj, folder=folder, chunk_size=chunk_size or DEFAULT_CHUNK_SIZE, **options
+        )
+        remove_chunks(folder)
     path = save_result(tree, folder / "final_model.nc")
     gains = [
         f"round {r['round']}: {r['model']} + {r['verdict']}, held-out gain "

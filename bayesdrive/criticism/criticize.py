@@ -280,12 +280,18 @@ def criticize(
     config: CriticizeConfig = CriticizeConfig(),  # noqa: B008 - an immutable NamedTuple
     max_vehicles: int | None = None,
     progress: Callable[[str], None] | None = None,
+    client: Any = None,
+    chunk_size: int | None = None,
 ) -> CriticismResult:
     """Name the cause of the base model's misfit on ``traj`` (module docstring); with
-    ``max_vehicles``, on its first N scored vehicles (:func:`criticized_series`)."""
+    ``max_vehicles``, on its first N scored vehicles (:func:`criticized_series`). With a Dask
+    ``client``, every fit runs in chunks of ``chunk_size`` vehicles on its cluster
+    (:func:`~bayesdrive.inference.distributed.fit_model_on_cluster`): the same report."""
     unknown = [c for c in config.causes if c not in CAUSES]
     if unknown:
         raise KeyError(f"unknown cause(s) {unknown}; known: {list(CAUSES)}")
+    if client is not None and config.vehicle_batch != 1:
+        raise ValueError("on a cluster the criticism fits one vehicle at a time (vehicle_batch 1)")
     say = progress or (lambda message: None)
     key = jax.random.key(seed)
     fit_config = FitConfig(
@@ -304,14 +310,28 @@ def criticize(
     def fit_and_roll(extended, start: FitResult | None) -> tuple[FitResult, Rollouts]:
         # Keys by the causes in the model, so round one's draws do not depend on later rounds.
         causes_in = "+".join((*present, extended.cause)) if present else extended.cause
-        fit = fit_model(
-            named_key(key, f"fit:{causes_in}"),
-            series,
-            extended,
-            config=fit_config,
-            start=start,
-            vehicle_batch=config.vehicle_batch,
-        )
+        fit_key = named_key(key, f"fit:{causes_in}")
+        if client is None:
+            fit = fit_model(
+                fit_key,
+                series,
+                extended,
+                config=fit_config,
+                start=start,
+                vehicle_batch=config.vehicle_batch,
+            )
+        else:
+            from bayesdrive.inference.distributed import DEFAULT_CHUNK_SIZE, fit_model_on_cluster
+
+            fit = fit_model_on_cluster(
+                client,
+                fit_key,
+                series,
+                extended,
+                config=fit_config,
+                start=start,
+                chunk_size=chunk_size or DEFAULT_CHUNK_SIZE,
+            )
         rolled = rollout(
             rollout_key, extended, fit.theta, series, windows, num_rollouts=config.num_rollouts
         )

@@ -1,5 +1,9 @@
 """``fit`` on a Dask cluster: chunks of vehicles as tasks, each chunk's result saved as it finishes.
 
+The criticism's fits (:func:`~bayesdrive.inference.tempering.fit_model`) run in chunks the same
+way (:func:`fit_model_on_cluster`), each vehicle from its own key, so a criticism on a cluster
+reports what the plain run reports; its chunks are not saved (a criticism is one result).
+
 Vehicles are split into chunks of ``chunk_size`` in the data's order, never by the number of
 workers, and every vehicle's key derives from the run's key and its own id
 (:func:`~bayesdrive.inference.vehicles.vehicle_keys`), so the combined result is bit-identical to
@@ -38,17 +42,20 @@ from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.convergence import check_convergence, log_problems
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.output import load_result, metadata, save_result, set_metadata
+from bayesdrive.inference.tempering import FitConfig, FitResult, fit_model, join_fits
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
     "JOINT_ENGINES",
     "chunk_rows",
     "cluster_workers",
+    "fit_model_on_cluster",
     "fit_on_cluster",
     "open_cluster",
     "remove_chunks",
@@ -273,17 +280,20 @@ def fit_on_cluster(
     engine: str = "smc",
     window: Window = "fit",
     max_vehicles: int | None = None,
+    vehicle_ids: Sequence[str] | None = None,
     source: str = "FollowerArrays",
     progress: Callable[[int, int], None] | None = None,
     **options: Any,
 ) -> xr.DataTree:
     """:func:`~bayesdrive.inference.fit.fit` of ``data`` in chunks on the Dask ``client``
     (module docstring); ``folder`` keeps the chunks. ``options`` are ``fit``'s other keyword
-    arguments. ``progress(done, total)`` counts vehicles, chunks already in ``folder`` included."""
+    arguments (``vehicle_ids`` picks vehicles of read data only). ``progress(done, total)``
+    counts vehicles, chunks already in ``folder`` included."""
     if engine in JOINT_ENGINES:
         raise ValueError(f"engine {engine} fits all vehicles jointly; it cannot run in chunks")
     if isinstance(data, Trajectories):
-        arrays = follower_arrays(data, window=window)
+        picked = None if vehicle_ids is None else list(vehicle_ids)
+        arrays = follower_arrays(data, window=window, vehicle_ids=picked)
         source = data.source
         # What fit records of read data, which chunks of arrays cannot know.
         described = {
@@ -292,6 +302,8 @@ def fit_on_cluster(
             "input_sha256": dict(data.inputs),
             "input_repairs": data.repairs,
         }
+    elif vehicle_ids is not None:
+        raise ValueError("vehicle_ids picks vehicles of read data; subset the arrays instead")
     else:
         arrays, described = data, {}
     if max_vehicles is not None:
@@ -351,6 +363,42 @@ def fit_on_cluster(
     log_problems(report)
     set_metadata(tree, convergence=report.as_metadata())
     return tree
+
+
+def _fit_model_chunk(
+    options: dict[str, Any], chunk: tuple[Array, FollowerArrays, FitResult | None]
+) -> FitResult:
+    """One task: ``fit_model`` on a chunk's vehicles (runs on a worker)."""
+    key, series, start = chunk
+    return fit_model(key, series, options["extended"], config=options["config"], start=start)
+
+
+def fit_model_on_cluster(
+    client: Any,
+    key: Array,
+    series: FollowerArrays,
+    extended: ExtendedModel,
+    *,
+    config: FitConfig,
+    start: FitResult | None = None,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> FitResult:
+    """:func:`~bayesdrive.inference.tempering.fit_model` (one vehicle at a time) of ``series`` in
+    chunks of ``chunk_size`` vehicles on the Dask ``client``: the same result, bit for bit."""
+    rows = chunk_rows(len(series.vehicle_ids), chunk_size)
+    parts: dict[int, FitResult] = {}
+    run_tasks(
+        client,
+        _fit_model_chunk,
+        {"extended": extended, "config": config},
+        {
+            index: (key, series.subset(r), None if start is None else start.take(r))
+            for index, r in enumerate(rows)
+        },
+        parts.__setitem__,
+    )
+    # The workers' copies of the model came back with their fits; the caller's is the model.
+    return join_fits([parts[index] for index in range(len(rows))])._replace(model=extended)
 
 
 def remove_chunks(folder: Path) -> None:

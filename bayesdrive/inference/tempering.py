@@ -51,6 +51,11 @@ observed states the density of the held-out steps given :math:`\theta` and the p
 of the one-step densities of those steps (the Markov property; the autocorrelated-noise state is
 lifted from the step before, which may lie in the fitting window).
 
+**Keys.** Each vehicle draws from its own key, the run's key with the vehicle's id folded in
+(:func:`~bayesdrive.inference.vehicles.vehicle_keys`), so a vehicle's fit is the same bits whichever
+other vehicles are fitted beside it: a criticism split into chunks of vehicles on a cluster gives
+the plain run's result (:func:`~bayesdrive.inference.distributed.fit_model_on_cluster`).
+
 Everything runs in the default float type (float32 unless x64 is on); tempering keeps the
 log-likelihood differences between particles, not their absolute values, in the weights.
 """
@@ -82,6 +87,7 @@ from bayesdrive.inference.kernels import (
 )
 from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
 from bayesdrive.inference.resampling import systematic
+from bayesdrive.inference.vehicles import vehicle_keys
 from bayesdrive.inference.weights import log_mean_weight
 
 __all__ = [
@@ -89,6 +95,7 @@ __all__ = [
     "FitConfig",
     "FitResult",
     "fit_model",
+    "join_fits",
 ]
 
 
@@ -137,6 +144,31 @@ class FitResult(NamedTuple):
     acceptance: np.ndarray
     compile_time_s: float
     run_time_s: float
+
+    def take(self, rows) -> FitResult:
+        """The fits of some vehicle rows (an index array or range)."""
+        index = np.asarray(rows)
+        per_vehicle = {
+            name: value[index]
+            for name, value in self._asdict().items()
+            if isinstance(value, np.ndarray)
+        }
+        return self._replace(**per_vehicle)
+
+
+def join_fits(parts: list[FitResult]) -> FitResult:
+    """Fits of consecutive groups of vehicles as one (times summed)."""
+    first = parts[0]
+    joined = {
+        name: np.concatenate([getattr(part, name) for part in parts])
+        for name, value in first._asdict().items()
+        if isinstance(value, np.ndarray)
+    }
+    return first._replace(
+        **joined,
+        compile_time_s=sum(part.compile_time_s for part in parts),
+        run_time_s=sum(part.run_time_s for part in parts),
+    )
 
 
 def _window_logliks(
@@ -419,7 +451,7 @@ def fit_model(
     num_vehicles = len(series.vehicle_ids)
     # Batches are multiples of 8 vehicles, so data sets of similar size share one compiled program.
     batch = max(1, min(vehicle_batch, 8 * math.ceil(num_vehicles / 8)))
-    keys = jax.random.split(key, num_vehicles)
+    keys = vehicle_keys(key, series.vehicle_ids)
     start_theta = None
     if start is not None:
         expected = (num_vehicles, config.num_particles)
