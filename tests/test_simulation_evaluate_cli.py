@@ -204,3 +204,14 @@ def test_bad_requests_end_with_one_error_line(scene_dir, monkeypatch):
     monkeypatch.setattr(evaluation, "evaluation_data", lambda *a: (real_load(*a)[0], True))
     held_out = evaluate(scene_dir, "--model", "blackbox", *SMALL)
     assert held_out.exit_code == 2 and "held out for evaluation only" in one_line(held_out.stderr)
+
+
+def test_an_error_message_is_printed_as_written(monkeypatch):
+    # Brackets in a message (a list of ids, say) reach the user once escaped, not twice.
+    def refuse(*args, **kwargs):
+        raise ValueError("vehicles ['a', 'b'] have no leader [fit window]")
+
+    monkeypatch.setattr(evaluation, "evaluate", refuse)
+    result = evaluate("any.csv", "--model", "cv")
+    assert result.exit_code == 2
+    assert "vehicles ['a', 'b'] have no leader [fit window]" in one_line(result.output)

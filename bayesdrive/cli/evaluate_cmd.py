@@ -174,6 +174,6 @@ def evaluate(
                         chunk_size=chunk_size or evaluation.DEFAULT_SCENARIO_CHUNK,
                     )
         except (DataError, OSError, KeyError, ValueError) as error:
-            raise fail(escape(str(error))) from None
+            raise fail(str(error)) from None
     if not emit_json(result, json_out):
         _print(result)
