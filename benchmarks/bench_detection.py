@@ -293,10 +293,16 @@ def reruns(runs: pd.DataFrame) -> list[str]:
         for column in RESULT_COLUMNS:
             now, before = both[column], both[f"{column}_before"]
             same &= ((now == before) | (now.isna() & before.isna())).to_numpy()
-        differing = [" ".join(map(str, row)) for row in both.loc[~same, key].itertuples(False)]
+        # Differing reruns per cell, with how many were right then and now (seeds would be a
+        # wall of numbers when a change moves every draw).
+        differing = [
+            f"{cell} {size}: {len(group)} (right {int(group['right_before'].sum())} before, "
+            f"{int(group['right'].sum())} now)"
+            for (cell, size), group in both.loc[~same].groupby(["cell", "size"], sort=False)
+        ]
         lines.append(
             f"- {code}: {len(both)} replication(s) rerun, {int(same.sum())} identical"
-            + (f"; differing: {', '.join(differing)}" if differing else "")
+            + (f"; differing: {'; '.join(differing)}" if differing else "")
         )
     return lines
 
