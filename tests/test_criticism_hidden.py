@@ -4,13 +4,12 @@ files, the real reader reads them, and ``criticize`` must give a right verdict (
 reports/criticism/generator.md); on data without a mechanism it must say "none".
 
 Cells: only those the detection study (benchmarks/bench_detection.py, seeds 100001 on, fixed
-before it ran; reports/criticism/detection.md) named right in at least 20 of 20 replications at
-detector f403f76ca744; at the current library (90c7a6c8f2bd: changes in modules the criticism
-imports, not in what it computes) the same seeds rerun found exactly the same rows, 20 of 20 for
-every cell here but video noise "small" (13 of 13 so far; generator.md): null data (28 of 28 said none); an Ornstein-Uhlenbeck pedal error, a smooth
-drift of the time gap and video-style measurement noise (noisy positions, speeds and headways
-differenced from them), each at "large" (20 of 20), and video-style noise at "small", 3-10 mm
-(20 of 20). Two mechanisms at once are left to the study: no pair is named right 20 times in 20.
+before it ran; reports/criticism/detection.md) named right in 20 of 20 replications at the
+current library (c78f5096e191, whose fits draw each vehicle's key from its id): null data (said
+none 20 of 20); an Ornstein-Uhlenbeck pedal error, a smooth drift of the time gap and video-style
+measurement noise (noisy positions, speeds and headways differenced from them), each at "large",
+and video-style noise at "small", 3-10 mm, each 20 of 20. Two mechanisms at once are left to the
+study: no pair is named right 20 times in 20.
 Each test runs one round (a one-mechanism verdict is the first round's; the loop's later rounds
 cost CI time and are measured in the study). One seed per cell, fixed before any of these tests
 ran, outside the study's seed range (not chosen by outcome).
