@@ -13,6 +13,7 @@ from bayesdrive.criticism.checks import (
     change_point_check,
     covariate_checks,
     leader_cross_correlation_check,
+    noise_speed_by_vehicle_check,
     vehicle_autocorrelation_checks,
 )
 from bayesdrive.criticism.gain import elpd_gain, holm, rmse_change
@@ -144,6 +145,34 @@ def test_variance_against_speed():
     checks = {c.name: c for c in covariate_checks(residuals_from(z), series_with(0 * z, v=speed))}
     assert checks["variance_vs_speed"].summary["p_positive"] < 1e-12
     assert checks["mean_vs_speed"].p_value > 1e-3
+
+
+def test_noise_growing_with_speed_within_vehicles_screens_and_levels_do_not_matter():
+    """Each vehicle drives in its own narrow speed band (5-25 m/s apart) and has its own noise
+    level, unrelated to its speed (numpy, seed 11). Within a vehicle the sd grows with speed
+    (1 + 0.3 (v - band centre)): the per-vehicle rank check screens it in (p < 1e-4), while the
+    pooled variance-vs-speed correlation, mixing the levels, does not see it (p_positive > 0.05).
+    White residuals (the negative control) and sds falling with speed do not screen in
+    (p > 0.05); scaling one vehicle's residuals changes nothing (ranks)."""
+    rng = np.random.default_rng(11)
+    centre = rng.permutation(np.linspace(5, 25, VEHICLES))[:, None]
+    speed = centre + rng.uniform(-2, 2, size=(VEHICLES, STEPS))
+    level = np.linspace(3.0, 0.5, VEHICLES)[np.argsort(np.argsort(centre[:, 0]))][:, None]
+    white = rng.normal(size=(VEHICLES, STEPS))
+    growing = white * level * (1 + 0.3 * (speed - centre))
+    series = series_with(0 * white, v=speed)
+    found = noise_speed_by_vehicle_check(residuals_from(growing), series)
+    assert found.screening and found.points_to == ("speed_dependent_noise",)
+    assert found.p_value < 1e-4 and found.summary["vehicles"] == VEHICLES
+    pooled = {c.name: c for c in covariate_checks(residuals_from(growing), series)}
+    assert pooled["variance_vs_speed"].summary["p_positive"] > 0.05
+    assert noise_speed_by_vehicle_check(residuals_from(white * level), series).p_value > 0.05
+    falling = white * level * (1 - 0.3 * (speed - centre))
+    assert noise_speed_by_vehicle_check(residuals_from(falling), series).p_value > 0.05
+    rescaled = growing.copy()
+    rescaled[0] *= 5.0
+    again = noise_speed_by_vehicle_check(residuals_from(rescaled), series)
+    assert again.statistic == pytest.approx(found.statistic)
 
 
 def test_change_points():

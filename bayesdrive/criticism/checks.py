@@ -40,6 +40,8 @@ The checks (``Check.name``):
 
 * ``lag1_by_vehicle``, ``long_lag_by_vehicle``: the autocorrelations above per vehicle, tested
   across vehicles (negative lag 1: measurement noise; positive long lags: drifting parameters).
+* ``noise_vs_speed_by_vehicle``: per vehicle, the rank correlation of |z| with speed, tested
+  across vehicles (speed-dependent noise; the score test above misses it, see the check).
 
 Pooled correlation p-values use the white-noise standard error :math:`1/\sqrt{n}` (Bartlett); with
 several lags the smallest is Bonferroni-corrected over lags. Pooled over thousands of
@@ -79,6 +81,7 @@ __all__ = [
     "covariate_checks",
     "leader_cross_correlation_check",
     "multistep_check",
+    "noise_speed_by_vehicle_check",
     "predictive_residuals",
     "run_checks",
     "score_check",
@@ -89,6 +92,7 @@ ACF_LAGS = 30
 DRIFT_LAGS = (10, 30)  # the lag band whose mean autocorrelation points to drifting parameters
 PIT_BINS = 10
 COVARIATE_BINS = 8
+MIN_RANK_STEPS = 20  # scored steps a vehicle needs for its rank correlation of |z| with speed
 
 
 class Check(NamedTuple):
@@ -243,6 +247,17 @@ def autocorrelation_check(res: Residuals) -> Check:
     )
 
 
+def _t_across_vehicles(values: np.ndarray) -> tuple[float, float, float]:
+    """One-sample t statistic of per-vehicle values against 0 (N - 1 df) and its one-sided
+    p-values (positive, negative); 0 when there are fewer than 2 values or no spread."""
+    if values.size < 2 or values.std(ddof=1) == 0:
+        t = 0.0
+    else:
+        t = float(values.mean() / (values.std(ddof=1) / np.sqrt(values.size)))
+    df = max(values.size - 1, 1)
+    return t, float(stats.t.sf(t, df=df)), float(stats.t.cdf(t, df=df))
+
+
 def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
     """Per-vehicle autocorrelation of z, tested across vehicles (screening checks).
 
@@ -264,12 +279,7 @@ def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
         ("long_lag_by_vehicle", long_lag, ("drifting_parameters",), "lags 10-30"),
     ):
         values = np.asarray(values)
-        if values.size < 2 or values.std(ddof=1) == 0:
-            t = 0.0
-        else:
-            t = float(values.mean() / (values.std(ddof=1) / np.sqrt(values.size)))
-        p_positive = float(stats.t.sf(t, df=max(values.size - 1, 1)))
-        p_negative = float(stats.t.cdf(t, df=max(values.size - 1, 1)))
+        t, p_positive, p_negative = _t_across_vehicles(values)
         checks.append(
             Check(
                 name=name,
@@ -291,6 +301,43 @@ def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
             )
         )
     return checks
+
+
+def noise_speed_by_vehicle_check(res: Residuals, series: FollowerArrays) -> Check:
+    """Does the residual spread grow with speed within a vehicle? (screening check)
+
+    For each vehicle with at least :data:`MIN_RANK_STEPS` scored steps at more than one speed:
+    Spearman's rank correlation of |z| with the speed over its held-out steps; a one-sided
+    t-test across vehicles (N - 1 df). Ranks keep a few large residuals from deciding; within a
+    vehicle, so that vehicles driving at different speeds with different noise levels (which the
+    pooled ``variance_vs_speed`` mixes) do not; the noise level cancels (a level shift between
+    the fitting and the held-out window changes no rank). The score test of speed-dependent noise
+    projects out the execution-noise sd with the steps' own squared scores, which weighs the
+    fast, noisy steps most exactly where the noise grows with speed, and loses the effect.
+    """
+    values = []
+    for z, used, v in zip(res.z, res.mask, np.asarray(series.v), strict=True):
+        speeds = v[used]
+        if used.sum() < MIN_RANK_STEPS or np.ptp(speeds) == 0:
+            continue
+        values.append(stats.spearmanr(speeds, np.abs(z[used])).statistic)
+    values = np.asarray(values, np.float64)
+    values = values[np.isfinite(values)]  # |z| of one value throughout has no rank correlation
+    t, p_positive, _ = _t_across_vehicles(values)
+    return Check(
+        name="noise_vs_speed_by_vehicle",
+        title="Per-vehicle rank correlation of |z| with speed, across vehicles",
+        statistic=float(values.mean()) if values.size else 0.0,
+        p_value=p_positive,
+        points_to=("speed_dependent_noise",),
+        summary={
+            "statistic": "mean over vehicles of Spearman's correlation of |z| with speed",
+            "t": t,
+            "vehicles": int(values.size),
+        },
+        figure={"values": values},
+        screening=True,
+    )
 
 
 def leader_cross_correlation_check(res: Residuals, series: FollowerArrays) -> tuple[Check, Check]:
@@ -579,6 +626,7 @@ def run_checks(
         autocorrelation_check(res),
         *vehicle_autocorrelation_checks(res),
         *leader_cross_correlation_check(res, series),
+        noise_speed_by_vehicle_check(res, series),
         *covariate_checks(res, series),
         change_point_check(res),
         *(
