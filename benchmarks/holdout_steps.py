@@ -12,7 +12,8 @@ per-vehicle smc posteriors (the populations' drivers, and the pooled NGSIM row) 
 models (each training label's extended posterior names the criticism's choice).
 
 Resumable: fits and each data set's results are kept in ``--out`` and reused (both steps share
-the per-vehicle IDM fits). Writes ``holdout_evaluation.json``, ``holdout_calibration.json`` and
+the per-vehicle IDM fits); ``--sets`` runs some data sets only (the long ACC platoon's fits take
+the longest). Writes ``holdout_evaluation.json``, ``holdout_calibration.json`` and
 ``holdout.html`` (the report's own held-out and calibration sections) to ``--report``.
 
     PYTHONPATH=. python benchmarks/holdout_steps.py --out results-holdout
@@ -66,16 +67,20 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="fits and per-set results")
     parser.add_argument("--models", type=Path, default=ROOT / "models")
     parser.add_argument("--report", type=Path, default=ROOT / "reports" / "holdout")
+    parser.add_argument(
+        "--sets", default=None, help="comma-separated held-out data sets (default: every one)"
+    )
     args = parser.parse_args()
     final_models = committed_final_models(args.models)
     print(f"final models chosen on the training data: {final_models}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     load = functools.cache(registry.load_holdout)
+    names = None if args.sets is None else args.sets.split(",")
     calibration = calibration_step(
-        args.out / "calibration", final_models, FULL, False, load, evaluation_fits=args.out
+        args.out / "calibration", final_models, FULL, False, load, args.out, names
     )
     calibration["final_models"] = final_models
-    evaluation = holdout_step(args.out, committed_smc_fits(args.models), FULL, False, load)
+    evaluation = holdout_step(args.out, committed_smc_fits(args.models), FULL, False, load, names)
     args.report.mkdir(parents=True, exist_ok=True)
     for name, result in (("evaluation", evaluation), ("calibration", calibration)):
         path = args.report / f"holdout_{name}.json"

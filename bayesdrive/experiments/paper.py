@@ -23,7 +23,7 @@ import functools
 import json
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -591,15 +591,17 @@ def calibration_step(
     force: bool,
     load: Callable[[str], Trajectories],
     evaluation_fits: Path,
+    names: Sequence[str] | None = None,
 ) -> dict:
     """Calibration on the held-out windows (:func:`~bayesdrive.experiments.holdout.calibrate_data_set`)
-    of every held-out data set (read by ``load``), for the IDM and the final model the criticism
-    chose on the training data set of the same kind (``final_models``, by highway label), each set
-    cached in ``out``. The IDM's fits are the evaluation's, kept in ``evaluation_fits``."""
+    of every held-out data set (read by ``load``; ``names``: only these), for the IDM and the final
+    model the criticism chose on the training data set of the same kind (``final_models``, by
+    highway label), each set cached in ``out``. The IDM's fits are the evaluation's, kept in
+    ``evaluation_fits``."""
     out.mkdir(parents=True, exist_ok=True)
     config = _holdout_config(settings)
     rows = {}
-    for name in holdout_names(settings):
+    for name in holdout_names(settings) if names is None else names:
         training = TRAINING_DATA[name]
         final = next(
             (m for label, m in final_models.items() if label.split(":")[0] == training), None
@@ -635,10 +637,12 @@ def holdout_step(
     settings: Settings,
     force: bool,
     load: Callable[[str], Trajectories],
+    names: Sequence[str] | None = None,
 ) -> dict:
     """Generalisation to new drivers and new roads: the protocol of
-    :mod:`bayesdrive.experiments.holdout` on every held-out data set (read by ``load``), each
-    set's result cached in ``out`` beside the population fits and the per-vehicle fits.
+    :mod:`bayesdrive.experiments.holdout` on every held-out data set (read by ``load``; ``names``:
+    only these), each set's result cached in ``out`` beside the population fits and the
+    per-vehicle fits.
     ``smc_trees`` are the highway experiment's per-vehicle fits: their vehicles are the
     populations' training drivers, and the NGSIM I-80 one gives the earlier pooled row. Nothing is
     tuned here: the held-out fits use the fixed defaults."""
@@ -654,7 +658,7 @@ def holdout_step(
             save_result(population, path)
         populations[training] = path
     rows = {}
-    for name in holdout_names(settings):
+    for name in holdout_names(settings) if names is None else names:
         try:
             traj = load(name)
         except DataError as error:  # a folder this reader cannot read is reported
