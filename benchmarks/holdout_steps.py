@@ -70,6 +70,9 @@ def main() -> None:
     parser.add_argument(
         "--sets", default=None, help="comma-separated held-out data sets (default: every one)"
     )
+    parser.add_argument(
+        "--calibration-only", action="store_true", help="the calibration step alone"
+    )
     args = parser.parse_args()
     final_models = committed_final_models(args.models)
     print(f"final models chosen on the training data: {final_models}", flush=True)
@@ -80,19 +83,24 @@ def main() -> None:
         args.out / "calibration", final_models, FULL, False, load, args.out, names
     )
     calibration["final_models"] = final_models
-    evaluation = holdout_step(args.out, committed_smc_fits(args.models), FULL, False, load, names)
+    results = {"calibration": calibration}
+    if not args.calibration_only:
+        fits = committed_smc_fits(args.models)
+        results["evaluation"] = holdout_step(args.out, fits, FULL, False, load, names)
     args.report.mkdir(parents=True, exist_ok=True)
-    for name, result in (("evaluation", evaluation), ("calibration", calibration)):
+    for name, result in results.items():
         path = args.report / f"holdout_{name}.json"
         write_text_atomic(path, json.dumps(result, indent=2) + "\n")
     report = Report(
         "Held-out data sets: new drivers, new roads",
         "The held-out steps of bayesdrive reproduce (full settings), run alone by "
         "benchmarks/holdout_steps.py on the committed full run's training results "
-        "(models/); their results holdout_evaluation.json and holdout_calibration.json are "
+        "(models/); their results (holdout_evaluation.json, holdout_calibration.json) are "
         "beside this file.",
     )
-    holdout_section(report.section("Generalisation to held-out data sets"), evaluation)
+    if "evaluation" in results:
+        section = report.section("Generalisation to held-out data sets")
+        holdout_section(section, results["evaluation"])
     calibration_section(report.section("Calibration on held-out windows"), calibration, args.report)
     report.write(args.report / "holdout.html")
     print(f"wrote {args.report / 'holdout.html'}", flush=True)
