@@ -28,15 +28,14 @@ from pathlib import Path
 
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
-from bayesdrive.drivers.idm import IDM
 from bayesdrive.experiments.paper import FULL, calibration_step, holdout_step
 from bayesdrive.inference.output import load_result, metadata
 from bayesdrive.reports.html import Report
 from bayesdrive.reports.paper_report import calibration_section, holdout_section
 
 ROOT = Path(__file__).resolve().parents[1]
-# The highway labels of the full run and the stems of their files in models/; the criticism
-# ran on the first two (the ACC contrast recordings are not criticised).
+# The highway labels of the full run and the stems of their files in models/ (the ACC contrast
+# recordings were not criticised: they have no extended model).
 TRAINING_LABELS = {
     "ngsim_i80_chains": "ngsim_i80_chains",
     "openacc_vicolungo:human": "openacc_vicolungo_human",
@@ -47,11 +46,10 @@ TRAINING_LABELS = {
 def committed_final_models(models: Path) -> dict[str, str]:
     """Each training label's final model: the extended model among its committed posteriors."""
     found = {}
-    for label, stem in list(TRAINING_LABELS.items())[:2]:
+    for label, stem in TRAINING_LABELS.items():
+        # "_idm_*_smc" matches the extended models' files only, not the IDM's own.
         for path in sorted(models.glob(f"{stem}_idm_*_smc.nc")):
-            name = metadata(load_result(path))["model"]
-            if name != IDM.name:
-                found[label] = name
+            found[label] = metadata(load_result(path))["model"]
     return found
 
 

@@ -9,8 +9,8 @@ current library (65ad89982e02, with the per-vehicle screen for speed-dependent n
 (said none 20 of 20); an Ornstein-Uhlenbeck pedal error, a smooth drift of the time gap and
 video-style measurement noise (noisy positions, speeds and headways differenced from them), each
 at "large", and video-style noise at "small", 3-10 mm, each 20 of 20. Speed-dependent noise of a
-power form (large) is right 17 of 20 there, so it stays out of CI. Two mechanisms at once are left to the
-study: no pair is named right 20 times in 20.
+power form (large) is right 17 of 20 there, so it stays out of CI. Two mechanisms at once are left
+to the study: no pair is named right 20 times in 20.
 Each test runs one round (a one-mechanism verdict is the first round's; the loop's later rounds
 cost CI time and are measured in the study). One seed per cell, fixed before any of these tests
 ran, outside the study's seed range (not chosen by outcome).
