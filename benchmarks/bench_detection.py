@@ -202,13 +202,14 @@ def run_one(cell: str, size: str, seed: int, workdir: Path) -> dict:
     }
 
 
-def append_row(path: Path, row: dict) -> None:
-    """Append one CSV line in one write (header first on a new file)."""
+def append_rows(path: Path, rows: list[dict], fields: list[str]) -> None:
+    """Append CSV lines in one write (header first on a new file): a crash never leaves half a
+    replication."""
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=FIELDS)
+    writer = csv.DictWriter(buffer, fieldnames=fields)
     if not path.exists():
         writer.writeheader()
-    writer.writerow(row)
+    writer.writerows(rows)
     handle = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
         os.write(handle, buffer.getvalue().encode())
@@ -442,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
                 row.update(cell=cell, size=size, seed=seed, right=0, sampler=sampler_label())
                 row.update(generator=GENERATOR, code=CODE)
                 row["verdict"] = f"error: {type(error).__name__}: {error}"[:200]
-            append_row(runs_path, row)
+            append_rows(runs_path, [row], FIELDS)
             print(f"[{i}/{len(todo)}] {row}", flush=True)
     if runs_path.exists():  # a shard stopped before its first row has nothing to report
         print(write_report(runs_path, args.out, dev=args.dev))
