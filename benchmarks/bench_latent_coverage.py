@@ -160,7 +160,9 @@ def loglik_noise(seed: int, size: str, args: argparse.Namespace, workdir: Path) 
         one = jax.tree.map(lambda a, i=index: a[i], (observations, inputs))
         steps = int(one[0].mask.sum())
         for particles in STATE_PARTICLES:
-            keys = jax.random.split(jax.random.key(seed), LOGLIK_KEYS)
+            # One key per follower and particle count: no two estimates share randomness.
+            own = jax.random.fold_in(jax.random.fold_in(jax.random.key(seed), index), particles)
+            keys = jax.random.split(own, LOGLIK_KEYS)
             sd = float(np.std(np.asarray(_estimates(keys, params, one, particles))))
             rows.append(
                 {
