@@ -39,6 +39,7 @@ size's first seed (``coverage_loglik_noise.csv``). Writes ``coverage_runs.csv`` 
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import tempfile
 import time
@@ -68,6 +69,7 @@ from bayesdrive.drivers.measurement_noise import with_measurement_noise  # noqa:
 from bayesdrive.inference import smc  # noqa: E402, F401  (in the fingerprint)
 from bayesdrive.inference.fit import fit  # noqa: E402
 from bayesdrive.inference.latent import latent_data, state_filter_loglik  # noqa: E402
+from bayesdrive.inference.latent import run as run_pmmh  # noqa: E402
 from trafficgen import generate  # noqa: E402
 from trafficgen.mechanisms import MECHANISMS  # noqa: E402
 from trafficgen.simulate import DRIVER_RANGES  # noqa: E402
@@ -87,7 +89,8 @@ TRUTH_NAMES = {
     "sigma_obs": f"{MECHANISM}.position_noise_m",
 }
 LEVELS = (0.5, 0.9)
-STATE_PARTICLES = (32, 128, 512)  # 128: the engine's default
+STATE_PARTICLES = (32, 128, 512)
+DEFAULT_STATE_PARTICLES = inspect.signature(run_pmmh).parameters["num_state_particles"].default
 LOGLIK_KEYS = 32
 CODE = library_fingerprint()  # taken once the engines are imported: the rows carry this version
 FIELDS = [
@@ -258,6 +261,11 @@ def coverage_table(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(records)
 
 
+def loglik_noise_path(runs_path: Path) -> Path:
+    """The ``--loglik-noise`` rows beside the coverage rows (study or dev)."""
+    return runs_path.with_name(runs_path.name.replace("runs", "loglik_noise"))
+
+
 def write_report(runs_path: Path, out: Path) -> str:
     runs = pd.read_csv(runs_path)
     seeds = sorted(runs["seed"].unique())
@@ -286,7 +294,7 @@ def write_report(runs_path: Path, out: Path) -> str:
             "",
         ]
     )
-    noise_path = runs_path.with_name(runs_path.name.replace("runs", "loglik_noise"))
+    noise_path = loglik_noise_path(runs_path)
     if noise_path.exists():
         noise = pd.read_csv(noise_path)
         text += "\n".join(
@@ -296,8 +304,8 @@ def write_report(runs_path: Path, out: Path) -> str:
                 "",
                 f"`--loglik-noise`: each follower of the first seed of each size, at its true "
                 f"parameters; sd over {LOGLIK_KEYS} keys, kappa = var N / T. PMMH mixes when "
-                "the sd is about 1-1.7 nats (Doucet et al. 2015); the engine's default is 128 "
-                "state particles.",
+                "the sd is about 1-1.7 nats (Doucet et al. 2015); the engine's default is "
+                f"{DEFAULT_STATE_PARTICLES} state particles.",
                 "",
                 markdown_table(noise.to_dict("records"), list(noise.columns)),
                 "",
@@ -332,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     seeds = (DEV_SEEDS if args.dev else STUDY_SEEDS)[: args.replications]
     if args.loglik_noise:
-        noise_path = runs_path.with_name(runs_path.name.replace("runs", "loglik_noise"))
+        noise_path = loglik_noise_path(runs_path)
         with tempfile.TemporaryDirectory() as tmp:
             rows = loglik_noise(seeds[0], args.size, args, Path(tmp))
         if noise_path.exists():
