@@ -66,6 +66,7 @@ from bayesdrive.data.views import follower_arrays  # noqa: E402
 from bayesdrive.drivers.base import fill_params  # noqa: E402
 from bayesdrive.drivers.idm import IDM  # noqa: E402
 from bayesdrive.drivers.measurement_noise import with_measurement_noise  # noqa: E402
+from bayesdrive.drivers.video_noise import with_video_noise  # noqa: E402
 from bayesdrive.inference import smc  # noqa: E402, F401  (in the fingerprint)
 from bayesdrive.inference.fit import fit  # noqa: E402
 from bayesdrive.inference.latent import latent_data, state_filter_loglik  # noqa: E402
@@ -78,6 +79,13 @@ STUDY_SEEDS = range(410001, 411001)
 DEV_SEEDS = range(490001, 491001)
 MECHANISM = "video_position_noise"
 NOISY_IDM = with_measurement_noise(IDM)
+VIDEO_IDM = with_video_noise(IDM)
+# Row label -> (model, engine), in the order their keys are split from the replication's seed.
+ENGINES = {
+    "pmmh": (NOISY_IDM, "pmmh"),
+    "smc": (IDM, "smc"),
+    "nuts-video": (VIDEO_IDM, "nuts"),
+}
 # trafficgen's names for the IDM's parameters, and the position noise for sigma_obs
 TRUTH_NAMES = {
     "v_des": "v0",
@@ -193,13 +201,12 @@ def _estimates(keys, params, series, particles: int):
 def replicate(seed: int, size: str, args: argparse.Namespace, workdir: Path) -> list[dict]:
     """One replication: simulate, write, read, fit by both engines, score the intervals."""
     recording, traj = recorded(seed, size, args, workdir)
-    pmmh_key, smc_key = jax.random.split(jax.random.key(seed))
-    fits = {
-        "pmmh": (pmmh_key, NOISY_IDM),
-        "smc": (smc_key, IDM),
-    }
+    # split(key, 3) begins with split(key, 2): the first two engines keep their earlier keys.
+    keys = dict(zip(ENGINES, jax.random.split(jax.random.key(seed), len(ENGINES)), strict=True))
     rows = []
-    for engine, (key, model) in fits.items():
+    for label in args.engines:
+        model, engine = ENGINES[label]
+        key = keys[label]
         started = time.perf_counter()
         tree = fit(key, traj, model=model, engine=engine, window="all", seed=seed)
         seconds = time.perf_counter() - started
@@ -224,7 +231,7 @@ def replicate(seed: int, size: str, args: argparse.Namespace, workdir: Path) -> 
                     {
                         "seed": seed,
                         "size": size,
-                        "engine": engine,
+                        "engine": label,
                         "vehicle": str(vehicle),
                         "parameter": name,
                         "truth": truth,
@@ -322,6 +329,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--followers", type=int, default=2)
     parser.add_argument("--duration", type=float, default=40.0, help="seconds per record")
     parser.add_argument("--dev", action="store_true", help="development seeds and files")
+    parser.add_argument(
+        "--engines",
+        type=lambda text: tuple(text.split(",")),
+        default=tuple(ENGINES),
+        help=f"comma-separated row labels to fit, of {', '.join(ENGINES)}",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "latent")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
     parser.add_argument(
@@ -333,6 +346,9 @@ def main(argv: list[str] | None = None) -> int:
         help="measure the filter's estimate noise on the size's first seed instead of fitting",
     )
     args = parser.parse_args(argv)
+    unknown = sorted(set(args.engines) - set(ENGINES))
+    if unknown:
+        parser.error(f"unknown engine label(s) {unknown}; known: {list(ENGINES)}")
     args.out.mkdir(parents=True, exist_ok=True)
     runs_path = args.out / ("coverage_dev_runs.csv" if args.dev else "coverage_runs.csv")
     if args.report_only:
@@ -354,8 +370,17 @@ def main(argv: list[str] | None = None) -> int:
     done = set()
     if runs_path.exists():
         previous = pd.read_csv(runs_path)
-        mine = previous[(previous["size"] == args.size) & (previous["code"] == CODE)]
-        done = set(mine["seed"])
+        mine = previous[
+            (previous["size"] == args.size)
+            & (previous["code"] == CODE)
+            & previous["engine"].isin(args.engines)
+        ]
+        # A replication is done when every engine asked for has its rows at this library.
+        done = {
+            seed
+            for seed, group in mine.groupby("seed")
+            if set(args.engines) <= set(group["engine"])
+        }
     todo = [seed for seed in seeds if seed not in done]
     print(f"{len(done)} replications done, {len(todo)} to go", flush=True)
     with tempfile.TemporaryDirectory() as tmp:

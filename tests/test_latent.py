@@ -120,12 +120,15 @@ def simulate_linear(num_steps: int) -> dict[str, np.ndarray]:
     return {"y": y, "v": v, "lead_rear": lead_rear, "lead_v": lead_v}
 
 
-def kalman_loglik(series: dict[str, np.ndarray], mask: np.ndarray) -> float:
+def kalman_loglik(
+    series: dict[str, np.ndarray], mask: np.ndarray, initial_speed_sd: float = 0.0
+) -> float:
     """Exact log p(readings | first reading of each segment) by a Kalman filter on (x, v).
 
     x' = x + v dt + a dt^2/2, v' = v + a dt, a = k1 (L - x - d0) + k2 (lead_v - v) + sigma eps:
     s' = F s + c + g sigma eps with g = (dt^2/2, dt). A segment starts at t = 0 and after every
-    masked step, from x ~ N(y_t, sigma_obs^2) and v = the recorded speed (the model's initial state).
+    masked step, from x ~ N(y_t, sigma_obs^2) and v ~ N(the recorded speed, initial_speed_sd^2)
+    (0: the latent engine's initial state).
     """
     k1, k2, d0, sigma, sigma_obs = (TRUTH[k] for k in ("k1", "k2", "d0", "sigma", "sigma_obs"))
     y, v, lead_rear, lead_v = (series[k] for k in ("y", "v", "lead_rear", "lead_v"))
@@ -135,7 +138,7 @@ def kalman_loglik(series: dict[str, np.ndarray], mask: np.ndarray) -> float:
     loglik = 0.0
     for t in range(len(mask)):
         if t == 0 or not mask[t - 1]:
-            mean, cov = np.array([y[t], v[t]]), np.diag([sigma_obs**2, 0.0])
+            mean, cov = np.array([y[t], v[t]]), np.diag([sigma_obs**2, initial_speed_sd**2])
         if not mask[t]:
             continue
         mean = transition @ mean + g * (k1 * (lead_rear[t] - d0) + k2 * lead_v[t])
