@@ -1,20 +1,22 @@
 """Coverage of the latent-state engine on video-noise data bayesdrive did not make.
 
-Issue #16, Deliver 3: with noisy positions and speeds derived from them, the latent-state engine
-(``pmmh`` on the IDM with measurement noise) should recover the driver parameters. Per
-replication:
+Issue #16, Deliver 3: with noisy positions and speeds derived from them, a latent-state fit
+should recover the driver parameters. Per replication:
 
 1. ``trafficgen`` (which imports nothing from bayesdrive: its own sub-stepped IDM) simulates one
    platoon of ``--followers`` followers behind a scripted head, ``--duration`` s, no cut-ins, with
    its ``video_position_noise`` mechanism at size ``--size``: white noise on every recorded
    position, speeds and headways derived from the noisy positions by differencing. It writes the
    NGSIM file; bayesdrive reads it as a user would (``read(..., format="ngsim_raw")``).
-2. Every follower is fitted on every usable step (``window="all"``) by two engines, with their
-   documented defaults and one key per replication:
-   - ``pmmh``: the IDM with measurement noise (``with_measurement_noise(IDM)``), all six IDM
-     parameters and ``sigma_obs``;
+2. Every follower is fitted on every usable step (``window="all"``) by the engines of
+   ``--engines`` (row labels, default all three), with their documented defaults and one key per
+   replication and engine:
+   - ``pmmh``: the latent-state engine on the IDM with measurement noise
+     (``with_measurement_noise(IDM)``), all six IDM parameters and ``sigma_obs``;
    - ``smc``: the exact-state IDM, which takes the derived readings as true states: the negative
-     control, expected to miss ``sigma`` (it must absorb the position noise as acceleration noise).
+     control, expected to miss ``sigma`` (it must absorb the position noise as acceleration noise);
+   - ``nuts-video``: ``nuts`` on ``idm+video_noise`` (``with_video_noise(IDM)``: the same seven
+     parameters, the likelihood from an extended Kalman filter over the latent offset and speed).
 3. For each follower and parameter: is the generator's truth (``Recording.params``; the position
    noise sd for ``sigma_obs``) inside the central 50% and 90% posterior intervals?
 
@@ -27,8 +29,9 @@ itself differenced from noisy positions.
 
 Seeds: replication r uses ``STUDY_SEEDS.start + r - 1`` (410001, ...), fixed before the study ran
 and never used while developing this script; ``--dev`` uses ``DEV_SEEDS`` (490001, ...). Rows are
-appended to ``coverage_runs.csv`` (resumable: finished seeds are skipped; rows record the
-library fingerprint, bit-reproducible within one installation); the table is redrawn from them.
+appended to ``coverage_runs.csv`` (resumable: a seed whose rows for every engine asked for carry
+this library's fingerprint is skipped; rows are bit-reproducible within one installation); the
+table is redrawn from them.
 
 Run: ``python benchmarks/bench_latent_coverage.py --size small`` (and ``--size large``).
 ``--loglik-noise`` instead measures the state filter's log-likelihood noise at the truth on the
@@ -287,8 +290,9 @@ def write_report(runs_path: Path, out: Path) -> str:
             f"(library {codes}; seeds {seeds[0]}-{seeds[-1]}, {len(seeds)} replications, fixed "
             "before the run). Protocol in the script's docstring: trafficgen's video position "
             "noise (speeds and headways differenced from noisy positions), every follower fitted "
-            "on all its usable steps by `pmmh` (IDM with measurement noise) and by `smc` (exact-"
-            "state IDM, the negative control), engine defaults; a row counts followers whose "
+            "on all its usable steps by `pmmh` (IDM with measurement noise), by `smc` (exact-"
+            "state IDM, the negative control) and by `nuts` on `idm+video_noise` (`nuts-video`: "
+            "the Kalman-filter likelihood), engine defaults; a row counts followers whose "
             "true parameter lies inside the central 50% / 90% posterior interval. Wilson 95% "
             "intervals treat followers as independent (those of one replication share a head "
             "and a key).",
