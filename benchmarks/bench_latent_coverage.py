@@ -52,6 +52,7 @@ from pathlib import Path
 import arviz as az
 import jax
 import jax.numpy as jnp
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 from rich.progress import track
@@ -63,7 +64,7 @@ if str(ROOT) not in sys.path:
 from bench_detection import append_rows, library_fingerprint, wilson  # noqa: E402
 from bench_latent import markdown_table  # noqa: E402
 
-from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
+from bayesdrive.data.atomic import write_atomic, write_text_atomic  # noqa: E402
 from bayesdrive.data.readers import read  # noqa: E402
 from bayesdrive.data.views import follower_arrays  # noqa: E402
 from bayesdrive.drivers.base import fill_params  # noqa: E402
@@ -271,6 +272,50 @@ def coverage_table(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(records)
 
 
+def recovery_figure(runs: pd.DataFrame, path: Path) -> None:
+    """Posterior median against the generator's truth, one panel per parameter, one colour per
+    engine and a marker per size: points on the diagonal are recovered parameters."""
+    names = list(dict.fromkeys(runs["parameter"]))
+    columns = 4
+    rows_of_panels = -(-len(names) // columns)
+    fig, axes = plt.subplots(
+        rows_of_panels, columns, figsize=(3.2 * columns, 3.0 * rows_of_panels), squeeze=False
+    )
+    markers = {"small": "o", "large": "^"}
+    for axis, name in zip(axes.flat, names, strict=False):
+        rows = runs[runs["parameter"] == name]
+        for (engine, size), group in rows.groupby(["engine", "size"], sort=False):
+            axis.scatter(
+                group["truth"],
+                group["median"],
+                s=12,
+                marker=markers.get(size, "o"),
+                color=f"C{list(ENGINES).index(engine)}",
+                alpha=0.7,
+                label=f"{engine} ({size})",
+            )
+        low = min(rows["truth"].min(), rows["median"].min())
+        high = max(rows["truth"].max(), rows["median"].max())
+        axis.plot([low, high], [low, high], color="0.5", lw=0.8)
+        if name == "sigma_obs":
+            axis.set_xscale("log")
+            axis.set_yscale("log")
+        axis.set_title(name)
+        axis.set_xlabel("truth")
+        axis.set_ylabel("posterior median")
+    handles = {}
+    for axis in axes.flat[: len(names)]:
+        for handle, label in zip(*axis.get_legend_handles_labels(), strict=True):
+            handles.setdefault(label, handle)
+    legend_axis = axes.flat[len(names)] if len(names) < axes.size else axes.flat[-1]
+    legend_axis.legend(handles.values(), handles.keys(), loc="center", fontsize=8)
+    for axis in axes.flat[len(names) :]:
+        axis.axis("off")
+    fig.tight_layout()
+    write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    plt.close(fig)
+
+
 def loglik_noise_path(runs_path: Path) -> Path:
     """The ``--loglik-noise`` rows beside the coverage rows (study or dev)."""
     return runs_path.with_name(runs_path.name.replace("runs", "loglik_noise"))
@@ -322,6 +367,8 @@ def write_report(runs_path: Path, out: Path) -> str:
                 "",
             ]
         )
+    recovery_figure(runs, out / "coverage_recovery.png")
+    text += "\n![posterior median against truth](coverage_recovery.png)\n"
     write_text_atomic(out / "coverage.md", text)
     return text
 
