@@ -23,7 +23,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_latent import LINEAR, NUM_STEPS, TRUTH, follower_arrays_of, kalman_loglik
+from test_latent import (
+    LINEAR,
+    NUM_STEPS,
+    TRUTH,
+    follower_arrays_of,
+    kalman_loglik,
+    simulate_linear,
+)
 
 from bayesdrive.data.readers import read
 from bayesdrive.data.views import follower_arrays
@@ -43,8 +50,6 @@ GRID = np.exp(np.linspace(np.log(0.2), np.log(5.0), 41))  # multiples of the tru
 
 @pytest.fixture(scope="module")
 def linear_series():
-    from test_latent import simulate_linear
-
     return simulate_linear(NUM_STEPS)
 
 

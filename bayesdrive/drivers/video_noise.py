@@ -22,7 +22,7 @@ mean acceleration at the gap the latent ego sees (the recorded gap :math:`g_t` s
     v_{t+1} = v_t + a_t\Delta t,
 
 and the reading is :math:`0 = e_{t+1} + \varepsilon_{t+1}`. The filter linearises :math:`\mu` in
-:math:`(e, v)` around the filtered mean (its exact Jacobian by ``jax.jacfwd``); every other part is
+:math:`(e, v)` around the filtered mean (its exact Jacobian by ``jax.linearize``); every other part is
 linear and Gaussian, so the one-step predictive density of each reading is Gaussian with the
 innovation variance. Its error is second order in the state's uncertainty (millimetres to
 centimetres and centimetres per second here, against the metres over which the rule bends). A
@@ -83,8 +83,9 @@ def _kalman_filter(base: DriverModel, params, steps: Any) -> Array:
         mean = jnp.where(starts, jnp.stack([jnp.zeros_like(v), v]), mean)
         cov = jnp.where(starts, jnp.diag(jnp.stack([reading_var, INITIAL_SPEED_SD**2])), cov)
 
-        acceleration = rule(mean, inputs)
-        slope = jax.jacfwd(rule)(mean, inputs)
+        # One evaluation of the rule gives its value and, by two pushforwards, its Jacobian.
+        acceleration, pushforward = jax.linearize(lambda state: rule(state, inputs), mean)
+        slope = jax.vmap(pushforward)(jnp.eye(2, dtype=mean.dtype))
         transition = kinematics + jnp.outer(noise_loading, slope)
         predicted = kinematics @ mean + noise_loading * acceleration - jnp.stack([dx, 0.0])
         predicted_cov = transition @ cov @ transition.T + process_cov
