@@ -9,6 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
+from bayesdrive.data import registry
 
 SECTIONS = (
     "Highway experiment",
@@ -37,12 +38,12 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
     for section in SECTIONS:
         assert html.escape(section) in page
     assert page.count("data:image/png;base64,") >= 6
-    # The quick run evaluates one held-out set per training data set and names the others.
+    # The quick run evaluates one held-out set and criticises one data set, and names the others.
     holdout = json.loads((out / "holdout_evaluation.json").read_text())
-    assert holdout["left_out_by_settings"] and set(holdout["left_out_by_settings"]).isdisjoint(
-        holdout["data_sets"]
-    )
-    for name in holdout["left_out_by_settings"]:
+    assert list(holdout["data_sets"]) == ["ngsim_i80_pairs_a"]
+    assert set(holdout["left_out_by_settings"]) == set(registry.HOLDOUT) - {"ngsim_i80_pairs_a"}
+    assert not (out / "criticism" / "openacc_vicolungo_human").exists()
+    for name in [*holdout["left_out_by_settings"], "openacc_vicolungo:human"]:
         assert name in page
 
     highway = json.loads((out / "highway" / "ngsim_i80_chains" / "evaluation.json").read_text())

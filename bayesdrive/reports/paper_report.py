@@ -228,9 +228,8 @@ def holdout_section(section: Section, holdout: dict[str, Any]) -> None:
     )
     if holdout.get("left_out_by_settings"):
         section.note(
-            f"Not evaluated in this run, whose settings take the first "
-            f"{holdout['sets_per_training_data']} held-out data set(s) per training data set: "
-            f"{', '.join(holdout['left_out_by_settings'])}."
+            f"Not evaluated in this run, whose settings take only "
+            f"{', '.join(holdout['data_sets'])}: {', '.join(holdout['left_out_by_settings'])}."
         )
     for name, entry in holdout["data_sets"].items():
         if "error" in entry:
@@ -536,6 +535,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "episodes are not criticised: the criticism reads car-following series, and the "
         "Cooperative IDM's merge scene is not among them."
     )
+    if results.get("criticism_left_out_by_settings"):
+        criticism.note(
+            "Not criticised in this run, whose settings criticise only "
+            f"{', '.join(results['criticism'])}: "
+            f"{', '.join(results['criticism_left_out_by_settings'])}."
+        )
     for label, found in results.get("criticism", {}).items():
         artefact = found.get("verdict_is_possible_processing_artefact")
         sampler = found["settings"]
