@@ -165,7 +165,7 @@ def plot_pit_histograms(data_sets: dict[str, Any], path: Path) -> Path:
     horizons = sorted(
         {h for e in shown.values() for m in e["models"].values() for h in m["horizons"]}, key=float
     )
-    fig = Figure(figsize=(4.2 * len(horizons), 2.2 * len(shown)), layout="tight")
+    fig = Figure(figsize=(4.2 * len(horizons), 2.2 * len(shown) + 0.6), layout="constrained")
     axes = np.atleast_2d(fig.subplots(len(shown), len(horizons), squeeze=False))
     for row, (name, entry) in enumerate(shown.items()):
         for col, horizon in enumerate(horizons):
@@ -181,7 +181,16 @@ def plot_pit_histograms(data_sets: dict[str, Any], path: Path) -> Path:
             ax.axhline(1.0, color="grey", lw=0.8, ls="--")
             ax.set_title(f"{name}, {horizon} s ahead", fontsize=9)
             ax.set(xlabel="PIT of the observed position", ylabel="density")
-    axes[0, 0].legend(fontsize=LEGEND_FONTSIZE, title="model")
+    # Below the panels: inside one it hides the histogram's bars at its edges.
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(
+        handles,
+        labels,
+        loc="outside lower center",
+        ncols=len(labels),
+        fontsize=LEGEND_FONTSIZE,
+        title="model",
+    )
     return _save(fig, path)
 
 
