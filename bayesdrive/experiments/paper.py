@@ -111,7 +111,7 @@ CLIP_PAIRS = 3
 FINAL = "final"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Settings:
     """Sizes of one run; ``quick`` keeps every step but shrinks it to run in minutes."""
 
@@ -136,24 +136,38 @@ class Settings:
     criticised: tuple[str, ...] | None = None
 
 
-FULL = Settings("full", 1024, 1024, 3, 100, None, 20, 30, 10, 8, 128, 32, 120.0)
+FULL = Settings(
+    name="full",
+    smc_particles=1024,
+    pf_particles=1024,
+    pf_epochs=3,
+    rollouts=100,
+    max_scenarios=None,
+    generated_scenes=20,
+    holdout_max_scenarios=30,
+    prior_sensitivity_vehicles=10,
+    criticism_scenes=8,
+    criticism_particles=128,
+    criticism_rollouts=32,
+    criticism_seconds=120.0,
+)
 # The quick run criticises NGSIM I-80 alone and evaluates one held-out set, the first NGSIM one:
 # every step runs, but the long series (OpenACC recordings, the ACC platoon's 1400 s fitting
 # windows) are left to the full run, which takes every one.
 QUICK = Settings(
-    "quick",
-    128,
-    128,
-    1,
-    6,
-    2,
-    2,
-    1,
-    2,
-    1,
-    64,
-    4,
-    25.0,
+    name="quick",
+    smc_particles=128,
+    pf_particles=128,
+    pf_epochs=1,
+    rollouts=6,
+    max_scenarios=2,
+    generated_scenes=2,
+    holdout_max_scenarios=1,
+    prior_sensitivity_vehicles=2,
+    criticism_scenes=1,
+    criticism_particles=64,
+    criticism_rollouts=4,
+    criticism_seconds=25.0,
     holdout_sets=("ngsim_i80_pairs_a",),
     criticism_rounds=1,
     criticised=("ngsim_i80_chains",),
