@@ -131,6 +131,24 @@ class SMCConfig(NamedTuple):
     sequential: bool = False
 
 
+def _score_lengths(num_steps: int) -> list[int]:
+    """The lengths SCORE_BLOCK * 2^k, up to the first that covers ``num_steps``."""
+    buckets = max(1, math.ceil(num_steps / SCORE_BLOCK)).bit_length()
+    if 2 ** (buckets - 1) * SCORE_BLOCK < num_steps:
+        buckets += 1
+    return [SCORE_BLOCK * 2**k for k in range(buckets)]
+
+
+def _lengths_taken(mask: np.ndarray) -> tuple[int, ...]:
+    """The score lengths the vehicles of ``mask`` (vehicle, step) take, each the shortest that
+    covers its last usable step. Only these become branches of the program: every branch is a
+    copy of the likelihood, most of the program's size and compile time, and a fit of a few
+    vehicles takes one or two of the five lengths of a long series."""
+    lengths = np.asarray(_score_lengths(mask.shape[1]))
+    last = np.max(np.where(mask > 0, np.arange(mask.shape[1]), 0), axis=1)
+    return tuple(sorted({int(n) for n in lengths[np.searchsorted(lengths, last, side="right")]}))
+
+
 class _Particles(NamedTuple):
     theta: Array  # (N, d)
     log_weight: Array  # (N,) unnormalised
@@ -170,7 +188,7 @@ def _smc_vehicle(
     prior: Any,
     width: Array,
     config: SMCConfig,
-    length_buckets: bool,
+    score_lengths: tuple[int, ...],
 ) -> _VehicleOutput:
     """Tempering, closing moves and (with ``config.sequential``) the sequential pass for one
     vehicle's (T,) series."""
@@ -195,12 +213,10 @@ def _smc_vehicle(
     # of the padded length. Tempering and closing moves score the whole series in one call on the
     # shortest of the lengths SCORE_BLOCK * 2^k that covers the vehicle's last usable step: a loop
     # over blocks ran several times slower on CPU, and a length chosen by the vehicle alone keeps
-    # its draws independent of how far its chunk is padded. Under ``vmap`` (vehicle batches) a
-    # branch on the length would run every branch, so there the padded series is scored whole.
-    buckets = max(1, math.ceil(num_steps / SCORE_BLOCK)).bit_length()
-    if 2 ** (buckets - 1) * SCORE_BLOCK < num_steps:
-        buckets += 1
-    lengths = [SCORE_BLOCK * 2**k for k in range(buckets)]
+    # its draws independent of how far its chunk is padded. ``score_lengths`` are the lengths the
+    # fit's vehicles take (:func:`_lengths_taken`). Under ``vmap`` (vehicle batches) a branch on
+    # the length would run every branch, so there (no lengths) the padded series is scored whole.
+    lengths = _score_lengths(num_steps)
     # Only the step axis is padded (merge scenes carry a trailing merge-slot axis).
     padded = jax.tree.map(
         lambda a: jnp.pad(a, [(0, lengths[-1] - num_steps)] + [(0, 0)] * (a.ndim - 1), mode="edge"),
@@ -227,9 +243,10 @@ def _smc_vehicle(
         return jax.vmap(lambda th: series_loglik(model, names, fixed, th, first).sum())(particles)
 
     last_live = jnp.max(jnp.where(series.mask > 0, step_index, 0))
-    if length_buckets:
-        shortest = jnp.searchsorted(jnp.asarray(lengths), last_live, side="right")
-        branches = [functools.partial(log_lik_first, length) for length in lengths]
+    if score_lengths:
+        # The vehicle's own length is among them, so the first one past its last step is it.
+        shortest = jnp.searchsorted(jnp.asarray(score_lengths), last_live, side="right")
+        branches = [functools.partial(log_lik_first, length) for length in score_lengths]
 
         def log_lik_whole(particles: Array) -> Array:
             return jax.lax.switch(shortest, branches, particles)
@@ -451,6 +468,7 @@ def run(
         independent_df=int(independent_df),
         sequential=sequential,
     )
+    score_lengths = _lengths_taken(np.asarray(problem.series.mask)) if vehicle_batch <= 1 else ()
     per_vehicle = functools.partial(
         _smc_vehicle,
         model=model,
@@ -459,7 +477,7 @@ def run(
         prior=problem.prior,
         width=problem.box.upper - problem.box.lower,
         config=config,
-        length_buckets=vehicle_batch <= 1,
+        score_lengths=score_lengths,
     )
     out, compile_time, run_time = problem.run(
         per_vehicle,
@@ -468,7 +486,7 @@ def run(
         chunk=vehicle_chunk,
         batch=vehicle_batch,
         progress=progress,
-        cache_key=problem.cache_key("smc", config, static_key(problem.prior)),
+        cache_key=problem.cache_key("smc", config, static_key(problem.prior), score_lengths),
     )
     theta = np.moveaxis(out.theta, 0, 1)  # (vehicle, replicate, particle, d)
     log_lik = problem.score(theta.reshape(problem.num_vehicles, -1, theta.shape[-1]))
