@@ -29,7 +29,7 @@ BLOCK = re.compile(r"^```(\w*)\n(.*?)^```$", re.DOTALL | re.MULTILINE)
 # The first line of each block that is not run here -> what runs it instead.
 NOT_RUN = {
     "python3.12 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/bayesdrive reproduce "
-    "--out results": "the main job (26 min on 2 cores); tests/test_reproduce.py runs its quick "
+    "--out results": "the main job (full settings, far beyond a test's time); tests/test_reproduce.py runs its quick "
     "form, `reproduce --quick`, and `report` on what it wrote",
     'python3.12 -m venv .venv && .venv/bin/pip install -e ".[test]" && .venv/bin/ruff check . && '
     ".venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --dist worksteal --durations=20": "the test "
