@@ -143,7 +143,7 @@ def _lengths_taken(mask: np.ndarray) -> tuple[int, ...]:
     """The score lengths the vehicles of ``mask`` (vehicle, step) take, each the shortest that
     covers its last usable step. Only these become branches of the program: every branch is a
     copy of the likelihood, most of the program's size and compile time, and a fit of a few
-    vehicles takes one or two of the five lengths of a long series."""
+    vehicles takes one or two of the lengths a long series allows."""
     lengths = np.asarray(_score_lengths(mask.shape[1]))
     last = np.max(np.where(mask > 0, np.arange(mask.shape[1]), 0), axis=1)
     return tuple(sorted({int(n) for n in lengths[np.searchsorted(lengths, last, side="right")]}))
