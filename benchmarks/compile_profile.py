@@ -81,8 +81,9 @@ def summarize(out: Path) -> str:
                 if seconds < SMALL_S:
                     small["count"] += 1
                     small["seconds"] += seconds
+    pytest_lines = (out / "pytest.log").read_text().splitlines()
     durations = collections.Counter()
-    for line in (out / "pytest.log").read_text().splitlines():
+    for line in pytest_lines:
         found = DURATION.match(line)
         if found:
             durations[found[2]] += float(found[1])
@@ -90,7 +91,7 @@ def summarize(out: Path) -> str:
     for counts in per_test.values():
         total.update(counts)
     jax_time = {t: c["trace"] + c["lower"] + c["compile"] for t, c in per_test.items()}
-    tail = [line for line in (out / "pytest.log").read_text().splitlines() if " in " in line]
+    tail = [line for line in pytest_lines if " in " in line]
     lines = [
         "# Where the test suite's time goes",
         "",
