@@ -13,7 +13,8 @@ models (each training label's extended posterior names the criticism's choice).
 
 Resumable: fits and each data set's results are kept in ``--out`` and reused (both steps share
 the per-vehicle IDM fits); ``--sets`` runs some data sets only (the long ACC platoon's fits take
-the longest). Writes ``holdout_evaluation.json``, ``holdout_calibration.json`` and
+the longest); ``--calibration-only`` and ``--evaluation-only`` run one step. Writes
+``holdout_evaluation.json``, ``holdout_calibration.json`` and
 ``holdout.html`` (the report's own held-out and calibration sections) to ``--report``.
 
     PYTHONPATH=. python benchmarks/holdout_steps.py --out results-holdout
@@ -68,20 +69,22 @@ def main() -> None:
     parser.add_argument(
         "--sets", default=None, help="comma-separated held-out data sets (default: every one)"
     )
-    parser.add_argument(
-        "--calibration-only", action="store_true", help="the calibration step alone"
-    )
+    only = parser.add_mutually_exclusive_group()
+    only.add_argument("--calibration-only", action="store_true", help="the calibration step alone")
+    only.add_argument("--evaluation-only", action="store_true", help="the evaluation step alone")
     args = parser.parse_args()
     final_models = committed_final_models(args.models)
     print(f"final models chosen on the training data: {final_models}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     load = functools.cache(registry.load_holdout)
     names = None if args.sets is None else args.sets.split(",")
-    calibration = calibration_step(
-        args.out / "calibration", final_models, FULL, False, load, args.out, names
-    )
-    calibration["final_models"] = final_models
-    results = {"calibration": calibration}
+    results = {}
+    if not args.evaluation_only:
+        calibration = calibration_step(
+            args.out / "calibration", final_models, FULL, False, load, args.out, names
+        )
+        calibration["final_models"] = final_models
+        results["calibration"] = calibration
     if not args.calibration_only:
         fits = committed_smc_fits(args.models)
         results["evaluation"] = holdout_step(args.out, fits, FULL, False, load, names)
@@ -99,7 +102,9 @@ def main() -> None:
     if "evaluation" in results:
         section = report.section("Generalisation to held-out data sets")
         holdout_section(section, results["evaluation"])
-    calibration_section(report.section("Calibration on held-out windows"), calibration, args.report)
+    if "calibration" in results:
+        section = report.section("Calibration on held-out windows")
+        calibration_section(section, results["calibration"], args.report)
     report.write(args.report / "holdout.html")
     print(f"wrote {args.report / 'holdout.html'}", flush=True)
 
