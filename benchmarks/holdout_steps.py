@@ -96,8 +96,8 @@ def main() -> None:
         "Held-out data sets: new drivers, new roads",
         "The held-out steps of bayesdrive reproduce (full settings), run alone by "
         "benchmarks/holdout_steps.py on the committed full run's training results "
-        "(models/); their results (holdout_evaluation.json, holdout_calibration.json) are "
-        "beside this file.",
+        f"(models/); their results ({', '.join(f'holdout_{name}.json' for name in results)}) "
+        "are beside this file.",
     )
     if "evaluation" in results:
         section = report.section("Generalisation to held-out data sets")
