@@ -11,6 +11,9 @@ metadata differs only in creation time and timings; a folder left as a killed ru
 staging folder, manifest not complete, one of two chunk files) resumes, leaves the finished chunk
 untouched (same inode and modification time), fits the other and ends with the same bits.
 Negative control: seed 1 on the cluster gives other posterior draws, so the comparison can fail.
+
+The cluster runs are in the ``extended`` tier (CI leaves them out for time, reports/ci_time.md);
+the refusals of bad cluster options, which start no cluster, run in CI.
 """
 
 from __future__ import annotations
@@ -63,6 +66,7 @@ def _assert_same_bits(tree, plain) -> None:
     assert ours == theirs
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_cluster_fit_is_bit_identical_and_resumes(data_dir, tmp_path, address, plain, monkeypatch):
     # Chunk files stay after the run here, to build the interrupted folder from them.
@@ -98,6 +102,7 @@ def test_cluster_fit_is_bit_identical_and_resumes(data_dir, tmp_path, address, p
     _assert_same_bits(load_result(resumed / "result.nc"), plain)
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_other_seed_differs_and_chunks_are_removed(data_dir, tmp_path, address, plain):
     # Negative control: the comparison above can fail.
@@ -133,6 +138,7 @@ def _evaluate(data_dir, *extra: str) -> dict:
     return json.loads(result.stdout)
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_cluster_evaluation_is_bit_identical(data_dir, address):
     # Each scenario keeps its own key, so chunks of one scenario on two workers give the plain
@@ -163,6 +169,7 @@ def _criticize(data_dir, out, *extra: str) -> dict:
     return report
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_cluster_criticism_is_bit_identical(data_dir, tmp_path, address):
     # Every fit of the criticism (the base model's and the screened extension's, started from

@@ -34,6 +34,7 @@ CI_CELLS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("cell", list(CI_CELLS))
 def test_criticize_names_the_hidden_mechanism(cell, tmp_path):
     size, seed = CI_CELLS[cell]

@@ -8,7 +8,7 @@ sigma), once in this process and once in a fresh one, and requires every array o
 be bit-identical (also between a fresh process that compiles into JAX's persistent compilation
 cache and one that reads the compiled programs back from it) and every attribute equal except
 :data:`RUN_DEPENDENT_ATTRS` (creation time and measured timings). Negative control: another seed
-changes the posterior.
+changes the posterior. In the ``extended`` tier (CI leaves it out for time, reports/ci_time.md).
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ def _stable_attrs(tree: xr.DataTree) -> dict:
     return {k: v for k, v in metadata(tree).items() if k not in RUN_DEPENDENT_ATTRS}
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_a_fit_repeated_in_a_fresh_process_is_bit_identical(data_dir, tmp_path):
     for out, seed in ((tmp_path / "a", 3), (tmp_path / "other_seed", 4)):

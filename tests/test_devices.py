@@ -8,7 +8,7 @@ of one vehicle, which XLA would otherwise compile into different float operation
 posterior draws must be bit-identical on one and two devices, and vehicle a's alone as in a
 chunk. (Vectorising is a setting of its own: batches of two may differ from one at a time in the
 last bits, as ``vmap`` compiles other float operations.) Negative control: another seed changes
-the draws.
+the draws. In the ``extended`` tier (CI leaves it out for time, reports/ci_time.md).
 """
 
 from __future__ import annotations
@@ -21,6 +21,9 @@ import textwrap
 
 import jax
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.extended
 
 SEED = 7
 FIT = textwrap.dedent(

@@ -7,8 +7,10 @@ comments dropped; one process keeps JAX's compilations between commands), Python
 ``exec`` (in one namespace, as a reader types them one after another). A block the test does not run is listed in :data:`NOT_RUN` with the test that covers
 it; an entry that no longer matches a block fails, so the list cannot go stale.
 
-Slow: the CLI tour (tiny settings, but every engine compiles once) is marked ``slow``; the Python
-tour and the checks of the block list are not.
+Both tours are in the ``extended`` tier, which CI leaves out (README, reports/ci_time.md): the
+CLI tour (tiny settings, but every engine compiles once) takes minutes, and each of its commands
+has tests of its own in CI. The check of the block list, and that every Python block compiles, run
+in CI.
 """
 
 from __future__ import annotations
@@ -32,8 +34,8 @@ NOT_RUN = {
     "--out results": "the main job (full settings, far beyond a test's time); tests/test_reproduce.py runs its quick "
     "form, `reproduce --quick`, and `report` on what it wrote",
     'python3.12 -m venv .venv && .venv/bin/pip install -e ".[test]" && .venv/bin/ruff check . && '
-    ".venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --dist worksteal --durations=20": "the test "
-    "command: CI runs it (.ci/run reads it from the README)",
+    '.venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --dist worksteal -m "not extended" '
+    "--durations=20": "the test command: CI runs it (.ci/run reads it from the README)",
     "dask scheduler --port 8786                       # on one machine": "starts a Dask "
     "cluster; tests/test_cluster.py runs `fit --cluster` on a local one, through its address",
 }
@@ -94,6 +96,7 @@ def _run_shell_block(text: str) -> None:
         assert result.exit_code == 0, f"{command}\n{result.output}"
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_python_tour_runs_as_written(in_scratch):
     namespace = {"__name__": "readme"}  # shared: later blocks continue the earlier ones
@@ -102,6 +105,7 @@ def test_python_tour_runs_as_written(in_scratch):
             exec(compile(text, "README.md", "exec"), namespace)
 
 
+@pytest.mark.extended
 @pytest.mark.slow
 @pytest.mark.realdata
 def test_cli_tour_runs_as_written(in_scratch):

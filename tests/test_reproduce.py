@@ -25,6 +25,7 @@ SECTIONS = (
 )
 
 
+@pytest.mark.extended
 @pytest.mark.slow
 @pytest.mark.realdata
 def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_path, monkeypatch):
