@@ -281,3 +281,52 @@ def test_a_second_run_into_the_same_folder_is_refused_while_the_first_is_alive(t
     # Once the first run is gone (here: left without a commit), its folder resumes.
     with open_results(out, "sim", {"seed": 1}, force=False, resumable=True) as second:
         assert second.resumed
+
+
+SIGNAL_LANDS = {
+    # JAX's garbage-collector callback is where a real fit's SIGTERM was lost: Python ignores an
+    # error raised in such a callback, so the command went on and finished.
+    "in_a_gc_callback": """
+def lands():
+    def callback(phase, info):
+        if phase == "start":
+            gc.callbacks.remove(callback)  # once: later collections come on the way out
+            os.kill(os.getpid(), signal.SIGTERM)
+    gc.callbacks.append(callback)
+    gc.collect()
+""",
+    # Code that wraps every error in one of its own turned the exit into an error (exit 1).
+    "under_code_that_converts_errors": """
+def lands():
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1)
+    except BaseException as error:
+        raise RuntimeError("wrapped") from error
+""",
+}
+
+
+@pytest.mark.parametrize("where", list(SIGNAL_LANDS))
+def test_sigterm_exits_143_wherever_its_handler_runs(where, tmp_path):
+    script = (
+        "import gc, os, signal, sys, time\n"
+        "from bayesdrive.cli.common import exit_cleanly_on_sigterm, results_command\n"
+        + SIGNAL_LANDS[where]
+        + "@results_command\n"
+        "def command():\n"
+        "    exit_cleanly_on_sigterm()\n"
+        "    lands()\n"
+        "    time.sleep(2)\n"
+        "    print('went on after SIGTERM')\n"
+        "command()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert "went on after SIGTERM" not in done.stdout, done.stderr
+    assert done.returncode == 128 + signal.SIGTERM, done.stderr

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import signal
 import sys
 import threading
@@ -72,23 +73,54 @@ def results_command(command: Callable[..., None]) -> Callable[..., None]:
             token = _scope.set((stack, kwargs))
             try:
                 command(*args, **kwargs)
+            except Exception:
+                # Code that turns every error into one of its own (a C++ callback's caller) can
+                # turn the signal's exit into an error: the signal decides the exit code.
+                if _received:
+                    raise SystemExit(128 + _received[-1]) from None
+                raise
             finally:
                 _scope.reset(token)
 
     return run
 
 
+# The signal that ended this process's command, once one has come.
+_received: list[int] = []
+# Long enough for the ignoring callback to return, short beside any command.
+RESEND_AFTER_S = 0.05
+
+
 def _terminated(signum: int, frame: Any) -> None:
     # Unwinds like any error, so temporary files are removed on the way out.
+    _received.append(signum)
     raise SystemExit(128 + signum)
+
+
+def _resend_a_lost_signal(previous_hook: Callable[[Any], None], unraisable: Any) -> None:
+    """Python ignores an error raised where nothing can catch it (a garbage-collector callback,
+    such as JAX's, or a ``__del__``), so a SIGTERM whose handler ran there would be lost and the
+    command would go on: send it again, to end the command from where it is next. (Sent from
+    here at once, its handler would run here again and be ignored again; so a timer thread sends
+    it once this hook has returned, and a signal lost again is sent again.)"""
+    if isinstance(unraisable.exc_value, SystemExit) and _received:
+        resend = threading.Timer(RESEND_AFTER_S, os.kill, args=(os.getpid(), _received[-1]))
+        resend.daemon = True
+        resend.start()
+        return
+    previous_hook(unraisable)
 
 
 def exit_cleanly_on_sigterm() -> None:
     """Until the command ends, SIGTERM exits with code 143 after removing temporary files."""
     stack, _ = _scope.get()
     if threading.current_thread() is threading.main_thread():
+        _received.clear()
         previous = signal.signal(signal.SIGTERM, _terminated)
         stack.callback(signal.signal, signal.SIGTERM, previous)
+        previous_hook = sys.unraisablehook
+        sys.unraisablehook = functools.partial(_resend_a_lost_signal, previous_hook)
+        stack.callback(setattr, sys, "unraisablehook", previous_hook)
 
 
 def results_folder(
