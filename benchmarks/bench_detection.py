@@ -31,18 +31,24 @@ another generator version or sampler are neither reused nor reported. The table 
 
 **Many cores.** ``--shard K/N`` runs every N-th replication of the plan from the K-th (0-based), so
 N processes, each pinned to a core, share one study; they may append to one runs file (each row is
-one ``write`` on a file opened for appending). ``--stop-at EPOCH`` starts no replication after that
-time, so a machine lent for a fixed time ends with whole rows. Which replications a process runs
-changes no row: a replication's bits depend on its cell, size and seed alone.
+one ``write`` on a file opened for appending). ``--jobs N`` starts those N processes itself, each
+pinned to one of the cores this process may use, and writes the table when all have ended.
+``--stop-at EPOCH`` starts no replication after that time, so a machine lent for a fixed time ends
+with whole rows. Which replications a process runs changes no row: a replication's bits depend on
+its cell, size and seed alone.
+
+    PYTHONPATH=. python benchmarks/bench_detection.py --jobs 16 --stop-at $(( $(date +%s) + 400 ))
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import hashlib
 import io
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -371,6 +377,28 @@ def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
     return text
 
 
+def run_shards(args: argparse.Namespace) -> int:
+    """Run shards 0/N..N-1/N of this study as N processes, each pinned to one of this process's
+    cores (XLA's threads then stay on it); return how many ended with an error."""
+    cores = sorted(os.sched_getaffinity(0))
+    common = [sys.executable, str(Path(__file__).resolve()), "--out", str(args.out)]
+    common += ["--cells", args.cells, "--sizes", args.sizes]
+    common += ["--replications", str(args.replications)]
+    common += ["--null-replications", str(args.null_replications)]
+    common += ["--dev"] if args.dev else []
+    common += ["--stop-at", str(args.stop_at)] if args.stop_at is not None else []
+    shards = []
+    for k in range(args.jobs):
+        core = cores[k % len(cores)]
+        shards.append(
+            subprocess.Popen(
+                [*common, "--shard", f"{k}/{args.jobs}"],
+                preexec_fn=functools.partial(os.sched_setaffinity, 0, {core}),
+            )
+        )
+    return sum(shard.wait() != 0 for shard in shards)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--replications", type=int, default=20, help="per mechanism and size")
@@ -388,12 +416,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--stop-at", type=float, default=None, help="start no replication after this Unix time"
     )
+    parser.add_argument(
+        "--jobs", type=int, default=1, help="N: run shards 0/N..N-1/N at once, one per core"
+    )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     runs_path = args.out / ("detection_dev_runs.csv" if args.dev else "detection_runs.csv")
     if args.report_only:
         print(write_report(runs_path, args.out, dev=args.dev))
         return 0
+    if args.jobs > 1:
+        if args.shard != "0/1":
+            parser.error("--jobs runs every shard itself; give --shard or --jobs, not both")
+        failed = run_shards(args)
+        if runs_path.exists():
+            print(write_report(runs_path, args.out, dev=args.dev))
+        return 1 if failed else 0
     seeds = DEV_SEEDS if args.dev else STUDY_SEEDS
     unknown = [
         c for c in args.cells.split(",") for m in c.split("+") if m not in (NULL, *MECHANISMS)
