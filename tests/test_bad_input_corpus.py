@@ -95,16 +95,55 @@ def ngsim_metres_declared_as_feet(tmp_path):
     )
 
 
+def _ngsim_speeds_scaled(tmp_path, factor: float, pattern: str) -> None:
+    """The file's speeds multiplied by ``factor`` (another unit), positions kept in feet."""
+    table = ngsim_table()
+    table["v_Vel"] *= factor
+    path = write_ngsim(tmp_path, table)
+    refuses(pattern, lambda: read(path), file=path)
+
+
 @case("units")
 def ngsim_speed_column_in_metres_positions_in_feet(tmp_path):
-    table = ngsim_table()
-    table["v_Vel"] *= FT
-    path = write_ngsim(tmp_path, table)
-    refuses(
-        r"column 'Local_Y'.*positions advance 3\.28 times.*'Local_Y' and 'v_Vel'",
-        lambda: read(path),
-        file=path,
+    _ngsim_speeds_scaled(
+        tmp_path,
+        FT,
+        r"column 'Local_Y'.*positions advance 3\.28 times.*"
+        r"column 'v_Vel' looks like speeds in m/s read as ft/s",
     )
+
+
+@case("units")
+def ngsim_speed_in_kmh_read_as_feet_per_second(tmp_path):
+    _ngsim_speeds_scaled(
+        tmp_path,
+        FT * 3.6,  # the same speeds written in km/h: 10% above ft/s, below 70 m/s
+        r"row 3, column 'Local_Y': positions advance 0\.91 times as much as the speeds say.*"
+        r"column 'v_Vel' looks like speeds in km/h read as ft/s",
+    )
+
+
+@case("units")
+def columns_speed_in_mph_declared_feet(tmp_path):
+    table = vehicles_table()
+    table["pos"] /= FT
+    table["speed"] /= 0.44704  # positions in feet, speeds in mph; lengths in feet
+    table["len"] /= FT
+    path = write_vehicles(tmp_path, table)
+    refuses(
+        r"positions advance 1\.47 times.*column 'speed' looks like speeds in mph read as ft/s",
+        lambda: columns(path, units="ft"),
+    )
+
+
+@case("units")
+def ngsim_noisy_speeds_accepted_negative_control(tmp_path):
+    """Measurement noise of 2 ft/s on every speed (seed 36) is no unit error."""
+    table = ngsim_table()
+    noise = np.random.default_rng(36).normal(0.0, 2.0, len(table))
+    table["v_Vel"] = np.abs(table["v_Vel"] + noise)
+    traj = read(write_ngsim(tmp_path, table))
+    np.testing.assert_allclose(traj.tracks["v"].sort_values(), (table["v_Vel"] * FT).sort_values())
 
 
 @case("units")
@@ -391,6 +430,27 @@ def ngsim_fractional_frame(tmp_path):
     refuses(
         r"row 5, column 'Frame_ID': 103\.5 is not a whole number", lambda: read(path), file=path
     )
+
+
+@case("frames")
+def ngsim_frame_beyond_int64(tmp_path):
+    table = ngsim_table()
+    table["Frame_ID"] = table["Frame_ID"].astype(object)
+    table.loc[3, "Frame_ID"] = "99999999999999999999"  # > 2**63: int64 would wrap to -9.2e18
+    path = write_ngsim(tmp_path, table)
+    message = refuses(
+        r"row 5, column 'Frame_ID': 1e\+20 is out of range", lambda: read(path), file=path
+    )
+    assert "duplicate" not in message
+
+
+@case("frames")
+def merge_episode_number_out_of_range(tmp_path):
+    table = merge_table()
+    table["episode"] = table["episode"].astype(float)
+    table.loc[10:, "episode"] = 4e15
+    path = write_merge(tmp_path, table)
+    refuses(r"row 12, column 'episode': 4e\+15 is out of range", lambda: read(path))
 
 
 @case("frames")
@@ -681,6 +741,19 @@ def columns_shuffled_rows_sorted(tmp_path):
     traj = columns(write_vehicles(tmp_path, _shuffled(table, 5)))
     repaired(traj, r"not in time order")
     np.testing.assert_allclose(traj.vehicle("a")["x"], table.loc[table["car"] == "a", "pos"])
+
+
+@case("misleading")
+def interaction_track_far_from_every_lanelet(tmp_path):
+    table = interaction_table()
+    table.loc[table["track_id"] == 2, "y"] += 500.0  # a map of another place, for one track
+    path = write_interaction(tmp_path, table)
+    message = refuses(
+        r"row 42, columns 'x', 'y': track 2 lies 500 m from every lanelet of map\.osm",
+        lambda: read(path),
+        file=path,
+    )
+    assert "times as much" not in message
 
 
 @case("misleading")

@@ -1,6 +1,7 @@
 """The HTML report is self-contained, escapes its text and records how it was made."""
 
 import base64
+from html.parser import HTMLParser
 
 import matplotlib
 
@@ -11,6 +12,7 @@ import pytest
 
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.reports.html import Report
+from bayesdrive.reports.paper_report import holdout_section
 
 
 def test_report_embeds_figures_tables_and_provenance(tmp_path):
@@ -47,3 +49,48 @@ def test_crash_mid_write_leaves_no_half_file(tmp_path):
         write_atomic(target, half_then_crash)
     assert target.read_text() == "previous complete report"
     assert [p.name for p in tmp_path.iterdir()] == ["report.html"]
+
+
+# Vehicle ids are text from the user's file (the column-map reader keeps them as written).
+HOSTILE_IDS = ('<script>alert("id")</script>', '"><img src=x onerror=alert(1)>')
+
+
+class _Page(HTMLParser):
+    """The tags a browser would build from a page, and its text and attribute values."""
+
+    def __init__(self, page: str):
+        super().__init__(convert_charrefs=True)
+        self.tags, self.texts = [], []
+        self.feed(page)
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+        self.texts.extend(value for _, value in attrs if value)
+
+    def handle_data(self, data):
+        self.texts.append(data)
+
+
+def test_hostile_vehicle_ids_are_escaped_wherever_a_report_shows_them(tmp_path):
+    script, attribute = HOSTILE_IDS
+    png = tmp_path / "posterior.png"
+    png.write_bytes(b"image bytes")  # figure() embeds the bytes as they are
+    report = Report(f"Fit of vehicle {script}", intro=f"vehicles {script}, {attribute}")
+    section = report.section(f"vehicle {script}")
+    section.text(f"fitted {script}").note(f"skipped {attribute}").code(f"vehicle {script}")
+    per_vehicle = pd.DataFrame({"vehicle": list(HOSTILE_IDS), "v_des": [30.1, 29.5]})
+    section.table(per_vehicle, caption=f"posterior means of {script}")
+    section.table(per_vehicle.set_index("vehicle").T.reset_index(), caption="one column each")
+    section.figure(png, f"posterior of {attribute}")
+    holdout = {"protocol": "protocol", "data_sets": {"mine": {"error": f"vehicle {script}: no"}}}
+    holdout_section(report.section("Held out"), holdout)
+    command = ["bayesdrive", "fit", attribute]
+    page = _Page(report.write(tmp_path / "report.html", command=command).read_text())
+
+    assert [tag for tag, _ in page.tags if tag == "script"] == []
+    assert [attrs for _, attrs in page.tags if "onerror" in attrs] == []
+    # Each place shows the id as text: title and heading, intro, contents and section heading,
+    # text, code, caption, table cell, column header, held-out note; the other id in the intro,
+    # note, table cell, column header, figure alt text and caption, and the command.
+    assert sum(text.count(script) for text in page.texts) == 11
+    assert sum(text.count(attribute) for text in page.texts) == 7

@@ -2,10 +2,12 @@
 
 from bayesdrive.data.errors import DataError
 
-__all__ = ["FOOT_M", "LENGTH_UNITS", "to_metres_factor"]
+__all__ = ["FOOT_M", "LENGTH_UNITS", "SPEED_UNITS", "to_metres_factor"]
 
 FOOT_M = 0.3048
 LENGTH_UNITS = {"m": 1.0, "ft": FOOT_M}
+# Factors to m/s of the speed units data come in; validation names a mix-up of them.
+SPEED_UNITS = {"m/s": 1.0, "km/h": 1 / 3.6, "ft/s": FOOT_M, "mph": 0.44704}
 
 
 def to_metres_factor(units: str) -> float:

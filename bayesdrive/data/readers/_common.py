@@ -61,6 +61,10 @@ __all__ = [
 DEFAULT_LENGTH_M = 4.5
 # A time this far off the dt grid (in units of dt) is not float rounding but a wrong sampling rate.
 GRID_TOLERANCE = 1e-3
+# Frame numbers, lanes and episodes: a frame beyond this, at 10-25 Hz, has a time (frame x dt, in
+# float64) that no longer resolves its step to GRID_TOLERANCE (and int64 overflows at 9.2e18), and
+# no lane or episode is numbered so high.
+MAX_WHOLE_NUMBER = 1e12
 # An integer written by a float writer ("17.0") is the integer; leading zeros and "+" are dropped.
 _INTEGER_TEXT = re.compile(r"(?P<sign>[+-]?)0*(?P<digits>\d+)(?:\.0*)?")
 
@@ -349,6 +353,14 @@ def integer_column(frame: pd.DataFrame, column: str) -> np.ndarray:
         raise DataError(
             f"{file}, row {row}, column {column!r}: {plain(values[int(np.argmax(fractional))])} "
             "is not a whole number"
+        )
+    too_large = np.abs(values) > MAX_WHOLE_NUMBER
+    if too_large.any():
+        row, file = _first_bad(frame, too_large)
+        raise DataError(
+            f"{file}, row {row}, column {column!r}: {plain(values[int(np.argmax(too_large))])} "
+            f"is out of range: frame, lane and episode numbers stay within +-{MAX_WHOLE_NUMBER:g} "
+            "(a larger one overflows or loses the step between frames); a damaged cell?"
         )
     return values.astype(np.int64)
 

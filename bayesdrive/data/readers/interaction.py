@@ -77,6 +77,9 @@ NUMERIC = ["frame_id", "timestamp_ms", "x", "y", "vx", "vy", "psi_rad", "length"
 # Centrelines are densified to this spacing for the nearest-point search, then refined exactly.
 SEARCH_SPACING_M = 0.5
 CANDIDATES = 16
+# A sample this far from every centreline (over five lane widths) is on no lane of the map: the
+# map or its projection origin is not the tracks'.
+OFF_MAP_M = 20.0
 
 
 @dataclass(frozen=True)
@@ -287,7 +290,7 @@ def read_interaction(
         f"({len(lanelets)} lanelets, UTM projection about origin {origin}); x = front bumper; "
         "lanelet successors not followed (x restarts in each lanelet); no acceleration in format"
     )
-    parts = [_read_file(f, lanelets, notes) for f in files]
+    parts = [_read_file(f, lanelets, Path(map_path), notes) for f in files]
     tracks = pd.concat([p for p, _ in parts], ignore_index=True)
     scenes = pd.concat([s for _, s in parts], ignore_index=True)
     names = {"vehicle_id": "track_id", "t": "timestamp_ms", "x": "x/y", "v": "vx/vy"}
@@ -303,7 +306,7 @@ def read_interaction(
     )
 
 
-def _read_file(path: Path, lanelets: list[Lanelet], notes: Notes):
+def _read_file(path: Path, lanelets: list[Lanelet], map_path: Path, notes: Notes):
     frame = read_table(
         path, fmt="INTERACTION vehicle_tracks", notes=notes, text_columns=["track_id"]
     )
@@ -312,6 +315,16 @@ def _read_file(path: Path, lanelets: list[Lanelet], notes: Notes):
     steps = snap_to_grid(frame["timestamp_ms"] / 1000.0, DT, frame, column="timestamp_ms")
     xy = frame[["x", "y"]].to_numpy()
     lane, s, lateral, half = _project(lanelets, xy, frame["psi_rad"].to_numpy())
+    off_map = lateral > OFF_MAP_M
+    if off_map.any():
+        first = int(np.argmax(off_map))
+        raise DataError(
+            f"{path}, row {frame['_row'].iloc[first]}, columns 'x', 'y': track "
+            f"{frame['track_id'].iloc[first]} lies {lateral[first]:.0f} m from every lanelet of "
+            f"{map_path.name} (more than {OFF_MAP_M:g} m: on no lane of it; "
+            f"{int(off_map.sum())} such row(s)); is it the map of these tracks, with the right "
+            "origin?"
+        )
     outside = lateral > half + 0.5
     if outside.any():
         notes.assume(
