@@ -25,7 +25,6 @@ import shutil
 import pytest
 from typer.testing import CliRunner
 
-from bayesdrive.cli import fit_cmd
 from bayesdrive.cli.main import app
 from bayesdrive.data.outputs import MANIFEST, staging_path
 from bayesdrive.inference import distributed
@@ -70,7 +69,7 @@ def _assert_same_bits(tree, plain) -> None:
 @pytest.mark.realdata
 def test_cluster_fit_is_bit_identical_and_resumes(data_dir, tmp_path, address, plain, monkeypatch):
     # Chunk files stay after the run here, to build the interrupted folder from them.
-    monkeypatch.setattr(fit_cmd.distributed, "remove_chunks", lambda folder: None)
+    monkeypatch.setattr(distributed, "remove_chunks", lambda folder: None)
     cluster = ["--cluster", address, "--chunk-size", "2"]
     out = tmp_path / "cluster"
     _fit(data_dir, out, *cluster)

@@ -20,7 +20,6 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from bayesdrive.cli import fit_cmd
 from bayesdrive.cli.main import app
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.outputs import (
@@ -30,6 +29,7 @@ from bayesdrive.data.outputs import (
     open_results,
     staging_path,
 )
+from bayesdrive.inference import output
 from bayesdrive.inference.output import load_result, metadata
 
 REPO = Path(__file__).resolve().parents[1]
@@ -176,7 +176,7 @@ def test_a_partial_folder_resumes_with_the_same_arguments_only(data_dir, tmp_pat
 
     # What SIGKILL leaves while result.nc is written: no clean-up runs.
     with monkeypatch.context() as patch:
-        patch.setattr(fit_cmd, "save_result", killed)
+        patch.setattr(output, "save_result", killed)  # fit imports it when it runs
         patch.setattr(ResultsFolder, "discard", lambda self: None)
         runner.invoke(app, fit_args(data_dir, out, 1))
     staging = staging_path(out)

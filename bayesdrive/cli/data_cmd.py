@@ -7,7 +7,7 @@ one-line ``error: ...`` on standard error and exit code 2, never a traceback.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.markup import escape
@@ -26,11 +26,10 @@ from bayesdrive.cli.common import (
     fail,
     results_command,
 )
-from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
-from bayesdrive.data.fetch import fetch as fetch_dataset
-from bayesdrive.data.fetch import files_to_fetch
-from bayesdrive.data.trajectories import summary
+
+if TYPE_CHECKING:
+    from bayesdrive.data.registry import DataSet
 
 __all__ = ["app"]
 
@@ -50,14 +49,19 @@ def _error(error: Exception) -> typer.Exit:
     return fail(str(error))
 
 
-def _root(dataset: registry.DataSet, explicit: str | None) -> Path:
+def _root(dataset: DataSet, explicit: str | None) -> Path:
+    # The readers behind the registry import pandas: not needed for `bayesdrive data --help`.
+    from bayesdrive.data import registry
+
     if dataset.role == "holdout":
         return registry.holdout_dir(explicit)
     return registry.data_dir(explicit)
 
 
-def _status(dataset: registry.DataSet, explicit: str | None) -> str:
+def _status(dataset: DataSet, explicit: str | None) -> str:
     """'yes' (every file as pinned), 'no', 'differs: N file(s)', or why it cannot be told."""
+    from bayesdrive.data import registry
+
     try:
         folder = _root(dataset, explicit) / dataset.name
     except DataError:
@@ -77,6 +81,8 @@ def list_datasets(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """The known data sets: format, role, whether present (and verified), licence."""
+    from bayesdrive.data import registry
+
     rows = []
     for dataset in (*registry.DATASETS.values(), *registry.HOLDOUT.values()):
         explicit = holdout_dir if dataset.role == "holdout" else data_dir
@@ -143,6 +149,9 @@ def info(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """Figures of a data set: scenes, vehicles, time, speeds, gaps, flags and notes."""
+    from bayesdrive.data import registry
+    from bayesdrive.data.trajectories import summary
+
     try:
         format, options = column_map_options(format, columns, units, headway)
         if path_or_name in registry.HOLDOUT and not Path(path_or_name).exists():
@@ -179,6 +188,8 @@ def verify(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """Check every file of a data set against its pinned size and sha256 (exit 1 if any differ)."""
+    from bayesdrive.data import registry
+
     try:
         dataset = registry.get(name)
         root = _root(dataset, data_dir)
@@ -215,6 +226,10 @@ def fetch(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
 ) -> None:
     """Download a data set, checking every sha256 before anything lands in the data folder."""
+    from bayesdrive.data import registry
+    from bayesdrive.data.fetch import fetch as fetch_dataset
+    from bayesdrive.data.fetch import files_to_fetch
+
     check_json_out(json_out)
     exit_cleanly_on_sigterm()
     try:

@@ -12,10 +12,8 @@ distance, and the verdict |Δmean| <= max(0.1 sd, 3 combined MCSE) with sds with
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
-import numpy as np
-import pandas as pd
 import typer
 from rich.markup import escape
 from rich.table import Table
@@ -30,16 +28,9 @@ from bayesdrive.cli.common import (
     results_folder,
 )
 from bayesdrive.data.atomic import write_text_atomic
-from bayesdrive.inference.agreement import (
-    CRITERION,
-    agreement_summary,
-    agreement_table,
-    convergence_table,
-    same_data,
-)
-from bayesdrive.inference.output import load_result, metadata
-from bayesdrive.inference.population import how_drivers_differ
-from bayesdrive.reports.diagnostic_plots import plot_agreement_heatmap, plot_marginals
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["diagnose", "worst_convergence"]
 
@@ -70,6 +61,8 @@ def worst_convergence(table: pd.DataFrame) -> dict[str, dict[str, float | None]]
 
 def _labels(paths: list[Path], trees: list[Any]) -> list[str]:
     """The engine name of each result, numbered where two results share one."""
+    from bayesdrive.inference.output import metadata
+
     engines = [str(metadata(tree).get("engine")) for tree in trees]
     return [
         f"{engine}#{i + 1}" if engines.count(engine) > 1 else engine
@@ -104,6 +97,8 @@ def _print_population(label: str, rows: dict[str, dict[str, Any]]) -> None:
 
 
 def _print_agreement(summary: pd.DataFrame) -> None:
+    from bayesdrive.inference.agreement import CRITERION
+
     table = Table(title="agreement per engine pair and parameter", title_justify="left")
     for column in (
         "pair",
@@ -134,6 +129,8 @@ def _print_agreement(summary: pd.DataFrame) -> None:
 
 
 def _format(value: float | None) -> str:
+    import numpy as np
+
     if value is None or np.isnan(value):
         return "-"
     return f"{value:.0f}" if abs(value) >= 100 or float(value).is_integer() else f"{value:.3f}"
@@ -141,6 +138,8 @@ def _format(value: float | None) -> str:
 
 def _records(frame: pd.DataFrame) -> list[dict[str, Any]]:
     """Rows as JSON-ready dicts; NaN (e.g. R-hat of one chain) becomes null."""
+    import numpy as np
+
     return [
         {k: (None if isinstance(v, float) and np.isnan(v) else v) for k, v in row.items()}
         for row in frame.to_dict(orient="records")
@@ -160,6 +159,18 @@ def diagnose(
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Convergence of each result and, for several results on the same data, their agreement."""
+    # Imported here so that `bayesdrive diagnose --help` does not import JAX and ArviZ.
+    from bayesdrive.inference.agreement import (
+        CRITERION,
+        agreement_summary,
+        agreement_table,
+        convergence_table,
+        same_data,
+    )
+    from bayesdrive.inference.output import load_result, metadata
+    from bayesdrive.inference.population import how_drivers_differ
+    from bayesdrive.reports.diagnostic_plots import plot_agreement_heatmap, plot_marginals
+
     missing = [str(p) for p in results if not p.is_file()]
     if missing:
         raise fail(f"no such result file(s): {', '.join(missing)}")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax
 import typer
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -23,10 +22,7 @@ from bayesdrive.cli.common import (
     err_console,
     fail,
 )
-from bayesdrive.data.errors import DataError
-from bayesdrive.inference import distributed
-from bayesdrive.simulation import evaluation
-from bayesdrive.simulation.baselines import BASELINES
+from bayesdrive.cli.names import BASELINES, SCENARIO_CHUNK_SIZE
 
 __all__ = ["evaluate"]
 
@@ -136,10 +132,17 @@ def evaluate(
         None,
         "--chunk-size",
         min=1,
-        help=f"With --cluster: scenarios per task (default {evaluation.DEFAULT_SCENARIO_CHUNK}).",
+        help=f"With --cluster: scenarios per task (default {SCENARIO_CHUNK_SIZE}).",
     ),
 ) -> None:
     """Roll a model out closed loop on the held-out windows and print the metric table."""
+    # Imported here so that `bayesdrive evaluate --help` does not import JAX.
+    import jax
+
+    from bayesdrive.data.errors import DataError
+    from bayesdrive.inference import distributed
+    from bayesdrive.simulation import evaluation
+
     check_json_out(json_out)
     check_cluster_options(cluster, chunk_size)
     with _progress() as bar:

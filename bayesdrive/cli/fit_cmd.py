@@ -19,7 +19,6 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import jax
 import typer
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -39,23 +38,7 @@ from bayesdrive.cli.common import (
     results_command,
     results_folder,
 )
-from bayesdrive.data import registry
-from bayesdrive.data.errors import DataError
-from bayesdrive.drivers.extensions import CAUSES
-from bayesdrive.drivers.registry import MODELS, get_model
-from bayesdrive.inference import distributed
-from bayesdrive.inference.fit import (
-    BATCHED_ENGINES,
-    ENGINES,
-    PARTICLE_ENGINES,
-    check_engine_model,
-    summary,
-)
-from bayesdrive.inference.fit import fit as fit_model
-from bayesdrive.inference.likelihood import param_names
-from bayesdrive.inference.output import save_result
-from bayesdrive.reports.filter_plots import write_filter_plots
-from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
+from bayesdrive.cli.names import CAUSES, ENGINES, FIT_CHUNK_SIZE, MODELS
 
 __all__ = ["fit"]
 
@@ -85,6 +68,8 @@ def _progress() -> Progress:
 
 
 def _size(result: dict[str, Any]) -> str:
+    from bayesdrive.inference.fit import PARTICLE_ENGINES
+
     if result["engine"] in PARTICLE_ENGINES:
         return f"{result['num_particles']} particles"
     walkers = result["engine_options"].get("num_walkers")
@@ -138,6 +123,8 @@ HELD_OUT_NOTE = (
 def _load(data: str, format: str | None, data_dir: str | None, options: dict) -> Any:
     """The trajectories to fit; a held-out name (not an existing path) is read from the held-out
     folder, with :data:`HELD_OUT_NOTE` logged."""
+    from bayesdrive.data import registry
+
     if data in registry.HOLDOUT and not Path(data).exists():
         log.warning(HELD_OUT_NOTE, data)
         return registry.load_holdout(data, format=format, holdout_dir=data_dir, **options)
@@ -207,11 +194,29 @@ def fit(
     chunk_size: int | None = typer.Option(
         None,
         "--chunk-size",
-        help=f"With --cluster: vehicles per task (default {distributed.DEFAULT_CHUNK_SIZE}).",
+        help=f"With --cluster: vehicles per task (default {FIT_CHUNK_SIZE}).",
     ),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Fit per-vehicle parameter distributions and write result.nc, summary.json and plots."""
+    # Imported here so that `bayesdrive fit --help` does not import JAX.
+    import jax
+
+    from bayesdrive.data.errors import DataError
+    from bayesdrive.drivers.registry import get_model
+    from bayesdrive.inference import distributed
+    from bayesdrive.inference.fit import (
+        BATCHED_ENGINES,
+        PARTICLE_ENGINES,
+        check_engine_model,
+        summary,
+    )
+    from bayesdrive.inference.fit import fit as fit_model
+    from bayesdrive.inference.likelihood import param_names
+    from bayesdrive.inference.output import save_result
+    from bayesdrive.reports.filter_plots import write_filter_plots
+    from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
+
     if window not in ("fit", "all"):
         raise fail(
             f"--window must be 'fit' or 'all' (held-out steps are never fitted), not {window!r}"

@@ -1,8 +1,8 @@
 """The ``bayesdrive`` command: one typer app, one sub-module per command (group).
 
-A command's module is imported only when that command runs (or shows its own help): the modules
-import JAX, pandas and ArviZ, which take seconds, and ``bayesdrive --help`` or ``--version`` should
-answer at once. :data:`COMMANDS` names where each command lives and the one-line summary the
+A command's module is imported only when that command runs (or shows its own help), and imports
+JAX, pandas and ArviZ, which take seconds, only inside its command functions (the names its help
+lists come from :mod:`bayesdrive.cli.names`): every ``--help`` and ``--version`` answers at once. :data:`COMMANDS` names where each command lives and the one-line summary the
 top-level help lists (``tests/test_cli_startup.py`` checks that each equals the first line of
 the command's own help).
 """

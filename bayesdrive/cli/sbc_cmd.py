@@ -12,10 +12,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
-import jax
-import numpy as np
 import typer
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -31,11 +29,12 @@ from bayesdrive.cli.common import (
     results_command,
     results_folder,
 )
+from bayesdrive.cli.names import ENGINES as ENGINE_NAMES
+from bayesdrive.cli.names import IDM_PARAMS
 from bayesdrive.data.atomic import write_text_atomic
-from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference.fit import ENGINES
-from bayesdrive.inference.sbc import SBCOutcome, run_sbc, sd_doubled
-from bayesdrive.reports.diagnostic_plots import plot_rank_ecdf
+
+if TYPE_CHECKING:
+    from bayesdrive.inference.sbc import SBCOutcome
 
 __all__ = ["sbc", "write_outcome"]
 
@@ -46,6 +45,8 @@ JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then noth
 
 def write_outcome(outcome: SBCOutcome, out: Path, stem: str) -> list[Path]:
     """Rank histograms (PNG), the ranks with their truths (CSV) and the digest (JSON) in ``out``."""
+    from bayesdrive.reports.diagnostic_plots import plot_rank_ecdf
+
     header = ",".join(["replication", *(f"truth_{n}" for n in outcome.names)])
     header += "," + ",".join(f"rank_{n}" for n in outcome.names)
     lines = [header]
@@ -62,6 +63,8 @@ def write_outcome(outcome: SBCOutcome, out: Path, stem: str) -> list[Path]:
 
 
 def _print(outcome: SBCOutcome) -> None:
+    import numpy as np
+
     level = outcome.alpha / len(outcome.names)
     table = Table(
         title=escape(
@@ -97,11 +100,13 @@ def _print(outcome: SBCOutcome) -> None:
 
 @results_command
 def sbc(
-    engine: str = typer.Option(..., "--engine", help=f"Engine to calibrate: {', '.join(ENGINES)}."),
+    engine: str = typer.Option(
+        ..., "--engine", help=f"Engine to calibrate: {', '.join(ENGINE_NAMES)}."
+    ),
     replications: int = typer.Option(200, "--replications", min=10, help="Simulated vehicles."),
     seed: int = typer.Option(0, "--seed", help="Seed of prior draws, simulation and fits."),
     params: str = typer.Option(
-        ",".join(IDM.param_names), "--params", help="Comma-separated IDM parameters to infer."
+        ",".join(IDM_PARAMS), "--params", help="Comma-separated IDM parameters to infer."
     ),
     steps: int = typer.Option(64, "--steps", min=2, help="Steps (0.1 s) per simulated vehicle."),
     ranks: int = typer.Option(
@@ -121,6 +126,13 @@ def sbc(
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Simulation-based calibration: are the engine's posteriors calibrated on the IDM?"""
+    # Imported here so that `bayesdrive sbc --help` does not import JAX.
+    import jax
+
+    from bayesdrive.drivers.idm import IDM
+    from bayesdrive.inference.fit import ENGINES
+    from bayesdrive.inference.sbc import run_sbc, sd_doubled
+
     if engine not in ENGINES:
         raise fail(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
     if engine in POPULATION_ENGINES:

@@ -5,10 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import jax
-import numpy as np
 import typer
-import xarray as xr
 
 from bayesdrive.cli.common import (
     FORCE_HELP,
@@ -20,16 +17,6 @@ from bayesdrive.cli.common import (
     results_folder,
 )
 from bayesdrive.data.atomic import write_atomic
-from bayesdrive.drivers.registry import get_model
-from bayesdrive.simulation.generate import (
-    START_SPEED_FRACTION,
-    draw_pooled,
-    draw_preset,
-    generate_scenes,
-    load_preset,
-    median_sweep,
-)
-from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "models" / "presets"
 
@@ -43,7 +30,12 @@ def _preset_path(name: str) -> Path | None:
 
 
 def _posterior_draw(key, result: Path, num_scenes: int, num_vehicles: int):
+    import numpy as np
+
+    from bayesdrive.drivers.registry import get_model
     from bayesdrive.inference.output import load_result, metadata
+    from bayesdrive.simulation.generate import draw_pooled
+    from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
 
     tree = load_result(result)
     meta = metadata(tree)
@@ -69,7 +61,20 @@ def simulate(
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Generate scenes of VEHICLES cars for DURATION seconds; write trajectories, figures, summary."""
+    # Imported here so that `bayesdrive simulate --help` does not import JAX.
+    import jax
+    import numpy as np
+    import xarray as xr
+
+    from bayesdrive.drivers.registry import get_model
     from bayesdrive.reports.scene_plots import plot_speed_gap_kde, plot_sweep
+    from bayesdrive.simulation.generate import (
+        START_SPEED_FRACTION,
+        draw_preset,
+        generate_scenes,
+        load_preset,
+        median_sweep,
+    )
 
     check_json_out(json_out)
     key_params, key_scenes, key_sweep = jax.random.split(jax.random.key(seed), 3)
