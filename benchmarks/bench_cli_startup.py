@@ -110,7 +110,8 @@ def main() -> None:
             *rows,
             "",
             f"Machine: {platform.platform()}, Python {platform.python_version()}, "
-            f"{os.cpu_count()} CPU(s), load average {load} (1, 5, 15 min) when written. "
+            f"{os.cpu_count()} CPU(s), load average {load} (1, 5, 15 min) when written (above "
+            f"{os.cpu_count()}: other work shared the CPUs, so the times are upper bounds). "
             f"Code: {provenance_line()}.",
             "",
         ]
