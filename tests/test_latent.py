@@ -29,7 +29,8 @@ from jax.scipy.stats import norm
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.cidm import MergeInputs
-from bayesdrive.drivers.idm import IDM, IDMParams, exact_initial_sample, exact_observation_logpdf
+from bayesdrive.drivers.execution_noise import exact_initial_sample, exact_observation_logpdf
+from bayesdrive.drivers.idm import IDM, IDMParams
 from bayesdrive.drivers.measurement_noise import shift_ego, with_measurement_noise
 from bayesdrive.inference.fit import fit
 from bayesdrive.inference.latent import (

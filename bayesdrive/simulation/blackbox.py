@@ -24,7 +24,7 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState
-from bayesdrive.drivers.idm import (
+from bayesdrive.drivers.execution_noise import (
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
