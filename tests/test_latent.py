@@ -88,6 +88,7 @@ LINEAR = DriverModel(
     transition_logpdf=_linear_logpdf,
     observation_logpdf=exact_observation_logpdf,
     initial_sample=exact_initial_sample,
+    noise_sd=lambda params, state: params.sigma,  # declared: white Gaussian execution noise
 )
 NOISY_LINEAR = with_measurement_noise(LINEAR)
 TRUTH = {"k1": 0.1, "k2": 0.5, "d0": 10.0, "sigma": 0.5, "sigma_obs": 0.05}

@@ -1,6 +1,6 @@
 """Driver models by name, as the CLI and result metadata spell them.
 
-A name is a base model (``idm``, ``cidm``, ``gipps``) optionally joined by ``+`` to extensions
+A name is a base model (``idm``, ``cidm``, ``gipps``, ``ovm``) optionally joined by ``+`` to extensions
 named by the causes they answer (``idm+reaction_delay``,
 ``idm+reaction_delay+autocorrelated_noise``; the causes of
 :data:`~bayesdrive.drivers.extensions.CAUSES`, composed by the rules of
@@ -25,10 +25,11 @@ from bayesdrive.drivers.gipps import GIPPS
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.measurement_noise import CAUSE as MEASUREMENT_NOISE
 from bayesdrive.drivers.measurement_noise import OLD_NAME_SUFFIX
+from bayesdrive.drivers.ovm import OVM
 
 __all__ = ["MODELS", "base_model", "canonical_name", "get_model"]
 
-MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM, GIPPS)})
+MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM, GIPPS, OVM)})
 
 
 def canonical_name(name: str) -> str:

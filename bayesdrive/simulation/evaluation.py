@@ -194,13 +194,13 @@ def _posterior_policy(
         raise DataError(
             f"{where}: the posterior is of model {meta.get('model')!r}, not --model {model_name!r}"
         )
-    check_posterior_split(meta, traj, scenarios, data_dir)
     model = get_model(model_name)
     if model.scene is not None and scenarios.kind != model.scene:
         raise DataError(
             f"{where}: model {model.name!r} reads the {model.scene} scene, so its posterior needs "
             f"{model.scene} scenes, not {scenarios.kind} scenes"
         )
+    check_posterior_split(meta, traj, scenarios, data_dir)
     scenarios, skipped = _fitted_scenarios(where, tree, scenarios)
     policy = posterior_policy(model_name, model, tree, meta)
     details = {
