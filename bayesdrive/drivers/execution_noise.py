@@ -148,8 +148,8 @@ def execution_noise_model(
         return step_logpdf(state, next_state, mean_acc, noise_sd(params, state), inputs.dt)
 
     def series_logpdf(params, steps) -> Array:
-        # Stops are rare (2 of 187 NGSIM I-80 followers have any), and the stop term's normal
-        # log-CDF cost 60% of the density: a series without a stop skips it.
+        # Stops are rare in car-following data and the stop term's normal log-CDF costs more than
+        # the rest of the density: a series without a stop skips it.
         def scored(may_stop: bool) -> Array:
             def one(v, next_v, dx, inputs):
                 state = EgoState(jnp.zeros_like(v), v)
