@@ -39,7 +39,7 @@ from bayesdrive.cli.main import COMPILATION_CACHE_ENV
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.views import FollowerArrays, follower_arrays
-from bayesdrive.drivers import idm
+from bayesdrive.drivers import execution_noise, idm
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import pf, smc
@@ -59,13 +59,13 @@ COMPILE_REPEATS = 3
 def check_reference(arrays: FollowerArrays) -> float:
     """Largest |NumPy - model| log-density over random prior draws on real steps (float64 model
     evaluation would be closer; float32 JAX differs by ~1e-4 on densities of order 10)."""
-    for name in ("DELTA", "STOP_SPEED", "MIN_GAP"):
-        assert getattr(reference, name) == getattr(idm, name), f"reference's {name} differs"
+    for name, module in (("DELTA", idm), ("STOP_SPEED", execution_noise), ("MIN_GAP", idm)):
+        assert getattr(reference, name) == getattr(module, name), f"reference's {name} differs"
     rng = np.random.default_rng(SEED)
     box = IDM.prior(PARAMS)
     # The first real steps and up to 64 that end in a stop, so both branches are compared.
     live = np.argwhere(arrays.mask > 0)
-    stops = live[arrays.next_v[live[:, 0], live[:, 1]] <= idm.STOP_SPEED][:64]
+    stops = live[arrays.next_v[live[:, 0], live[:, 1]] <= execution_noise.STOP_SPEED][:64]
     live = np.concatenate([live[:256], stops])
     theta = rng.uniform(np.asarray(box.lower), np.asarray(box.upper), (len(live), len(PARAMS)))
     step = {n: getattr(arrays, n)[live[:, 0], live[:, 1]] for n in reference.STEP_FIELDS}

@@ -37,7 +37,7 @@ STEP_FIELDS = ("v", "next_v", "dx", "gap", "lead_v", "has_leader")
 
 
 def step_logpdf(p: dict, v, next_v, dx, gap, lead_v, has_leader, dt):
-    """The IDM one-step log-density (bayesdrive.drivers.idm.step_logpdf) in NumPy, float64."""
+    """The IDM one-step log-density (bayesdrive.drivers.execution_noise.step_logpdf) in NumPy, float64."""
     ratio = v / p["v_des"]
     squared = ratio * ratio
     free = 1.0 - squared * squared  # DELTA = 4

@@ -18,13 +18,13 @@ import pytest
 
 from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
 from bayesdrive.drivers.base import DriverModel, ParamSpec
-from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.drivers.idm import (
+from bayesdrive.drivers.execution_noise import (
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
     step_logpdf,
 )
+from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.inference.kernels import WalkInfo, WalkState, moves_until_moved
 from bayesdrive.inference.likelihood import step_inputs, step_logpdfs
 from bayesdrive.inference.tempering import FitConfig, fit_model

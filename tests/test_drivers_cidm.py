@@ -10,7 +10,8 @@ import pytest
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.cidm import CIDM, MergeInputs, cidm_acceleration, yield_target
-from bayesdrive.drivers.idm import IDM, idm_acceleration, noisy_step
+from bayesdrive.drivers.execution_noise import noisy_step
+from bayesdrive.drivers.idm import IDM, idm_acceleration
 
 DT = 0.1
 LENGTH = 4.5

@@ -12,7 +12,8 @@ import pytest
 from scipy import stats
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
-from bayesdrive.drivers.idm import IDM, STOP_SPEED, idm_acceleration
+from bayesdrive.drivers.execution_noise import STOP_SPEED
+from bayesdrive.drivers.idm import IDM, idm_acceleration
 from bayesdrive.inference.likelihood import StepInputs
 
 DT = 0.1

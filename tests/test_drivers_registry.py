@@ -17,7 +17,7 @@ def test_models_are_found_by_their_own_name():
 
 
 def test_unknown_model_names_the_known_ones():
-    with pytest.raises(KeyError, match=r"'mobil'.*\['cidm', 'gipps', 'idm'\]"):
+    with pytest.raises(KeyError, match=r"'mobil'.*\['cidm', 'gipps', 'idm', 'ovm'\]"):
         get_model("mobil")
 
 

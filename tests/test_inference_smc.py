@@ -14,14 +14,14 @@ from scipy.stats import multivariate_normal
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.idm import (
-    IDM,
+from bayesdrive.drivers.execution_noise import (
     STOP_SPEED,
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
     step_logpdf,
 )
+from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import smc
 from bayesdrive.inference.synthetic import simulate_following
 

@@ -29,7 +29,8 @@ from jax.scipy.stats import norm
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.cidm import MergeInputs
-from bayesdrive.drivers.idm import IDM, IDMParams, exact_initial_sample, exact_observation_logpdf
+from bayesdrive.drivers.execution_noise import exact_initial_sample, exact_observation_logpdf
+from bayesdrive.drivers.idm import IDM, IDMParams
 from bayesdrive.drivers.measurement_noise import shift_ego, with_measurement_noise
 from bayesdrive.inference.fit import fit
 from bayesdrive.inference.latent import (
@@ -87,6 +88,7 @@ LINEAR = DriverModel(
     transition_logpdf=_linear_logpdf,
     observation_logpdf=exact_observation_logpdf,
     initial_sample=exact_initial_sample,
+    noise_sd=lambda params, state: params.sigma,  # declared: white Gaussian execution noise
 )
 NOISY_LINEAR = with_measurement_noise(LINEAR)
 TRUTH = {"k1": 0.1, "k2": 0.5, "d0": 10.0, "sigma": 0.5, "sigma_obs": 0.05}

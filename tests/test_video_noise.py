@@ -79,7 +79,7 @@ def test_registry_names_and_refusals():
     assert model.name == "idm+video_noise"
     assert model.param_names == (*IDM.param_names, "sigma_obs")
     for name, words in [
-        ("idm+measurement_noise+video_noise", "both observation models"),
+        ("idm+measurement_noise+video_noise", "both 'observation' extensions"),
         ("idm+autocorrelated_noise+video_noise", "video_noise does not compose"),
         ("idm+video_noise+video_noise", "named twice"),
     ]:

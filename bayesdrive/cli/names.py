@@ -16,7 +16,7 @@ __all__ = [
 ]
 
 # bayesdrive.drivers.registry.MODELS
-MODELS = ("idm", "cidm", "gipps")
+MODELS = ("idm", "cidm", "gipps", "ovm")
 # bayesdrive.drivers.extensions.CAUSES
 CAUSES = (
     "reaction_delay",

@@ -64,9 +64,9 @@ from scipy import stats
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.drivers.execution_noise import STOP_SPEED, increment_law
 from bayesdrive.drivers.extensions import extend
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.drivers.idm import STOP_SPEED, increment_law
 from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
 from bayesdrive.inference.tempering import FitResult
 from bayesdrive.simulation.follower_rollout import Rollouts
@@ -135,7 +135,10 @@ def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, st
     def per_step(params, inputs, v, dx):
         state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
         law = increment_law(
-            v, model.mean_acceleration(params, state, inputs), params.sigma, inputs.dt
+            v,
+            model.mean_acceleration(params, state, inputs),
+            model.noise_sd(params, state),
+            inputs.dt,
         )
         below = jax.scipy.stats.norm.cdf(dx, law.mean, law.sd)
         return below, jax.scipy.stats.norm.cdf(law.stop_z)

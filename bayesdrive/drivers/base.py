@@ -1,4 +1,4 @@
-"""The driver-model interface every engine and the simulator share.
+r"""The driver-model interface every engine and the simulator share.
 
 A driver model is a parameter NamedTuple (its docstring states the math) plus pure functions of
 ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and vehicles:
@@ -6,9 +6,11 @@ ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and
 * ``mean_acceleration(params, state, inputs) -> a``: the deterministic rule (IDM, C-IDM, ...).
 * ``transition_sample(key, params, state, inputs) -> next_state``: one stochastic step.
 * ``transition_logpdf(params, state, next_state, inputs) -> log p``: the exact one-step density
-  of an observed next state (see :mod:`bayesdrive.drivers.idm` for which quantity it scores).
+  of an observed next state (see :mod:`bayesdrive.drivers.execution_noise` for which quantity
+  it scores).
 * ``observation_logpdf(params, state, obs) -> log p``: the observation model. For the base models
-  the state is observed exactly (a point mass); the measurement-noise extension replaces it.
+  the state is observed exactly (a point mass); an observation model (measurement noise, video
+  noise) replaces it.
 * ``initial_sample(key, params, obs) -> state``: the first latent state given the first observation.
 * ``inputs_at(series, j, history) -> inputs``: the model's own per-step inputs, read from step ``j``
   of one vehicle's :class:`Series` (the device form of the one series representation,
@@ -31,7 +33,16 @@ States are kept *relative to the current step*: engines pass ``x = 0`` and the o
 positions of hundreds of metres.
 
 A :class:`DriverModel` bundles those functions with the parameter names, defaults and the prior
-(independent uniform priors on documented bounds, the same for every engine).
+(independent uniform priors on documented bounds, the same for every engine), and declares what
+engines and the simulator need to know about it, so that none of them asks which model it holds
+(by its name, a function's identity or a parameter's name):
+
+* ``observation``: how its states are observed, :data:`EXACT` or the name of its observation model;
+* ``scene``: the scene part of the series it needs beyond car following (``"merge"``), or None;
+* ``noise_sd``: the sd of its white Gaussian execution noise at a state of position and speed
+  alone, or None where its step is another law (a memory, a hidden state);
+* on its :class:`ParamSpec`\ s, ``execution_noise`` marks the parameter that scales that noise
+  and ``desired_speed`` the desired speed.
 """
 
 from __future__ import annotations
@@ -46,6 +57,7 @@ from jax import Array
 from bayesdrive.data.views import AheadArrays, FollowerArrays, MergeArrays
 
 __all__ = [
+    "EXACT",
     "CarFollowingInputs",
     "DriverModel",
     "EgoState",
@@ -56,7 +68,11 @@ __all__ = [
     "device_series",
     "fill_params",
     "observed_lift",
+    "parameter_noise_sd",
 ]
+
+# ``DriverModel.observation`` of a model whose states are observed exactly.
+EXACT = "exact"
 
 
 class EgoState(NamedTuple):
@@ -138,8 +154,9 @@ class ParamSpec(NamedTuple):
 
     What engines need to know about a parameter is said here, so no engine names one:
     ``grid_step`` is the step of the ``pf`` engine's grid (in the parameter's unit; None: the
-    caller must pass one), and ``execution_noise`` marks the sd of the Gaussian execution noise
-    (``lm`` estimates it from its residuals instead of fitting it).
+    caller must pass one), ``execution_noise`` marks the sd of the Gaussian execution noise
+    (``lm`` estimates it from its residuals instead of fitting it), and ``desired_speed`` the
+    desired speed on free road (scene generation starts platoons below it and sweeps it).
     """
 
     name: str
@@ -150,6 +167,7 @@ class ParamSpec(NamedTuple):
     doc: str
     grid_step: float | None = None
     execution_noise: bool = False
+    desired_speed: bool = False
 
 
 class PriorBox(NamedTuple):
@@ -174,6 +192,7 @@ class DriverModel(NamedTuple):
 
     ``reads_history``: its density reads the steps before the scored one (a delay, a memory of the
     last noise), so engines score only steps with a full history of usable steps behind them.
+    ``observation``, ``scene`` and ``noise_sd`` are its declarations (module docstring).
     """
 
     name: str
@@ -189,18 +208,34 @@ class DriverModel(NamedTuple):
     filter: Callable[[Any, Any], Array] | None = None
     reads_history: bool = False
     series_logpdf: Callable[[Any, Any], Array] | None = None
+    observation: str = EXACT
+    scene: str | None = None
+    noise_sd: Callable[[Any, Any], Array] | None = None
 
     @property
     def param_names(self) -> tuple[str, ...]:
         return tuple(s.name for s in self.specs)
 
     @property
+    def observed_exactly(self) -> bool:
+        """Whether its states are observed exactly (no observation model)."""
+        return self.observation == EXACT
+
+    def _marked(self, flag: str, meaning: str) -> str | None:
+        marked = [s.name for s in self.specs if getattr(s, flag)]
+        if len(marked) > 1:
+            raise ValueError(f"model {self.name!r} marks several {meaning}s: {marked}")
+        return marked[0] if marked else None
+
+    @property
     def execution_noise_param(self) -> str | None:
         """The name of the execution-noise sd parameter (None if the model marks none)."""
-        marked = [s.name for s in self.specs if s.execution_noise]
-        if len(marked) > 1:
-            raise ValueError(f"model {self.name!r} marks several execution-noise sds: {marked}")
-        return marked[0] if marked else None
+        return self._marked("execution_noise", "execution-noise sd")
+
+    @property
+    def desired_speed_param(self) -> str | None:
+        """The name of the desired-speed parameter (None if the model marks none)."""
+        return self._marked("desired_speed", "desired speed")
 
     def spec(self, name: str) -> ParamSpec:
         for s in self.specs:
@@ -219,6 +254,21 @@ class DriverModel(NamedTuple):
             jnp.asarray([s.lower for s in specs]),
             jnp.asarray([s.upper for s in specs]),
         )
+
+
+def parameter_noise_sd(specs: Sequence[ParamSpec]) -> Callable[[Any, Any], Array]:
+    """The ``noise_sd`` of a model whose execution-noise sd is the parameter its ``specs`` mark
+    (``ParamSpec.execution_noise``), whatever the state; a ValueError if none or several."""
+    marked = [s.name for s in specs if s.execution_noise]
+    if len(marked) != 1:
+        raise ValueError(f"one parameter must be marked execution_noise=True, got {marked}")
+    (name,) = marked
+
+    def noise_sd(params: Any, state: Any) -> Array:
+        del state
+        return getattr(params, name)
+
+    return noise_sd
 
 
 def fill_params(model: DriverModel, names: Sequence[str], theta: Array, fixed: Any = None) -> Any:

@@ -40,8 +40,9 @@ The projected gap can be small or negative (the merging vehicle is beside or beh
 faster); the IDM's gap floor then makes the ego brake hard, which is the intended yield.
 
 Stochastic exactly like the IDM: :math:`a \sim N(a_{CIDM}, \sigma^2)`, the same
-:func:`~bayesdrive.drivers.idm.noisy_step` and the same exact one-step density
-:func:`~bayesdrive.drivers.idm.step_logpdf` (see :mod:`bayesdrive.drivers.idm`).
+:func:`~bayesdrive.drivers.execution_noise.noisy_step` and the same exact one-step density
+:func:`~bayesdrive.drivers.execution_noise.step_logpdf` (see
+:mod:`bayesdrive.drivers.execution_noise`).
 
 Parameters: the IDM's six (same units, bounds, defaults; see :mod:`bayesdrive.drivers.idm`) plus
 
@@ -67,10 +68,12 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec, Series
-from bayesdrive.drivers.idm import IDM, execution_noise_model, idm_acceleration
+from bayesdrive.drivers.execution_noise import execution_noise_model
+from bayesdrive.drivers.idm import IDM, idm_acceleration
 
 __all__ = [
     "CIDM",
+    "MERGE_SCENE",
     "CIDMParams",
     "MergeInputs",
     "cidm_acceleration",
@@ -196,6 +199,14 @@ def merge_inputs_at(series: Series, j: Array, history: int) -> MergeInputs:
     )
 
 
+# The simulator must put it in merge scenes; extensions that read car following alone refuse it.
+MERGE_SCENE = "merge"
+
 CIDM = execution_noise_model(
-    "cidm", CIDMParams, CIDM_SPECS, _mean_acceleration, inputs_at=merge_inputs_at
+    "cidm",
+    CIDMParams,
+    CIDM_SPECS,
+    _mean_acceleration,
+    inputs_at=merge_inputs_at,
+    scene=MERGE_SCENE,
 )

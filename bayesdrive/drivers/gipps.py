@@ -1,7 +1,7 @@
 """The Gipps (1981) car-following model, reaction time = one step, Gaussian execution noise.
 
 A second base model beside the IDM: it needs only its rule, its parameter specs and
-:func:`~bayesdrive.drivers.idm.execution_noise_model`; every engine and the simulator take it
+:func:`~bayesdrive.drivers.execution_noise.execution_noise_model`; every engine and the simulator take it
 unchanged. Bounds of the uniform priors are wide around Gipps' own simulation values (a 1.7,
 b 3.4, b-hat 3.2 m/s^2, V 20 m/s, effective size 6.5 m = a car of 4.5 m + 2 m margin).
 
@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec
-from bayesdrive.drivers.idm import execution_noise_model
+from bayesdrive.drivers.execution_noise import execution_noise_model
 
 __all__ = ["GIPPS", "GippsParams", "gipps_acceleration"]
 
@@ -31,7 +31,9 @@ __all__ = ["GIPPS", "GippsParams", "gipps_acceleration"]
 RADICAND_FLOOR = 1e-6
 
 GIPPS_SPECS = (
-    ParamSpec("v_des", "m/s", 20.0, 5.0, 45.0, "desired speed V", grid_step=0.5),
+    ParamSpec(
+        "v_des", "m/s", 20.0, 5.0, 45.0, "desired speed V", grid_step=0.5, desired_speed=True
+    ),
     ParamSpec("a_max", "m/s^2", 1.7, 0.2, 5.0, "maximum acceleration a", grid_step=0.1),
     ParamSpec("b_max", "m/s^2", 3.4, 0.5, 10.0, "most severe braking b (as > 0)", grid_step=0.5),
     ParamSpec("b_lead", "m/s^2", 3.2, 0.5, 10.0, "leader's braking as estimated", grid_step=0.5),
@@ -56,7 +58,7 @@ class GippsParams(NamedTuple):
 
     (:math:`v^* = v_{free}` on free road), and the acceleration is
     :math:`a \sim N((v^* - v)/\tau, \sigma^2)`, stepped and scored like the IDM's
-    (:func:`~bayesdrive.drivers.idm.noisy_step`, :func:`~bayesdrive.drivers.idm.step_logpdf`).
+    (:mod:`bayesdrive.drivers.execution_noise`).
     Gipps' effective size :math:`s` of the leader is its length plus :math:`d_{min}`.
 
     v_des (m/s), a_max, b_max, b_lead, sigma (m/s^2), d_min (m).

@@ -65,7 +65,7 @@ from jax import Array
 from jax.scipy.stats import norm
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, observed_lift
-from bayesdrive.drivers.idm import STOP_SPEED, increment_law, step_logpdf
+from bayesdrive.drivers.execution_noise import STOP_SPEED, increment_law, step_logpdf
 
 __all__ = [
     "CAUSE",
@@ -132,9 +132,10 @@ def _noise_filter(base: DriverModel, base_params, params, steps: Any) -> Array:
     def one(inputs, v, next_v, dx, mean, var):
         state = EgoState(jnp.zeros_like(v), v)
         rule = base.mean_acceleration(own, state, inputs)
-        law = increment_law(v, rule, own.sigma, dt)
+        sigma = base.noise_sd(own, state)
+        law = increment_law(v, rule, sigma, dt)
         moving = norm.logpdf(dx, law.mean - mean, jnp.sqrt(law.sd**2 + noise_var + var))
-        stopped = step_logpdf(state, EgoState(dx, next_v), rule, own.sigma, dt)
+        stopped = step_logpdf(state, EgoState(dx, next_v), rule, sigma, dt)
         return jnp.where(next_v <= STOP_SPEED, stopped, moving)
 
     return jax.vmap(one)(steps.inputs, steps.v, steps.next_v, steps.dx, mean, var)
@@ -155,10 +156,10 @@ def with_measurement_noise(model: DriverModel) -> DriverModel:
             f"model {model.name!r} already has a {SIGMA_OBS.name!r} parameter; "
             "measurement noise is added once"
         )
-    if model.lift is not observed_lift or model.filter is not None:
+    if not model.observed_exactly or model.noise_sd is None or model.filter is not None:
         raise ValueError(
-            f"measurement noise needs a model whose state is position and speed alone; "
-            f"{model.name!r} keeps or filters more"
+            f"measurement noise needs an exactly observed model with white Gaussian execution "
+            f"noise on position and speed alone; {model.name!r} keeps, filters or observes more"
         )
     specs = (*model.specs, SIGMA_OBS)
     base_type = model.params_type
@@ -202,4 +203,7 @@ def with_measurement_noise(model: DriverModel) -> DriverModel:
         inputs_at=model.inputs_at,
         lift=observed_lift,
         filter=functools.partial(_noise_filter, model, base),
+        observation=CAUSE,
+        scene=model.scene,
+        noise_sd=lambda params, state: model.noise_sd(base(params), state),
     )

@@ -1,6 +1,6 @@
 """Driver models by name, as the CLI and result metadata spell them.
 
-A name is a base model (``idm``, ``cidm``, ``gipps``) optionally joined by ``+`` to extensions
+A name is a base model (``idm``, ``cidm``, ``gipps``, ``ovm``) optionally joined by ``+`` to extensions
 named by the causes they answer (``idm+reaction_delay``,
 ``idm+reaction_delay+autocorrelated_noise``; the causes of
 :data:`~bayesdrive.drivers.extensions.CAUSES`, composed by the rules of
@@ -10,9 +10,8 @@ one spelling is recognised under another. ``idm+measurement_noise`` is the one m
 (:mod:`bayesdrive.drivers.measurement_noise`), for speeds recorded exactly and for the latent-state
 engine alike; results saved under its former name ``idm+obs_noise`` are refused with a message.
 ``+video_noise`` (:mod:`bayesdrive.drivers.video_noise`) is the other observation model, for
-positions whose speeds were differenced from them: it takes measurement noise's place (a model
-has one observation model) and wraps what the other parts compose; the criticism does not screen
-it (its cause is measurement noise).
+positions whose speeds were differenced from them: an extension of the same kind, so a model has
+one observation model or none.
 """
 
 from __future__ import annotations
@@ -21,17 +20,16 @@ from types import MappingProxyType
 
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.cidm import CIDM
-from bayesdrive.drivers.extensions import CAUSES, compose, composition_problem, ordered_causes
+from bayesdrive.drivers.extensions import PARTS, compose, composition_problem, ordered_causes
 from bayesdrive.drivers.gipps import GIPPS
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.measurement_noise import CAUSE as MEASUREMENT_NOISE
 from bayesdrive.drivers.measurement_noise import OLD_NAME_SUFFIX
-from bayesdrive.drivers.video_noise import NAME as VIDEO_NOISE
-from bayesdrive.drivers.video_noise import with_video_noise
+from bayesdrive.drivers.ovm import OVM
 
 __all__ = ["MODELS", "base_model", "canonical_name", "get_model"]
 
-MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM, GIPPS)})
+MODELS = MappingProxyType({model.name: model for model in (IDM, CIDM, GIPPS, OVM)})
 
 
 def canonical_name(name: str) -> str:
@@ -45,41 +43,27 @@ def canonical_name(name: str) -> str:
             "[0, 0.5] m (was [0.005, 1]); results saved under the old name cannot be read, refit them"
         )
     bases = [part for part in parts if part in MODELS]
-    known = {*MODELS, *CAUSES, VIDEO_NOISE}
-    unknown = [part for part in parts if part not in known]
+    unknown = [part for part in parts if part not in MODELS and part not in PARTS]
     if unknown or len(bases) != 1:
         raise KeyError(
             f"unknown driver model {name!r}: "
             + (f"unknown part(s) {unknown}; " if unknown else "")
             + f"a name is one base model of {sorted(MODELS)} joined by '+' to extensions of "
-            f"{[*CAUSES, VIDEO_NOISE]}"
+            f"{list(PARTS)}"
         )
-    causes = [part for part in parts if part in CAUSES]
-    if parts.count(VIDEO_NOISE) > 1:
-        problem = f"{VIDEO_NOISE} is named twice"
-    elif VIDEO_NOISE in parts and MEASUREMENT_NOISE in parts:
-        problem = f"{VIDEO_NOISE} and {MEASUREMENT_NOISE} are both observation models; take one"
-    else:
-        # Video noise is an observation model: the rules of measurement noise apply to it.
-        observation = MEASUREMENT_NOISE if VIDEO_NOISE in parts else None
-        problem = composition_problem(causes + ([observation] if observation else []))
-        if problem is not None and observation:
-            problem = problem.replace(MEASUREMENT_NOISE, VIDEO_NOISE)
+    causes = [part for part in parts if part in PARTS]
+    problem = composition_problem(causes)
     if problem is not None:
         raise KeyError(f"driver model {name!r} cannot be built: {problem}")
-    video = [VIDEO_NOISE] if VIDEO_NOISE in parts else []
-    return "+".join(bases + list(ordered_causes(causes)) + video)
+    return "+".join(bases + list(ordered_causes(causes)))
 
 
 def get_model(name: str) -> DriverModel:
     """The driver model called ``name`` (module docstring); a KeyError says what is unknown or
     which composition rule the name breaks."""
     base, *causes = canonical_name(name).split("+")
-    video = VIDEO_NOISE in causes
-    causes = tuple(cause for cause in causes if cause != VIDEO_NOISE)
     try:
-        model = compose(MODELS[base], causes)
-        return with_video_noise(model) if video else model
+        return compose(MODELS[base], tuple(causes))
     except ValueError as error:
         raise KeyError(str(error)) from None
 

@@ -68,7 +68,6 @@ def _kalman_filter(base: DriverModel, params, steps: Any) -> Array:
     dt = steps.inputs.dt[0]
     reading_var = params.sigma_obs**2
     noise_loading = jnp.stack([0.5 * dt**2, dt])  # how an acceleration moves (e, v)
-    process_cov = own.sigma**2 * jnp.outer(noise_loading, noise_loading)
     kinematics = jnp.array([[1.0, dt], [0.0, 1.0]])
 
     def rule(state: Array, inputs) -> Array:
@@ -88,6 +87,8 @@ def _kalman_filter(base: DriverModel, params, steps: Any) -> Array:
         slope = jax.vmap(pushforward)(jnp.eye(2, dtype=mean.dtype))
         transition = kinematics + jnp.outer(noise_loading, slope)
         predicted = kinematics @ mean + noise_loading * acceleration - jnp.stack([dx, 0.0])
+        sigma = base.noise_sd(own, EgoState(jnp.zeros_like(mean[1]), mean[1]))
+        process_cov = sigma**2 * jnp.outer(noise_loading, noise_loading)
         predicted_cov = transition @ cov @ transition.T + process_cov
         innovation_var = predicted_cov[0, 0] + reading_var
         logp = norm.logpdf(0.0, predicted[0], jnp.sqrt(innovation_var))
@@ -118,5 +119,7 @@ def with_video_noise(model: DriverModel) -> DriverModel:
     likelihood for ``nuts`` and ``emcee``. Cached, so compiled engines are reused."""
     noisy = with_measurement_noise(model)
     return noisy._replace(
-        name=f"{model.name}+{NAME}", filter=functools.partial(_kalman_filter, model)
+        name=f"{model.name}+{NAME}",
+        filter=functools.partial(_kalman_filter, model),
+        observation=NAME,
     )

@@ -52,7 +52,6 @@ from jax.scipy.special import logsumexp
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
-from bayesdrive.drivers.idm import exact_observation_logpdf
 from bayesdrive.drivers.measurement_noise import shift_ego
 from bayesdrive.inference.likelihood import StepInputs, step_inputs
 from bayesdrive.inference.output import EngineResult
@@ -140,7 +139,7 @@ class PMMHResult(NamedTuple):
 
 def check_model(model: DriverModel) -> None:
     """Refuse, in one line, a model whose states are observed exactly (nothing to filter)."""
-    if model.observation_logpdf is exact_observation_logpdf:
+    if model.observed_exactly:
         raise ValueError(
             f"engine 'pmmh' filters hidden states, but model {model.name!r} observes them exactly; "
             "use its '+measurement_noise' variant (bayesdrive.drivers.measurement_noise)"

@@ -23,7 +23,6 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, device_series, fill_params
-from bayesdrive.drivers.idm import exact_observation_logpdf
 
 __all__ = [
     "StepInputs",
@@ -132,7 +131,7 @@ def check_model(model: DriverModel, engine: str, *, whole_series: bool = False) 
                 "over the whole series and the engine scores one step at a time (use 'nuts' or "
                 "'emcee')"
             )
-    elif model.observation_logpdf is not exact_observation_logpdf:
+    elif not model.observed_exactly:
         raise NotImplementedError(
             f"engine {engine!r} cannot fit {model.name!r}: its states are observed with noise and "
             "the engine scores exactly observed states (use engine 'pmmh')"

@@ -69,7 +69,7 @@ from scipy.special import expit
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
-from bayesdrive.drivers.idm import STOP_SPEED
+from bayesdrive.drivers.execution_noise import STOP_SPEED
 from bayesdrive.inference.likelihood import StepInputs
 from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
@@ -355,6 +355,6 @@ def run(
             "max_nfev": max_nfev,
             "starts": list(START_NAMES),
             "transform": "logit of the prior box",
-            "sigma": "residual RMS, n - p dof" if noise in names else "fixed",
+            noise: "residual RMS, n - p dof" if noise in names else "fixed",
         },
     )

@@ -58,7 +58,7 @@ def plot_sweep(sweep: Rollout, dt: float, path: Path, title: str) -> Path:
     ax_g.set(xlabel="time (s)", ylabel="bumper gap (m)")
     ax_g.legend(
         *ax_v.get_legend_handles_labels(),
-        title="v_des difference",
+        title="desired-speed difference",
         fontsize=7,
         ncol=2,
         loc="upper left",

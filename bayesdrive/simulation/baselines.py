@@ -40,14 +40,13 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.cidm import CIDM, CIDMParams
-from bayesdrive.drivers.idm import (
-    IDM,
-    IDMParams,
+from bayesdrive.drivers.execution_noise import (
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
     step_logpdf,
 )
+from bayesdrive.drivers.idm import IDM, IDMParams
 from bayesdrive.inference import lm
 from bayesdrive.simulation.blackbox import (
     BlackboxParams,
@@ -214,7 +213,7 @@ def lm_policy(
             f"{traj.source}: idm-lm: vehicle(s) {unfit} have no usable car-following step in "
             "their fitting window, so they cannot be fitted"
         )
-    names = tuple(n for n in IDM.param_names if n != "sigma")
+    names = tuple(n for n in IDM.param_names if n != IDM.execution_noise_param)
     fit = lm.run(
         key,
         arrays,

@@ -6,7 +6,8 @@ bumper gap d and the relative speed :math:`v_l - v` (standardised with the train
 two tanh hidden layers output a Gaussian acceleration, mean :math:`\mu` and sd
 :math:`s \in (0.02, 2)` m/s^2 (the IDM's sigma bounds, through a sigmoid). The step is the IDM's
 stochastic step with :math:`(\mu, s)` in place of :math:`(a_{IDM}, \sigma)`
-(:func:`~bayesdrive.drivers.idm.noisy_step`, :func:`~bayesdrive.drivers.idm.step_logpdf`), so the
+(:func:`~bayesdrive.drivers.execution_noise.noisy_step`,
+:func:`~bayesdrive.drivers.execution_noise.step_logpdf`), so the
 policy is trained by maximising exactly the one-step likelihood the IDM engines use, on every
 usable car-following step of the *fitting* windows, with a small Adam written here (optax is
 not a dependency). It is only defined with a leader (the training steps all have one).
@@ -24,7 +25,7 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState
-from bayesdrive.drivers.idm import (
+from bayesdrive.drivers.execution_noise import (
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,

@@ -25,7 +25,6 @@ from jax import Array
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.distributed import chunk_rows, run_tasks
 from bayesdrive.inference.output import load_result, metadata
@@ -195,10 +194,13 @@ def _posterior_policy(
         raise DataError(
             f"{where}: the posterior is of model {meta.get('model')!r}, not --model {model_name!r}"
         )
-    check_posterior_split(meta, traj, scenarios, data_dir)
     model = get_model(model_name)
-    if model.name == CIDM.name and scenarios.kind != "merge":
-        raise DataError(f"{where}: a Cooperative-IDM posterior needs merge scenes, not platoons")
+    if model.scene is not None and scenarios.kind != model.scene:
+        raise DataError(
+            f"{where}: model {model.name!r} reads the {model.scene} scene, so its posterior needs "
+            f"{model.scene} scenes, not {scenarios.kind} scenes"
+        )
+    check_posterior_split(meta, traj, scenarios, data_dir)
     scenarios, skipped = _fitted_scenarios(where, tree, scenarios)
     policy = posterior_policy(model_name, model, tree, meta)
     details = {

@@ -9,7 +9,8 @@ Initial conditions follow one documented rule, chosen before any result was seen
 at the common speed ``START_SPEED_FRACTION`` x the smallest desired speed in its platoon (so nobody
 starts above its own desired speed) and at the model's equilibrium gap for that speed under its own
 parameters (:func:`equilibrium_gap`), so a scene starts in a steady state and what follows is the
-drivers' own dynamics. Any car-following model works whose desired speed is called ``v_des``.
+drivers' own dynamics. Any car-following model works that marks its desired-speed parameter
+(``ParamSpec.desired_speed``).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ __all__ = [
     "START_SPEED_FRACTION",
     "SWEEP_DIFFERENCES",
     "Preset",
+    "desired_speed_name",
     "draw_pooled",
     "draw_preset",
     "equilibrium_gap",
@@ -146,9 +148,20 @@ def equilibrium_gap(model: DriverModel, params: Any, v: Array, dt: float) -> Arr
     return 0.5 * (low + high)
 
 
+def desired_speed_name(model: DriverModel) -> str:
+    """The name of ``model``'s desired-speed parameter; a ValueError if it marks none."""
+    name = model.desired_speed_param
+    if name is None:
+        raise ValueError(
+            f"model {model.name!r} marks no desired-speed parameter (ParamSpec.desired_speed): "
+            "scene generation starts platoons below it and sweeps it"
+        )
+    return name
+
+
 def _steady_platoon(model: DriverModel, params: Any, num_steps: int, dt: float) -> SceneArrays:
     """Initial state of one platoon (module docstring); the first car has no leader."""
-    start_speed = START_SPEED_FRACTION * jnp.min(params.v_des)
+    start_speed = START_SPEED_FRACTION * jnp.min(getattr(params, desired_speed_name(model)))
     gaps = equilibrium_gap(model, params, start_speed, dt)
     # Car k starts behind car k-1 by its own equilibrium gap plus one car length.
     spacing = gaps[1:] + CAR_LENGTH_M
@@ -214,7 +227,8 @@ def pair_sweep(
         lambda leaf: jnp.broadcast_to(pair(jnp.asarray(leaf, jnp.float32)), (diffs.shape[0], 2)),
         base_params,
     )
-    params = params._replace(v_des=params.v_des.at[:, 1].add(diffs))
+    name = desired_speed_name(model)
+    params = params._replace(**{name: getattr(params, name).at[:, 1].add(diffs)})
     return generate_scenes(key, model, params, num_steps=num_steps, dt=dt)
 
 

@@ -18,7 +18,6 @@ from jax import Array
 
 from bayesdrive.data.readers._common import DEFAULT_LENGTH_M
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.output import metadata
 from bayesdrive.simulation.baselines import Policy, particle_policy
@@ -149,10 +148,10 @@ def posterior_predictive(
     """
     meta = metadata(result)
     model = get_model(meta["model"])
-    if model.name == CIDM.name:
+    if model.scene is not None:
         raise ValueError(
-            "a Cooperative-IDM posterior needs a merge scene; simulate it with `bayesdrive "
-            "evaluate` on merge episodes"
+            f"model {model.name!r} reads the {model.scene} scene, which a replayed leader does not "
+            f"give; simulate it with `bayesdrive evaluate` on {model.scene} scenes"
         )
     names = tuple(meta["params"])
     draws = particles_by_vehicle(result, names)

@@ -15,15 +15,20 @@ kind            extensions                                                  wrap
 ``noise``       autocorrelated_noise, speed_dependent_noise                 any exactly observed
                                                                             model with white noise
 ``parameters``  drifting_parameters                                         the base model alone
-``observation`` measurement_noise                                           base or ``mean``
+``observation`` measurement_noise, video_noise                              base or ``mean``
 ==============  ==========================================================  =====================
+
+The two observation models (:mod:`bayesdrive.drivers.measurement_noise`,
+:mod:`bayesdrive.drivers.video_noise`) are extensions of the ``observation`` kind, so a model has
+at most one. :data:`CAUSES` are the extensions the criticism screens: all but video noise, whose
+cause is measurement noise's.
 
 So ``idm+reaction_delay+autocorrelated_noise``, ``cidm+autocorrelated_noise`` and
 ``gipps+second_leader_anticipation+measurement_noise`` exist, and :func:`compose` refuses the
 rest in one line naming the rule: two extensions of one kind (their mean rules or noise models
 would have to be merged); ``drifting_parameters`` with anything (its Kalman filter linearises the
-base rule alone); measurement noise over a noise extension (its filter assumes white execution
-noise of sd ``sigma``); a ``mean`` extension of a base that reads more than car following (the
+base rule alone); an observation model over a noise extension (its filter assumes white
+execution noise); a ``mean`` extension of a base that reads more than car following (the
 Cooperative IDM's merge scene has no history window to delay, and the extensions would drop it).
 The priors stay those of each extension. Confounded pairs keep them too: a reaction delay and
 autocorrelated noise both make consecutive residuals of the undelayed white-noise model
@@ -37,7 +42,7 @@ import functools
 from collections.abc import Callable, Sequence
 from types import MappingProxyType
 
-from bayesdrive.drivers import measurement_noise
+from bayesdrive.drivers import measurement_noise, video_noise
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.extensions import (
     autocorrelated_noise,
@@ -55,12 +60,14 @@ __all__ = [
     "KINDS",
     "KIND_ORDER",
     "NO_CAUSE",
+    "PARTS",
     "as_extended",
     "compose",
     "composition_problem",
     "extend",
     "ordered_causes",
     "with_measurement_noise",
+    "with_video_noise",
 ]
 
 NO_CAUSE = "none"
@@ -74,6 +81,14 @@ def with_measurement_noise(base: DriverModel) -> ExtendedModel:
     return ExtendedModel(measurement_noise.CAUSE, base, model, (measurement_noise.SIGMA_OBS.name,))
 
 
+@functools.cache
+def with_video_noise(base: DriverModel) -> ExtendedModel:
+    """The video-noise observation model (:mod:`bayesdrive.drivers.video_noise`) as an extension;
+    like measurement noise it keeps the base model's inputs, so it wraps any base model."""
+    model = video_noise.with_video_noise(base)
+    return ExtendedModel(video_noise.NAME, base, model, (measurement_noise.SIGMA_OBS.name,))
+
+
 EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = MappingProxyType(
     {
         reaction_delay.CAUSE: reaction_delay.with_reaction_delay,
@@ -83,9 +98,13 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
         cut_in.CAUSE: cut_in.with_cut_in_heuristic,
         drifting_parameters.CAUSE: drifting_parameters.with_drifting_time_gap,
         measurement_noise.CAUSE: with_measurement_noise,
+        video_noise.NAME: with_video_noise,
     }
 )
-CAUSES = tuple(EXTENSIONS)
+# Every extension a model name may join to its base.
+PARTS = tuple(EXTENSIONS)
+# The extensions the criticism screens: video noise answers measurement noise's cause.
+CAUSES = tuple(part for part in PARTS if part != video_noise.NAME)
 KIND_ORDER = ("mean", "noise", "parameters", "observation")
 KINDS = MappingProxyType(
     {
@@ -96,6 +115,7 @@ KINDS = MappingProxyType(
         speed_dependent_noise.CAUSE: "noise",
         drifting_parameters.CAUSE: "parameters",
         measurement_noise.CAUSE: "observation",
+        video_noise.NAME: "observation",
     }
 )
 
@@ -104,7 +124,7 @@ def ordered_causes(causes: Sequence[str]) -> tuple[str, ...]:
     """``causes`` in the order they are applied (:data:`KIND_ORDER`); a KeyError names an unknown."""
     unknown = [cause for cause in causes if cause not in KINDS]
     if unknown:
-        raise KeyError(f"unknown cause(s) {unknown}; known causes: {list(CAUSES)}")
+        raise KeyError(f"unknown cause(s) {unknown}; known causes: {list(PARTS)}")
     return tuple(sorted(causes, key=lambda cause: KIND_ORDER.index(KINDS[cause])))
 
 
@@ -124,9 +144,10 @@ def composition_problem(causes: Sequence[str]) -> str | None:
             "linearises the base rule alone)"
         )
     if "observation" in kinds and "noise" in kinds:
+        observation = ordered[kinds.index("observation")]
         return (
-            f"{measurement_noise.CAUSE} does not compose with a noise extension (its filter "
-            "assumes white execution noise of sd sigma)"
+            f"{observation} does not compose with a noise extension (its filter assumes white "
+            "execution noise)"
         )
     return None
 
@@ -158,7 +179,7 @@ def extend(cause: str, base: DriverModel, present: tuple[str, ...] = ()) -> Exte
     if cause == NO_CAUSE:
         return as_extended(current)
     if cause not in EXTENSIONS:
-        raise KeyError(f"unknown cause {cause!r}; known causes: {list(CAUSES)}")
+        raise KeyError(f"unknown cause {cause!r}; known causes: {list(PARTS)}")
     model = compose(base, (*present, cause))
     new_params = tuple(name for name in model.param_names if name not in current.param_names)
     return ExtendedModel(cause, current, model, new_params)

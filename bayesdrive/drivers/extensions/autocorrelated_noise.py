@@ -41,6 +41,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, Series
+from bayesdrive.drivers.execution_noise import STOP_SPEED, noisy_step, step_logpdf
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
     base_params,
@@ -48,7 +49,6 @@ from bayesdrive.drivers.extensions.compose import (
     extended_specs,
     params_type,
 )
-from bayesdrive.drivers.idm import STOP_SPEED, noisy_step, step_logpdf
 
 __all__ = [
     "AR_SPECS",
@@ -105,8 +105,9 @@ def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:
 
 @functools.cache
 def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
-    """``base`` (any exactly observed model with white noise of sd ``sigma``, a ``mean`` extension
-    included) with AR(1) execution noise of correlation ``rho`` (module docstring)."""
+    """``base`` (any exactly observed model with white noise of sd ``sigma``, its ``noise_sd``, a
+    ``mean`` extension included) with AR(1) execution noise of correlation ``rho`` (module
+    docstring)."""
     check_white_noise(base, CAUSE)
     specs = extended_specs(base, AR_SPECS)
 
@@ -119,7 +120,8 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
         """Mean and sd of this step's acceleration given the last residual."""
         memory = state.known * params.rho
         mean_acc = base_mean(params, state.v, inputs.now) + memory * state.residual
-        sd = params.sigma * jnp.sqrt(1.0 - state.known * params.rho**2)
+        sigma = base.noise_sd(base_params(base, params), EgoState(state.x, state.v))
+        sd = sigma * jnp.sqrt(1.0 - state.known * params.rho**2)
         return mean_acc, sd
 
     def mean_acceleration(params, state: NoiseMemoryState, inputs: NoiseMemoryInputs) -> Array:
@@ -168,5 +170,6 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
         inputs_at=inputs_at,
         lift=lift,
         reads_history=True,
+        scene=base.scene,
     )
     return ExtendedModel(CAUSE, base, model, ("rho",))

@@ -1,15 +1,14 @@
 """How an extension wraps a driver model: extra parameters, and lifting observed data to states.
 
-Every extension wraps a model whose step is "mean acceleration plus Gaussian execution noise of sd
-``params.sigma``" (the IDM: :func:`~bayesdrive.drivers.idm.noisy_step` and
-:func:`~bayesdrive.drivers.idm.step_logpdf`). The wrapped model's parameters are the inner
+Every extension wraps a model whose step is "mean acceleration plus Gaussian execution noise of
+the sd its ``noise_sd`` declares" (:mod:`bayesdrive.drivers.execution_noise`). The wrapped model's parameters are the inner
 model's, in the same order, followed by the extension's own (with defaults that switch the
 extension off, so the inner model is nested in every extension).
 
 The extensions that change the mean rule read
 :class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs`, built by their model's
 ``inputs_at`` from the one series, and hand its car-following part to the base model, so they wrap
-only base models that read car-following inputs alone (:func:`check_base`). The noise extensions
+only base models that need no scene beyond car following (``scene`` None, :func:`check_base`). The noise extensions
 read whatever the inner model reads and wrap any exactly observed model with white noise
 (:func:`check_white_noise`), a ``mean`` extension included: that is how extensions compose
 (:func:`~bayesdrive.drivers.extensions.compose`). Some extensions keep more in the state than the
@@ -27,15 +26,9 @@ from typing import Any, NamedTuple
 
 from jax import Array
 
-from bayesdrive.drivers.base import (
-    DriverModel,
-    EgoState,
-    ParamSpec,
-    car_following_at,
-    observed_lift,
-)
+from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.execution_noise import execution_noise_model
 from bayesdrive.drivers.extensions.inputs import inputs_at
-from bayesdrive.drivers.idm import execution_noise_model, execution_noise_sd
 
 __all__ = [
     "ExtendedModel",
@@ -71,26 +64,27 @@ class ExtendedModel(NamedTuple):
 
 
 def check_base(base: DriverModel, cause: str) -> None:
-    """Refuse a base model whose inputs are more than car following (the extensions would drop
-    them: a Cooperative IDM extended so would silently forget the merge scene)."""
-    if base.inputs_at is not car_following_at:
+    """Refuse a base model that declares a scene beyond car following (the extensions would drop
+    it: a Cooperative IDM extended so would silently forget the merge scene)."""
+    if base.scene is not None:
         raise ValueError(
             f"extension {cause!r} needs a base model that reads car-following inputs only; "
-            f"{base.name!r} reads more (its inputs would be lost)"
+            f"{base.name!r} reads more, the {base.scene} scene (it would be lost)"
         )
 
 
 def check_white_noise(inner: DriverModel, cause: str) -> None:
-    """Refuse an inner model whose step is not white Gaussian noise of sd ``sigma`` around its mean
-    rule on an exactly observed state (a noise extension would misread its state or noise)."""
-    if inner.lift is not observed_lift or inner.filter is not None:
+    """Refuse an inner model that does not declare a white Gaussian execution noise (``noise_sd``)
+    on an exactly observed state (a noise extension would misread its state or noise)."""
+    if not inner.observed_exactly:
         raise ValueError(
             f"extension {cause!r} needs an inner model whose state is observed exactly; "
-            f"{inner.name!r} keeps or filters more"
+            f"{inner.name!r} is observed through {inner.observation}"
         )
-    if inner.execution_noise_param is None:
+    if inner.noise_sd is None or inner.filter is not None:
         raise ValueError(
-            f"extension {cause!r} needs an execution-noise sd; {inner.name!r} has none"
+            f"extension {cause!r} needs an inner model with white Gaussian execution noise on "
+            f"position and speed; {inner.name!r} keeps or filters more"
         )
 
 
@@ -120,19 +114,32 @@ def gaussian_extension(
     new_specs: Sequence[ParamSpec],
     mean_acceleration: Callable[[Any, EgoState, Any], Array],
     *,
-    noise_sd: Callable[[Any, Any], Array] = execution_noise_sd,
+    noise_sd: Callable[[Any, Any], Array] | None = None,
     reads_history: bool = False,
     reads: Callable[[Any, Array, int], Any] = inputs_at,
 ) -> ExtendedModel:
-    """An extension whose step is ``mean_acceleration`` plus Gaussian noise of sd ``noise_sd``,
-    reading the inputs ``reads`` builds (default: :class:`ExtendedInputs`, for a base model that
-    reads car following alone; the caller checks ``base`` fits).
+    """An extension whose step is ``mean_acceleration`` plus Gaussian noise of sd ``noise_sd``
+    (default: ``base``'s, on the base's leading fields), reading the inputs ``reads`` builds
+    (default: :class:`ExtendedInputs`, for a base model that reads car following alone; the caller
+    checks ``base`` fits) and needing ``base``'s scene.
 
-    Sampling and density are the base models' own :func:`~bayesdrive.drivers.idm.noisy_step` and
-    :func:`~bayesdrive.drivers.idm.step_logpdf`, so the extension changes only the mean (or the sd).
+    Sampling and density are the base models' own
+    :func:`~bayesdrive.drivers.execution_noise.noisy_step` and
+    :func:`~bayesdrive.drivers.execution_noise.step_logpdf`, so the extension changes only the mean
+    (or the sd).
     """
     specs = extended_specs(base, new_specs)
     type_name = "".join(part.title() for part in cause.split("_")) + "Params"
+    if noise_sd is None:
+        if base.noise_sd is None:
+            raise ValueError(
+                f"extension {cause!r} needs a base model with Gaussian execution noise; "
+                f"{base.name!r} declares none"
+            )
+
+        def noise_sd(params, state) -> Array:
+            return base.noise_sd(base_params(base, params), state)
+
     model = execution_noise_model(
         f"{base.name}+{cause}",
         params_type(type_name, specs),
@@ -140,6 +147,7 @@ def gaussian_extension(
         mean_acceleration,
         noise_sd,
         reads,
+        base.scene,
     )._replace(
         observation_logpdf=base.observation_logpdf,
         initial_sample=base.initial_sample,

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.execution_noise import STOP_SPEED, noisy_step, step_logpdf
 from bayesdrive.drivers.extensions.autocorrelated_noise import implied_acceleration
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
@@ -46,7 +47,6 @@ from bayesdrive.drivers.extensions.compose import (
     params_type,
 )
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs, inputs_at
-from bayesdrive.drivers.idm import STOP_SPEED, noisy_step, step_logpdf
 
 __all__ = ["CAUSE", "DRIFT_SPECS", "DriftState", "with_drifting_time_gap"]
 
@@ -93,16 +93,18 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         step = params.tau_drift * jnp.sqrt(inputs.dt)
         offset = state.tau_offset + step * jax.random.normal(key_drift, jnp.shape(state.v))
         mean_acc = rule(params, offset, state.v, inputs)
-        moved = noisy_step(key_step, EgoState(state.x, state.v), mean_acc, params.sigma, inputs.dt)
+        ego = EgoState(state.x, state.v)
+        sigma = base.noise_sd(base_params(base, params), ego)
+        moved = noisy_step(key_step, ego, mean_acc, sigma, inputs.dt)
         return DriftState(moved.x, moved.v, offset)
 
     def transition_logpdf(params, state: DriftState, next_state: DriftState, inputs) -> Array:
         sd = params.tau_drift * jnp.sqrt(inputs.dt)
         drift = jax.scipy.stats.norm.logpdf(next_state.tau_offset, state.tau_offset, sd)
         mean_acc = rule(params, next_state.tau_offset, state.v, inputs)
-        move = step_logpdf(
-            EgoState(state.x, state.v), next_state, mean_acc, params.sigma, inputs.dt
-        )
+        ego = EgoState(state.x, state.v)
+        sigma = base.noise_sd(base_params(base, params), ego)
+        move = step_logpdf(ego, next_state, mean_acc, sigma, inputs.dt)
         return drift + move
 
     def lift(params, state: EgoState, inputs: ExtendedInputs) -> DriftState:
@@ -128,8 +130,9 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
             rule_at, slope = jax.jvp(
                 lambda u: rule(params, u, v, inputs), (mean,), (jnp.ones_like(mean),)
             )
-            innovation_var = slope**2 * var + params.sigma**2
             state = EgoState(jnp.zeros_like(v), v)
+            sigma = base.noise_sd(base_params(base, params), state)
+            innovation_var = slope**2 * var + sigma**2
             logp = step_logpdf(state, EgoState(dx, next_v), rule_at, jnp.sqrt(innovation_var), dt)
             gain = var * slope / innovation_var
             moving = (usable > 0) & (next_v > STOP_SPEED)

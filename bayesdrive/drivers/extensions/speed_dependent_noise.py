@@ -4,7 +4,8 @@ r"""Speed-dependent execution noise: the acceleration error grows with speed.
 
     a \sim N\big(a_{base},\ \sigma(v)^2\big), \qquad \sigma(v) = \sigma\,(1 + k\, v),
 
-so :math:`\sigma` is the noise at standstill and :math:`k` the relative increase per m/s of the
+with :math:`\sigma` the wrapped model's own noise sd (its ``noise_sd``), so it is the noise at
+standstill and :math:`k` the relative increase per m/s of the
 current speed (k = 0.1 doubles the noise at 10 m/s).
 
 =================  ====  =======  ============  =====================================
@@ -17,6 +18,8 @@ noise_speed_slope  s/m   0.0      [0, 0.5]      relative noise increase per m/s
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import Any
 
 from jax import Array
 
@@ -28,7 +31,7 @@ from bayesdrive.drivers.extensions.compose import (
     gaussian_extension,
 )
 
-__all__ = ["CAUSE", "SPEED_NOISE_SPECS", "noise_sd", "with_speed_dependent_noise"]
+__all__ = ["CAUSE", "SPEED_NOISE_SPECS", "speed_dependent_sd", "with_speed_dependent_noise"]
 
 CAUSE = "speed_dependent_noise"
 SPEED_NOISE_SPECS = (
@@ -44,9 +47,14 @@ SPEED_NOISE_SPECS = (
 )
 
 
-def noise_sd(params, state) -> Array:
-    """sigma(v) = sigma (1 + k v) at the state's current speed."""
-    return params.sigma * (1.0 + params.noise_speed_slope * state.v)
+def speed_dependent_sd(base: DriverModel) -> Callable[[Any, Any], Array]:
+    """sigma(v) = sigma (1 + k v) at the state's current speed, sigma ``base``'s noise sd."""
+
+    def noise_sd(params, state) -> Array:
+        sigma = base.noise_sd(base_params(base, params), state)
+        return sigma * (1.0 + params.noise_speed_slope * state.v)
+
+    return noise_sd
 
 
 @functools.cache
@@ -63,7 +71,7 @@ def with_speed_dependent_noise(base: DriverModel) -> ExtendedModel:
         CAUSE,
         SPEED_NOISE_SPECS,
         mean_acceleration,
-        noise_sd=noise_sd,
+        noise_sd=speed_dependent_sd(base),
         reads_history=base.reads_history,
         reads=base.inputs_at,
     )
