@@ -163,9 +163,24 @@ def test_outcome_files_and_digest(outcome, tmp_path):
         (["--engine", "nope"], "unknown engine"),
         (["--engine", "hierarchical"], "own population prior"),
         (["--engine", "smc", "--params", "tau,wings"], "no parameter"),
+        (["--engine", "smc", "--model", "idm+wings"], "wings"),
+        (["--engine", "smc", "--model", "cidm"], "merge scene"),
     ],
 )
 def test_sbc_command_refuses_bad_requests(args, message):
     run = CliRunner().invoke(app, ["sbc", *args, "--replications", "20"])
     assert run.exit_code == 2
     assert message in run.output
+
+
+def test_sbc_command_calibrates_any_registered_model():
+    """`--model` reaches the study: the OVM's own parameters are simulated, fitted and ranked."""
+    run = CliRunner().invoke(
+        app,
+        ["sbc", "--engine", "smc", "--model", "ovm", "--replications", "10", "--steps", "16"]
+        + ["--particles", "128", "--seed", "1", "--json", "-"],
+    )
+    assert run.exit_code == 0, run.output
+    digest = json.loads(run.output)
+    assert digest["model"] == digest["fit_model"] == "ovm"
+    assert list(digest["parameters"]) == ["kappa", "v_max", "s_c", "sigma"]

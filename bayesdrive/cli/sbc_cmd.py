@@ -1,6 +1,6 @@
-"""``bayesdrive sbc``: simulation-based calibration of an engine on the stochastic IDM.
+"""``bayesdrive sbc``: simulation-based calibration of an engine on any registered driver model.
 
-Draws parameters from the prior box, simulates one follower per replication behind a replayed
+Draws parameters from the model's prior box, simulates one follower per replication behind a replayed
 synthetic leader, fits all replications in one engine call and tests the ranks of the truths for
 uniformity per parameter (chi-square, judged at alpha / K: Bonferroni; KS reported). See
 :mod:`bayesdrive.inference.sbc`. ``--sd-doubled`` fits a deliberately wrong likelihood (twice the
@@ -30,7 +30,6 @@ from bayesdrive.cli.common import (
     results_folder,
 )
 from bayesdrive.cli.names import ENGINES as ENGINE_NAMES
-from bayesdrive.cli.names import IDM_PARAMS
 from bayesdrive.data.atomic import write_text_atomic
 
 if TYPE_CHECKING:
@@ -105,8 +104,13 @@ def sbc(
     ),
     replications: int = typer.Option(200, "--replications", min=10, help="Simulated vehicles."),
     seed: int = typer.Option(0, "--seed", help="Seed of prior draws, simulation and fits."),
-    params: str = typer.Option(
-        ",".join(IDM_PARAMS), "--params", help="Comma-separated IDM parameters to infer."
+    model_name: str = typer.Option(
+        "idm",
+        "--model",
+        help="Driver model to simulate and fit: a base model, or one joined by '+' to extensions.",
+    ),
+    params: str | None = typer.Option(
+        None, "--params", help="Comma-separated parameters to infer (default: all the model's)."
     ),
     steps: int = typer.Option(64, "--steps", min=2, help="Steps (0.1 s) per simulated vehicle."),
     ranks: int = typer.Option(
@@ -125,12 +129,12 @@ def sbc(
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
-    """Simulation-based calibration: are the engine's posteriors calibrated on the IDM?"""
+    """Simulation-based calibration: are the engine's posteriors calibrated on the model?"""
     # Imported here so that `bayesdrive sbc --help` does not import JAX.
     import jax
 
-    from bayesdrive.drivers.idm import IDM
-    from bayesdrive.inference.fit import ENGINES
+    from bayesdrive.drivers.registry import get_model
+    from bayesdrive.inference.fit import ENGINES, check_engine_model
     from bayesdrive.inference.sbc import run_sbc, sd_doubled
 
     if engine not in ENGINES:
@@ -140,9 +144,16 @@ def sbc(
             f"{engine} fits replications jointly under its own population prior; SBC simulates "
             "from the uniform prior box, so the ranks would test the prior, not the engine"
         )
-    names = [p.strip() for p in params.split(",") if p.strip()]
+    try:
+        model = get_model(model_name)
+        check_engine_model(engine, model)
+        fit_model = sd_doubled(model) if sd_doubled_model else model
+    except KeyError as error:  # an unknown or ill-composed model name
+        raise fail(error.args[0]) from error
+    except ValueError as error:
+        raise fail(str(error)) from error
+    names = None if params is None else [p.strip() for p in params.split(",") if p.strip()]
     options: dict[str, Any] = {} if particles is None else {"num_particles": particles}
-    fit_model = sd_doubled(IDM) if sd_doubled_model else IDM
     check_json_out(json_out)
     results = None if out is None else results_folder(out, "sbc", force=force)
     with Progress(
@@ -159,7 +170,7 @@ def sbc(
                 jax.random.key(seed),
                 ENGINES[engine],
                 engine_name=engine,
-                model=IDM,
+                model=model,
                 params=names,
                 fit_model=fit_model,
                 num_replications=replications,
