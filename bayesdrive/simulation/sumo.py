@@ -27,11 +27,26 @@ dt of fit     stepping               SUMO's IDM integrates each simulation step 
                                      round(step-length / stepping) Euler sub-steps holding the
                                      leader's speed; stepping = the data's step length makes it
                                      one step of the fitted dt at that step length
-sigma         (none: sigma = 0)      our sigma is the sd (m/s^2) of Gaussian execution noise on
-                                     the acceleration; SUMO's ``sigma`` is Krauss-style
-                                     dawdling in [0, 1], a different quantity, so the types are
+sigma         (none: sigma = 0)      not carried (:data:`NO_SUMO_CARRIER`): the types are
                                      deterministic and our value is kept as a ``<param>``
 ============  =====================  =========================================================
+
+Execution noise has no carrier in SUMO with its meaning. bayesdrive's ``sigma`` is the sd
+(m/s^2) of Gaussian noise added to the acceleration, drawn afresh each step. SUMO's noise
+carriers mean other things: a vType's ``sigma`` is Krauss dawdling (a random slow-down, a
+fraction in [0, 1]); the EIDM's driving error (``sigmaerror``) is a Wiener process with its own
+correlation time (``tPersDrive``), scaled by an intensity and a criticality of the situation,
+on a model with other changes to the IDM; the driverstate device's Ornstein-Uhlenbeck error
+enters at the perception stage only, as errors of the perceived gap and speed difference in
+proportion to the gap (SUMO's Driver State documentation, ``MSSimpleDriverState``), not as an
+acceleration error. So ``sigma`` is written as a ``<param>`` and refused as a simulated
+quantity in one line naming it; the extensions' driver parameters (autocorrelation ``rho``,
+``reaction_time``, ...) have no carrier either, and a result of such a model is refused in one
+line naming the parameter. Parameters of the observation (``sigma_obs``) describe the data, not
+the driver, and are kept as ``<param>`` entries. Gipps has no exact counterpart in SUMO's
+Krauss family (Krauss accelerates at ``accel`` up to the desired speed where Gipps' free branch
+fades with speed, and its safe speed keeps a headway ``tau`` that Gipps ties to the step): a Gipps
+result is refused, naming the model.
 
 Not mapped and worth knowing: bayesdrive integrates positions by the trapezoid rule (SUMO's
 ``--step-method.ballistic``), SUMO's default is semi-implicit Euler; bayesdrive's IDM has no
@@ -50,6 +65,7 @@ from __future__ import annotations
 
 import logging
 import math
+import subprocess
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from pathlib import Path
@@ -69,13 +85,19 @@ from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle, 
 
 __all__ = [
     "IDM_TO_SUMO",
+    "NO_SUMO_CARRIER",
+    "SIGMA_NOT_CARRIED",
     "Driver",
+    "SumoFollower",
     "export_header",
     "fitted_step_length",
+    "follow_in_sumo",
     "per_vehicle_drivers",
     "population_drivers",
     "posterior_drivers",
+    "straight_road",
     "sumo_attributes",
+    "sumo_home",
     "vtype_distribution",
     "write_vtype_distribution",
 ]
@@ -90,6 +112,23 @@ IDM_TO_SUMO = {
     "a_max": ("accel",),
     "b_pref": ("decel",),
 }
+# What SUMO cannot carry with the parameter's meaning (module docstring), one line each.
+SIGMA_NOT_CARRIED = (
+    "sigma (sd of Gaussian execution noise on the acceleration, fresh each step) is not carried: "
+    "SUMO's sigma is Krauss dawdling, the EIDM's sigmaerror a situation-scaled Wiener process and "
+    "the driverstate device's error a perception error of gap and speed difference; the types "
+    "are deterministic and sigma is kept as a <param>"
+)
+NO_SUMO_CARRIER = {
+    "rho": "the autocorrelation of the execution noise: SUMO's only Ornstein-Uhlenbeck error "
+    "(driverstate device) perturbs the perceived gap and speed difference, not the acceleration",
+    "reaction_time": "a delay of the driver's inputs: SUMO's actionStepLength holds decisions "
+    "between action points, and the EIDM's treaction sits in a model that is not the IDM",
+    "noise_speed_slope": "execution noise growing with speed: SUMO carries no execution noise",
+    "tau_drift": "a time headway drifting within a vehicle: SUMO's tau is fixed per type",
+}
+# Observation-model parameters: about the data, nothing to simulate.
+OBSERVATION_PARAMETERS = ("sigma_obs",)
 # Deterministic types driving exactly their own v_des (see the table above).
 _FIXED_ATTRIBUTES = {"carFollowModel": "IDM", "sigma": "0", "speedFactor": "1", "speedDev": "0"}
 
@@ -113,7 +152,17 @@ def _all_parameters(tree: xr.DataTree, values: Mapping[str, float]) -> dict[str,
     model = get_model(meta["model"])
     missing = [name for name in IDM_TO_SUMO if name not in model.param_names]
     if missing:
-        raise ValueError(f"model {model.name!r} has no IDM parameter(s) {missing}: not an IDM")
+        raise ValueError(
+            f"model {model.name!r} has no IDM parameter(s) {missing}: not an IDM; SUMO's Krauss "
+            "family is no exact Gipps (module docstring of bayesdrive.simulation.sumo)"
+        )
+    refused = [name for name in model.param_names if name in NO_SUMO_CARRIER]
+    if refused:
+        name = refused[0]
+        raise ValueError(
+            f"model {model.name!r}: {name} has no SUMO carrier ({NO_SUMO_CARRIER[name]}); "
+            "export a fit of the base model"
+        )
     fixed = fixed_params(model, meta)._asdict()
     return {name: float(values.get(name, fixed[name])) for name in model.param_names}
 
@@ -195,7 +244,9 @@ def vtype_distribution(
     root = ET.Element("additional")
     root.append(ET.Comment(header))
     distribution = ET.SubElement(root, "vTypeDistribution", id=distribution_id)
-    unmapped = sorted(set(drivers[0].params) - set(IDM_TO_SUMO) - {"sigma"})
+    unmapped = sorted(
+        set(drivers[0].params) - set(IDM_TO_SUMO) - {"sigma", *OBSERVATION_PARAMETERS}
+    )
     if unmapped:
         log.warning(
             "SUMO's IDM has no counterpart of %s: kept as <param> entries only, not simulated",
@@ -227,8 +278,7 @@ def export_header(tree: xr.DataTree, source: str, how: str, seed: int | None) ->
         f"{meta['data_source']}): {how}{drawn}. Written by {provenance_line()}. "
         "Mapping: v_des -> maxSpeed and desiredMaxSpeed, d_min -> minGap, tau -> tau, "
         "a_max -> accel, b_pref -> decel, delta = 4, stepping = the fitted step length. "
-        "Not mapped: bayesdrive's sigma (sd of Gaussian execution noise) is not SUMO's sigma "
-        "(dawdling), so sigma = 0 and the value is kept as a param; set SUMO's option "
+        f"Not mapped: {SIGMA_NOT_CARRIED}. Set SUMO's option "
         "step-method.ballistic to true to integrate positions as bayesdrive does. "
     )
 
@@ -251,3 +301,101 @@ def fitted_step_length(tree: xr.DataTree, meta: Mapping[str, Any] | None = None)
         "the result records no step length (observed_data.attrs['dt'] or the attribute dt): "
         "give the stepping (CLI: --stepping SECONDS, the fitted data's step length)"
     )
+
+
+# Where the follower starts on SUMO's road (m): room behind it, none needed ahead of the leader.
+START_M = 100.0
+# The replayed leader's type: limits far beyond any recorded speed change, so setSpeed rules.
+_REPLAY_LIMIT = 20.0
+
+
+def sumo_home() -> Path:
+    """SUMO's installation (the ``sumo`` extra's eclipse-sumo); a clear error without it."""
+    try:
+        import sumo
+    except ImportError:
+        raise RuntimeError(
+            "eclipse-sumo is not installed: pip install -e '.[sumo]' (SUMO and libsumo)"
+        ) from None
+    return Path(sumo.SUMO_HOME)
+
+
+def straight_road(folder: Path, home: Path, length_m: float) -> Path:
+    """A straight single-lane road of ``length_m`` metres (speed limit 50 m/s, above every
+    v_des the priors allow), built by SUMO's netconvert into ``folder``; returns the net file."""
+    (folder / "road.nod.xml").write_text(
+        f'<nodes><node id="a" x="0" y="0"/><node id="b" x="{length_m:.1f}" y="0"/></nodes>'
+    )
+    (folder / "road.edg.xml").write_text(
+        '<edges><edge id="road" from="a" to="b" numLanes="1" speed="50"/></edges>'
+    )
+    net = folder / "road.net.xml"
+    command = [home / "bin" / "netconvert", "-n", folder / "road.nod.xml"]
+    command += ["-e", folder / "road.edg.xml", "-o", net]
+    subprocess.run(command, check=True, capture_output=True)
+    return net
+
+
+class SumoFollower(NamedTuple):
+    """SUMO's follower, one value per step from the start: position from its start (m), speed
+    (m/s) and bumper gap to the leader (m)."""
+
+    x: np.ndarray
+    v: np.ndarray
+    gap: np.ndarray
+
+
+def follow_in_sumo(
+    home: Path,
+    net: Path,
+    vtypes: Path,
+    vtype_id: str,
+    lead_v: np.ndarray,
+    *,
+    gap: float,
+    v0: float,
+    dt: float,
+    leader_length: float,
+    folder: Path,
+) -> SumoFollower:
+    """One follower of type ``vtype_id`` (from the additional file ``vtypes``) behind a leader
+    that replays the speeds ``lead_v`` (one per step, from the first) through libsumo's
+    ``setSpeed`` with every speed check off; the follower starts ``gap`` metres (bumper to
+    bumper) behind it at speed ``v0``. Positions are integrated by SUMO's ballistic update, as
+    bayesdrive integrates them (module docstring)."""
+    import libsumo
+
+    routes = folder / "routes.xml"
+    routes.write_text(
+        f'<routes><vType id="replay" length="{float(leader_length)!r}" maxSpeed="60" '
+        f'accel="{_REPLAY_LIMIT}" decel="{_REPLAY_LIMIT}" emergencyDecel="{_REPLAY_LIMIT}" '
+        'sigma="0"/><route id="r" edges="road"/>'
+        f'<vehicle id="leader" type="replay" route="r" depart="0" '
+        f'departPos="{float(START_M + gap + leader_length)!r}" departSpeed="{float(lead_v[0])!r}" '
+        'insertionChecks="none"/>'
+        f'<vehicle id="follower" type="{vtype_id}" route="r" depart="0" departPos="{START_M}" '
+        f'departSpeed="{float(v0)!r}" insertionChecks="none"/></routes>'
+    )
+    libsumo.start(
+        [
+            str(home / "bin" / "sumo"),
+            *("-n", str(net), "-a", str(vtypes), "-r", str(routes)),
+            *("--step-length", str(dt), "--step-method.ballistic", "true"),
+            *("--no-step-log", "true", "--no-warnings", "true"),
+        ]
+    )
+    try:
+        libsumo.simulationStep()  # inserts both cars at their recorded state
+        libsumo.vehicle.setSpeedMode("leader", 0)
+        x, v, lead_x = [], [], []
+        for speed in [*lead_v[1:], None]:
+            x.append(libsumo.vehicle.getLanePosition("follower"))
+            v.append(libsumo.vehicle.getSpeed("follower"))
+            lead_x.append(libsumo.vehicle.getLanePosition("leader"))
+            if speed is not None:
+                libsumo.vehicle.setSpeed("leader", float(speed))
+                libsumo.simulationStep()
+    finally:
+        libsumo.close()
+    x, lead_x = np.array(x), np.array(lead_x)
+    return SumoFollower(x - START_M, np.array(v), lead_x - leader_length - x)
