@@ -27,7 +27,7 @@ dt of fit     stepping               SUMO's IDM integrates each simulation step 
                                      round(step-length / stepping) Euler sub-steps holding the
                                      leader's speed; stepping = the data's step length makes it
                                      one step of the fitted dt at that step length
-sigma         (none: sigma = 0)      not carried (:data:`NO_SUMO_CARRIER`): the types are
+sigma         (none: sigma = 0)      not carried (:data:`SIGMA_NOT_CARRIED`): the types are
                                      deterministic and our value is kept as a ``<param>``
 ============  =====================  =========================================================
 
@@ -50,7 +50,9 @@ result is refused, naming the model.
 
 Not mapped and worth knowing: bayesdrive integrates positions by the trapezoid rule (SUMO's
 ``--step-method.ballistic``), SUMO's default is semi-implicit Euler; bayesdrive's IDM has no
-braking limit, SUMO's caps braking at ``emergencyDecel`` (9 m/s^2 by default); vehicle length is
+braking limit, SUMO's caps braking at ``emergencyDecel`` (9 m/s^2 by default); SUMO never
+drives above desiredMaxSpeed (it refuses a car that starts faster and caps its speed there) where
+bayesdrive's IDM brakes smoothly towards v_des from above; vehicle length is
 not fitted (the types leave SUMO's default). Parameters a model has beyond the IDM's (e.g. the
 C-IDM's cooperation ``c``) have no SUMO counterpart: they are kept as ``<param>`` entries and
 logged. Every file records its source result, the seed of any draws and the code that wrote it.
