@@ -7,12 +7,13 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 import xarray as xr
 from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
-from bayesdrive.inference.output import load_result
-from bayesdrive.simulation.sumo import population_drivers
+from bayesdrive.inference.output import load_result, set_metadata
+from bayesdrive.simulation.sumo import per_vehicle_drivers, population_drivers
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
 runner = CliRunner()
@@ -29,8 +30,10 @@ def _export(tmp_path: Path, *options: str) -> tuple[int, ET.Element | None, str]
 
 
 def test_one_type_per_vehicle_carries_its_posterior_medians_under_sumos_names(tmp_path):
-    code, root, _ = _export(tmp_path)
+    code, root, output = _export(tmp_path)
     assert code == 0
+    # Execution noise has no SUMO carrier: one line says so, naming the parameter.
+    assert "sigma (sd of Gaussian execution noise on the acceleration" in " ".join(output.split())
     posterior = load_result(MODEL)["posterior"].to_dataset()
     vtypes = {v.get("id"): v for v in root.iter("vType")}
     assert len(vtypes) == posterior.sizes["vehicle"]
@@ -92,3 +95,18 @@ def test_population_drivers_are_rows_of_the_population_new_driver_draws():
         drawn = [driver.params[name] for name in params]
         assert any(np.allclose(drawn, row) for row in flat), drawn
     assert drivers != population_drivers(jax.random.key(1), tree, 6)
+
+
+@pytest.mark.parametrize(
+    ("model", "named"),
+    [
+        ("idm+autocorrelated_noise", "rho has no SUMO carrier"),
+        ("idm+reaction_delay", "reaction_time has no SUMO carrier"),
+        ("gipps", "not an IDM"),
+    ],
+)
+def test_a_driver_parameter_sumo_cannot_carry_is_refused_by_name(model, named):
+    tree = load_result(MODEL)
+    set_metadata(tree, model=model)
+    with pytest.raises(ValueError, match=named):
+        per_vehicle_drivers(tree)

@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 
-from bayesdrive.cli.common import console, fail
+from bayesdrive.cli.common import console, err_console, fail
 
 app = typer.Typer(help="Export fitted drivers to other tools.", no_args_is_help=True)
 
@@ -78,4 +79,6 @@ def sumo(
     except ValueError as error:
         raise fail(f"{result}: {error}") from None
     export.write_vtype_distribution(out, xml)
+    if "sigma" in drivers[0].params:
+        err_console.print(escape(export.SIGMA_NOT_CARRIED), soft_wrap=True)
     console.print(f"{len(drivers)} SUMO IDM vehicle types ({how}, stepping {step:g} s): {out}")

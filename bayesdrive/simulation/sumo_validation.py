@@ -114,15 +114,26 @@ class SumoValidation(NamedTuple):
     windows: the windows compared. left_out: "vehicle at t=..." of the windows left out, whose
     follower starts faster than its v_des (module docstring). paths: source -> (v, gap), each (window, rollout, T + 1).
     distances: one row per comparison and quantity (W1, its interval, the tolerance where it
-    applies, and whether it is met). passed: SUMO matches bayesdrive and the control does not.
+    applies, and whether it is met). matched: SUMO's rollouts are within the tolerance of
+    bayesdrive's; control_failed: the tau-halved control's are not.
     """
 
     windows: LeaderWindows
     left_out: list[str]
     paths: dict[str, tuple[np.ndarray, np.ndarray]]
     distances: pd.DataFrame
-    passed: bool
+    matched: bool
     control_failed: bool
+
+    @property
+    def passed(self) -> bool:
+        """SUMO matches bayesdrive, and the check has the power to say when it does not."""
+        return self.matched and self.control_failed
+
+    @property
+    def samples(self) -> dict[str, dict[str, np.ndarray]]:
+        """Source -> quantity -> (window, rollouts * T) values compared (module docstring)."""
+        return _compared_values(self.paths, self.windows.dt)
 
 
 def leader_windows(
@@ -188,6 +199,12 @@ def _quantities(v: np.ndarray, gap: np.ndarray, dt: float) -> dict[str, np.ndarr
         "acceleration": np.diff(v, axis=-1) / dt,
     }
     return {name: value.reshape(num_windows, -1) for name, value in values.items()}
+
+
+def _compared_values(
+    paths: Mapping[str, tuple[np.ndarray, np.ndarray]], dt: float
+) -> dict[str, dict[str, np.ndarray]]:
+    return {name: _quantities(v, gap, dt) for name, (v, gap) in paths.items()}
 
 
 def _bayesdrive_paths(
@@ -359,7 +376,7 @@ def validate_sumo(
         paths["sumo"] = _sumo_paths(windows, chosen, stepping, Path(folder))
         wrong = dict(zip(chosen, _with_factors(list(chosen.values()), CONTROL), strict=True))
         paths["sumo_control"] = _sumo_paths(windows, wrong, stepping, Path(folder))
-    sources = {name: _quantities(v, gap, windows.dt) for name, (v, gap) in paths.items()}
+    sources = _compared_values(paths, windows.dt)
     pairs = [
         ("sumo", "bayesdrive"),
         ("sumo_control", "bayesdrive"),
@@ -376,4 +393,4 @@ def validate_sumo(
     matched = bool(table.loc[table["compared"] == "sumo vs bayesdrive", "within_tolerance"].all())
     control = table["compared"] == "sumo_control vs bayesdrive"
     control_failed = not bool(table.loc[control, "within_tolerance"].all())
-    return SumoValidation(windows, left_out, paths, table, matched and control_failed, control_failed)
+    return SumoValidation(windows, left_out, paths, table, matched, control_failed)
