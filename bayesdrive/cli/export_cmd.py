@@ -46,7 +46,8 @@ def sumo(
         None, "--id", help="Id of the vTypeDistribution (default: the result file's stem)."
     ),
 ) -> None:
-    """Write a SUMO vTypeDistribution of IDM vehicle types (mapping: bayesdrive.simulation.sumo).
+    """Write a SUMO vTypeDistribution of vehicle types: SUMO's IDM for an IDM result, its Krauss
+    for a Gipps result (mappings: bayesdrive.simulation.sumo).
 
     Use the types with --step-method.ballistic, as bayesdrive integrates positions that way.
     """
@@ -79,6 +80,8 @@ def sumo(
     except ValueError as error:
         raise fail(f"{result}: {error}") from None
     export.write_vtype_distribution(out, xml)
-    if "sigma" in drivers[0].params:
-        err_console.print(escape(export.SIGMA_NOT_CARRIED), soft_wrap=True)
-    console.print(f"{len(drivers)} SUMO IDM vehicle types ({how}, stepping {step:g} s): {out}")
+    for name, line in export.NOT_CARRIED.items():
+        if name in drivers[0].params:
+            err_console.print(escape(line), soft_wrap=True)
+    kind = export.SUMO_MODELS[drivers[0].model].car_follow_model
+    console.print(f"{len(drivers)} SUMO {kind} vehicle types ({how}, stepping {step:g} s): {out}")

@@ -33,7 +33,6 @@ from bayesdrive.inference.output import load_result
 from bayesdrive.reports.sumo_plots import plot_sumo_distributions
 from bayesdrive.simulation.sumo import fitted_step_length
 from bayesdrive.simulation.sumo_validation import (
-    CONTROL,
     QUANTITIES,
     TOLERANCE,
     SumoValidation,
@@ -54,7 +53,9 @@ def validate() -> None:
 @app.command("sumo")
 @results_command
 def sumo(
-    result: Path = typer.Argument(..., help="An IDM result.nc from `bayesdrive fit` (or models/)."),
+    result: Path = typer.Argument(
+        ..., help="An IDM or Gipps result.nc from `bayesdrive fit` (or models/)."
+    ),
     data: str = typer.Argument(..., help="The data set it was fitted to: a name or a path."),
     out: Path = typer.Option(
         ..., "--out", help="Folder for the tables, the figure and the summary."
@@ -82,8 +83,8 @@ def sumo(
     """Run the fitted drivers in SUMO behind the data's recorded leaders; compare with the data.
 
     SUMO's gap, speed and acceleration distributions are compared with bayesdrive's rollouts of
-    the same drivers (pass: within the stated tolerance, and a control with tau halved must
-    fail) and with the data. Exit code 3 when the check fails (the results are still written).
+    the same drivers (pass: within the stated tolerance, and a control with one parameter halved
+    must fail) and with the data. IDM results run SUMO's IDM, Gipps results its Krauss. Exit code 3 when the check fails (the results are still written).
     """
     if window not in ("heldout", "fit", "all"):
         raise fail(f"--window {window!r}: choose heldout, fit or all")
@@ -108,7 +109,9 @@ def sumo(
     except (DataError, OSError, KeyError, ValueError, RuntimeError) as error:
         raise fail(str(error)) from None
     summary = _summary(outcome, seed)
-    _write(outcome, summary, folder.path, title=f"{result.name} in SUMO behind {data}'s leaders")
+    control = ", ".join(f"{name} x{factor:g}" for name, factor in outcome.control.items())
+    title = f"{result.name} in SUMO behind {data}'s leaders (control: {control})"
+    _write(outcome, summary, folder.path, title=title)
     folder.commit()
     summary["files"] = [str(out / name) for name in FILES]
     if not emit_json(summary, json_out):
@@ -126,7 +129,7 @@ def _summary(outcome: SumoValidation, seed: int) -> dict[str, Any]:
         "passed": outcome.passed,
         "sumo_matches_bayesdrive": outcome.matched,
         "control_failed": outcome.control_failed,
-        "control": {name: f"x{factor:g}" for name, factor in CONTROL.items()},
+        "control": {name: f"x{factor:g}" for name, factor in outcome.control.items()},
         "tolerance_w1": TOLERANCE,
         "windows": len(outcome.windows.vehicle),
         "vehicles": len(set(outcome.windows.vehicle)),
@@ -162,7 +165,7 @@ def _print(outcome: SumoValidation) -> None:
     verdict = "PASS" if outcome.passed else "FAIL"
     console.print(
         f"{verdict}: SUMO {'matches' if outcome.matched else 'misses'}"
-        f" bayesdrive's rollouts of the same drivers within tolerance; the tau-halved control "
+        f" bayesdrive's rollouts of the same drivers within tolerance; the control "
         f"{'fails, as it must' if outcome.control_failed else 'passes: the check has no power'}"
         f" ({len(outcome.windows.vehicle)} windows)"
     )

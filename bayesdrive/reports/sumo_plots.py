@@ -19,7 +19,7 @@ SOURCE_LABELS = {
     "bayesdrive_predictive": "bayesdrive: posterior draws with execution noise",
     "bayesdrive": "bayesdrive: exported drivers, no noise",
     "sumo": "SUMO: exported drivers",
-    "sumo_control": "SUMO control: tau halved (must fail)",
+    "sumo_control": "SUMO control: a parameter halved (must fail)",
 }
 _STYLES = {
     "data": {"color": "black", "linewidth": 2.2},

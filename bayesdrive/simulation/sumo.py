@@ -1,4 +1,5 @@
-"""Fitted IDM drivers as SUMO vehicle types: a ``vTypeDistribution`` for SUMO's own IDM.
+"""Fitted drivers as SUMO vehicle types: a ``vTypeDistribution`` for SUMO's own IDM (IDM
+results) or its Krauss model (Gipps results).
 
 Which drivers (:func:`per_vehicle_drivers`, :func:`posterior_drivers`,
 :func:`population_drivers`): one type per fitted vehicle at its posterior medians (each
@@ -43,10 +44,31 @@ acceleration error. So ``sigma`` is written as a ``<param>`` and refused as a si
 quantity in one line naming it; the extensions' driver parameters (autocorrelation ``rho``,
 ``reaction_time``, ...) have no carrier either, and a result of such a model is refused in one
 line naming the parameter. Parameters of the observation (``sigma_obs``) describe the data, not
-the driver, and are kept as ``<param>`` entries. Gipps has no exact counterpart in SUMO's
-Krauss family (Krauss accelerates at ``accel`` up to the desired speed where Gipps' free branch
-fades with speed, and its safe speed keeps a headway ``tau`` that Gipps ties to the step): a Gipps
-result is refused, naming the model.
+the driver, and are kept as ``<param>`` entries.
+
+Gipps goes to SUMO's ``Krauss`` model, the nearest of its family but not the same rule:
+
+============  =====================  =========================================================
+bayesdrive    SUMO attribute         note
+============  =====================  =========================================================
+v_des         maxSpeed,              as for the IDM
+              desiredMaxSpeed
+a_max         accel                  Krauss accelerates at accel up to the desired speed;
+                                     Gipps' free branch 2.5 a_max (1 - v/v_des)
+                                     sqrt(0.025 + v/v_des) fades with speed
+b_max         decel                  the braking both safe speeds plan with
+d_min         minGap                 Gipps' leader size is its length plus d_min
+dt of fit     tau                    Gipps' reaction time is the step; Krauss keeps tau as
+                                     the time headway of its safe speed, which solves the
+                                     braking distances otherwise than Gipps' formula
+b_lead        (none)                 the follower's estimate of its leader's braking; SUMO's
+                                     Krauss reads the leader's own ``apparentDecel``, so it is
+                                     kept as a ``<param>`` (``validate sumo`` gives the
+                                     replayed leader that apparentDecel)
+============  =====================  =========================================================
+
+How far Krauss is from Gipps is measured by ``bayesdrive validate sumo`` on a Gipps result
+(``reports/sumo.md``).
 
 Not mapped and worth knowing: bayesdrive integrates positions by the trapezoid rule (SUMO's
 ``--step-method.ballistic``), SUMO's default is semi-implicit Euler; bayesdrive's IDM has no
@@ -69,7 +91,7 @@ import logging
 import math
 import subprocess
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -86,11 +108,16 @@ from bayesdrive.inference.output import metadata
 from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle, population_draws
 
 __all__ = [
+    "GIPPS_TO_KRAUSS",
     "IDM_TO_SUMO",
+    "NOT_CARRIED",
     "NO_SUMO_CARRIER",
     "SIGMA_NOT_CARRIED",
+    "SUMO_MODELS",
     "Driver",
     "SumoFollower",
+    "SumoModel",
+    "base_model",
     "export_header",
     "fitted_step_length",
     "follow_in_sumo",
@@ -114,6 +141,43 @@ IDM_TO_SUMO = {
     "a_max": ("accel",),
     "b_pref": ("decel",),
 }
+# bayesdrive's Gipps parameter -> the SUMO Krauss vType attributes that carry it.
+GIPPS_TO_KRAUSS = {
+    "v_des": ("maxSpeed", "desiredMaxSpeed"),
+    "a_max": ("accel",),
+    "b_max": ("decel",),
+    "d_min": ("minGap",),
+}
+
+
+class SumoModel(NamedTuple):
+    """A bayesdrive base model's SUMO car-following model, parameter mapping, and the attributes
+    set from the stepping (s): the IDM's exponent and sub-step, Gipps' reaction time (said in
+    words by ``stepping_note``)."""
+
+    car_follow_model: str
+    mapping: dict[str, tuple[str, ...]]
+    from_stepping: Callable[[float], dict[str, float]]
+    stepping_note: str
+
+
+_SUMO_IDM = SumoModel(
+    "IDM",
+    IDM_TO_SUMO,
+    lambda step: {"delta": DELTA, "stepping": step},
+    f"delta = {DELTA}, stepping = the fitted step length",
+)
+SUMO_MODELS = {
+    "idm": _SUMO_IDM,
+    # The Cooperative IDM follows its leader as the IDM does; its c is kept as a <param>.
+    "cidm": _SUMO_IDM,
+    "gipps": SumoModel(
+        "Krauss",
+        GIPPS_TO_KRAUSS,
+        lambda step: {"tau": step},
+        "tau = the fitted step length (Gipps' reaction time)",
+    ),
+}
 # What SUMO cannot carry with the parameter's meaning (module docstring), one line each.
 SIGMA_NOT_CARRIED = (
     "sigma (sd of Gaussian execution noise on the acceleration, fresh each step) is not carried: "
@@ -129,16 +193,24 @@ NO_SUMO_CARRIER = {
     "noise_speed_slope": "execution noise growing with speed: SUMO carries no execution noise",
     "tau_drift": "a time headway drifting within a vehicle: SUMO's tau is fixed per type",
 }
+# Kept as <param> entries, not simulated: one line each, printed on export.
+NOT_CARRIED = {
+    "sigma": SIGMA_NOT_CARRIED,
+    "b_lead": "b_lead (the follower's estimate of its leader's braking) is not carried: SUMO's "
+    "Krauss reads the leader's own apparentDecel; it is kept as a <param>",
+}
 # Observation-model parameters: about the data, nothing to simulate.
 OBSERVATION_PARAMETERS = ("sigma_obs",)
 # Deterministic types driving exactly their own v_des (see the table above).
-_FIXED_ATTRIBUTES = {"carFollowModel": "IDM", "sigma": "0", "speedFactor": "1", "speedDev": "0"}
+_FIXED_ATTRIBUTES = {"sigma": "0", "speedFactor": "1", "speedDev": "0"}
 
 
 class Driver(NamedTuple):
-    """One exported driver: a SUMO-safe id, every model parameter by name, and where it came from."""
+    """One exported driver: a SUMO-safe id, its base model (a key of :data:`SUMO_MODELS`), every
+    model parameter by name, and where it came from."""
 
     id: str
+    model: str
     params: dict[str, float]
     source: str
 
@@ -148,16 +220,22 @@ def _number(value: float) -> str:
     return f"{value:.7g}"
 
 
+def base_model(tree: xr.DataTree) -> str:
+    """The result's base model, one SUMO carries (:data:`SUMO_MODELS`); a clear error if not."""
+    base = str(metadata(tree)["model"]).split("+")[0]
+    if base not in SUMO_MODELS:
+        raise ValueError(f"model {base!r} has no SUMO export; exported: {sorted(SUMO_MODELS)}")
+    return base
+
+
 def _all_parameters(tree: xr.DataTree, values: Mapping[str, float]) -> dict[str, float]:
     """Inferred ``values`` completed by the fit's fixed parameters (the model's defaults)."""
     meta = metadata(tree)
     model = get_model(meta["model"])
-    missing = [name for name in IDM_TO_SUMO if name not in model.param_names]
+    mapping = SUMO_MODELS[base_model(tree)].mapping
+    missing = [name for name in mapping if name not in model.param_names]
     if missing:
-        raise ValueError(
-            f"model {model.name!r} has no IDM parameter(s) {missing}: not an IDM; SUMO's Krauss "
-            "family is no exact Gipps (module docstring of bayesdrive.simulation.sumo)"
-        )
+        raise ValueError(f"model {model.name!r} lacks the parameter(s) {missing} SUMO needs")
     refused = [name for name in model.param_names if name in NO_SUMO_CARRIER]
     if refused:
         name = refused[0]
@@ -179,6 +257,7 @@ def per_vehicle_drivers(tree: xr.DataTree) -> list[Driver]:
     return [
         Driver(
             id=f"vehicle_{vehicle}",
+            model=base_model(tree),
             params=_all_parameters(tree, dict(zip(names, np.median(draws, axis=0), strict=True))),
             source=f"posterior medians of vehicle {vehicle}",
         )
@@ -199,6 +278,7 @@ def posterior_drivers(key: Array, tree: xr.DataTree, num_drivers: int) -> list[D
     return [
         Driver(
             id=f"draw_{i}",
+            model=base_model(tree),
             params=_all_parameters(tree, dict(zip(names, by_vehicle[vehicles[v]][d], strict=True))),
             source=f"posterior draw {d} of vehicle {vehicles[v]}",
         )
@@ -214,6 +294,7 @@ def population_drivers(key: Array, tree: xr.DataTree, num_drivers: int) -> list[
     return [
         Driver(
             id=f"population_{i}",
+            model=base_model(tree),
             params=_all_parameters(tree, dict(zip(params, flat[d], strict=True))),
             source=f"population new-driver draw {d}",
         )
@@ -221,14 +302,15 @@ def population_drivers(key: Array, tree: xr.DataTree, num_drivers: int) -> list[
     ]
 
 
-def sumo_attributes(params: Mapping[str, float], stepping: float) -> dict[str, str]:
-    """The SUMO IDM vType attributes of one driver (module docstring for the mapping)."""
-    attributes = dict(_FIXED_ATTRIBUTES)
-    for name, sumo_names in IDM_TO_SUMO.items():
+def sumo_attributes(driver: Driver, stepping: float) -> dict[str, str]:
+    """The SUMO vType attributes of one driver (module docstring for the mappings)."""
+    sumo_model = SUMO_MODELS[driver.model]
+    attributes = {"carFollowModel": sumo_model.car_follow_model, **_FIXED_ATTRIBUTES}
+    for name, sumo_names in sumo_model.mapping.items():
         for sumo_name in sumo_names:
-            attributes[sumo_name] = _number(params[name])
-    attributes["delta"] = _number(DELTA)
-    attributes["stepping"] = _number(stepping)
+            attributes[sumo_name] = _number(driver.params[name])
+    for sumo_name, value in sumo_model.from_stepping(stepping).items():
+        attributes[sumo_name] = _number(value)
     return attributes
 
 
@@ -246,12 +328,13 @@ def vtype_distribution(
     root = ET.Element("additional")
     root.append(ET.Comment(header))
     distribution = ET.SubElement(root, "vTypeDistribution", id=distribution_id)
+    mapping = SUMO_MODELS[drivers[0].model].mapping
     unmapped = sorted(
-        set(drivers[0].params) - set(IDM_TO_SUMO) - {"sigma", *OBSERVATION_PARAMETERS}
+        set(drivers[0].params) - set(mapping) - {*NOT_CARRIED, *OBSERVATION_PARAMETERS}
     )
     if unmapped:
         log.warning(
-            "SUMO's IDM has no counterpart of %s: kept as <param> entries only, not simulated",
+            "SUMO has no counterpart of %s: kept as <param> entries only, not simulated",
             unmapped,
         )
     for driver in drivers:
@@ -260,9 +343,9 @@ def vtype_distribution(
             "vType",
             id=f"{distribution_id}_{driver.id}",
             probability="1",
-            **sumo_attributes(driver.params, stepping),
+            **sumo_attributes(driver, stepping),
         )
-        for name in sorted(set(driver.params) - set(IDM_TO_SUMO)):
+        for name in sorted(set(driver.params) - set(mapping)):
             ET.SubElement(
                 vtype, "param", key=f"bayesdrive.{name}", value=_number(driver.params[name])
             )
@@ -274,13 +357,19 @@ def vtype_distribution(
 def export_header(tree: xr.DataTree, source: str, how: str, seed: int | None) -> str:
     """The comment atop an exported file: what it holds, how it was drawn and what does not map."""
     meta = metadata(tree)
+    sumo_model = SUMO_MODELS[base_model(tree)]
     drawn = "" if seed is None else f", seed {seed}"
+    mapped = ", ".join(
+        f"{name} -> {' and '.join(attributes)}" for name, attributes in sumo_model.mapping.items()
+    )
+    not_carried = "; ".join(
+        line for name, line in NOT_CARRIED.items() if name in get_model(meta["model"]).param_names
+    )
     return (
         f" bayesdrive {meta['model']} drivers from {source} ({meta['engine']} fit of "
         f"{meta['data_source']}): {how}{drawn}. Written by {provenance_line()}. "
-        "Mapping: v_des -> maxSpeed and desiredMaxSpeed, d_min -> minGap, tau -> tau, "
-        "a_max -> accel, b_pref -> decel, delta = 4, stepping = the fitted step length. "
-        f"Not mapped: {SIGMA_NOT_CARRIED}. Set SUMO's option "
+        f"SUMO model {sumo_model.car_follow_model}. Mapping: {mapped}; {sumo_model.stepping_note}. "
+        f"Not mapped: {not_carried}. Set SUMO's option "
         "step-method.ballistic to true to integrate positions as bayesdrive does. "
     )
 
@@ -359,18 +448,21 @@ def follow_in_sumo(
     dt: float,
     leader_length: float,
     folder: Path,
+    leader_apparent_decel: float = _REPLAY_LIMIT,
 ) -> SumoFollower:
     """One follower of type ``vtype_id`` (from the additional file ``vtypes``) behind a leader
     that replays the speeds ``lead_v`` (one per step, from the first) through libsumo's
     ``setSpeed`` with every speed check off; the follower starts ``gap`` metres (bumper to
-    bumper) behind it at speed ``v0``. Positions are integrated by SUMO's ballistic update, as
-    bayesdrive integrates them (module docstring)."""
+    bumper) behind it at speed ``v0``. ``leader_apparent_decel`` is the braking (m/s^2) the
+    leader announces, which SUMO's Krauss plans with (Gipps' b_lead). Positions are integrated
+    by SUMO's ballistic update, as bayesdrive integrates them (module docstring)."""
     import libsumo
 
     routes = folder / "routes.xml"
     routes.write_text(
         f'<routes><vType id="replay" length="{float(leader_length)!r}" maxSpeed="60" '
         f'accel="{_REPLAY_LIMIT}" decel="{_REPLAY_LIMIT}" emergencyDecel="{_REPLAY_LIMIT}" '
+        f'apparentDecel="{float(leader_apparent_decel)!r}" '
         'sigma="0"/><route id="r" edges="road"/>'
         f'<vehicle id="leader" type="replay" route="r" depart="0" '
         f'departPos="{float(START_M + gap + leader_length)!r}" departSpeed="{float(lead_v[0])!r}" '

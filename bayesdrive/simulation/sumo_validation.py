@@ -14,12 +14,14 @@ moves it):
 
 - ``sumo``: the exported vehicle type of the vehicle (:func:`~bayesdrive.simulation.sumo.per_vehicle_drivers`,
   posterior medians, written by :func:`~bayesdrive.simulation.sumo.vtype_distribution`) driven by
-  SUMO's own IDM through libsumo;
+  SUMO's own IDM (an IDM result) or Krauss (a Gipps result, whose replayed leader announces the
+  driver's b_lead as its apparentDecel) through libsumo;
 - ``bayesdrive``: the same drivers (the same parameter values, execution noise 0 as SUMO carries
   none) through bayesdrive's rollout (:func:`bayesdrive.simulation.rollout.rollout`);
 - ``bayesdrive_predictive``: bayesdrive's rollouts of the vehicle's posterior draws with their
   execution noise, what the export leaves out;
-- ``sumo_control``: SUMO with the drivers' ``tau`` halved, a wrong export that must fail.
+- ``sumo_control``: SUMO with one parameter of the drivers halved (:data:`CONTROL`: the IDM's
+  ``tau``, Gipps' ``d_min``), a wrong export that must fail.
 
 **Distances**: per quantity (bumper gap, speed, acceleration over the steps after each window's
 start, pooled over windows), the 1-Wasserstein distance between two sources, with a 95% bootstrap
@@ -27,10 +29,11 @@ interval that resamples whole windows (steps within a window are dependent), the
 both sources.
 
 **Pass**: the upper end of every interval between ``sumo`` and ``bayesdrive`` is within
-:data:`TOLERANCE`, and ``sumo_control`` misses it. Both sources integrate the same difference
-equation, so what remains is bayesdrive's float32 arithmetic and SUMO's braking cap
+:data:`TOLERANCE`, and ``sumo_control`` misses it. For the IDM both sources integrate the same
+difference equation, so what remains is bayesdrive's float32 arithmetic and SUMO's braking cap
 (``emergencyDecel``), which binds only near a collision; the tolerance is a small fraction of
-the data's own spread in each quantity.
+the data's own spread in each quantity. For Gipps the distances measure how far SUMO's Krauss
+is from the fitted Gipps rule, which the same tolerance judges.
 """
 
 from __future__ import annotations
@@ -51,7 +54,7 @@ from scipy.stats import wasserstein_distance
 from bayesdrive.data.readers._common import DEFAULT_LENGTH_M
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
-from bayesdrive.drivers.idm import IDM
+from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.output import metadata
 from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
@@ -63,6 +66,7 @@ from bayesdrive.simulation.rollout import (
 )
 from bayesdrive.simulation.sumo import (
     Driver,
+    base_model,
     follow_in_sumo,
     per_vehicle_drivers,
     straight_road,
@@ -77,6 +81,7 @@ __all__ = [
     "TOLERANCE",
     "LeaderWindows",
     "SumoValidation",
+    "leader_braking",
     "leader_windows",
     "validate_sumo",
 ]
@@ -86,8 +91,8 @@ QUANTITIES = {"gap": "m", "speed": "m/s", "acceleration": "m/s^2"}
 # Largest 1-Wasserstein distance (upper 95% bound) between SUMO's and bayesdrive's rollouts of
 # the same drivers that still counts as the same (module docstring).
 TOLERANCE = {"gap": 0.05, "speed": 0.02, "acceleration": 0.02}
-# The wrong export that must fail: the drivers' time headway halved.
-CONTROL = {"tau": 0.5}
+# The wrong export that must fail, per base model: one parameter halved.
+CONTROL = {"idm": {"tau": 0.5}, "gipps": {"d_min": 0.5}}
 CONFIDENCE = 0.95
 log = logging.getLogger(__name__)
 
@@ -115,7 +120,8 @@ class SumoValidation(NamedTuple):
     follower starts faster than its v_des (module docstring). paths: source -> (v, gap), each (window, rollout, T + 1).
     distances: one row per comparison and quantity (W1, its interval, the tolerance where it
     applies, and whether it is met). matched: SUMO's rollouts are within the tolerance of
-    bayesdrive's; control_failed: the tau-halved control's are not.
+    bayesdrive's; control: the control's parameter factors; control_failed: its rollouts are
+    not within the tolerance.
     """
 
     windows: LeaderWindows
@@ -123,6 +129,7 @@ class SumoValidation(NamedTuple):
     paths: dict[str, tuple[np.ndarray, np.ndarray]]
     distances: pd.DataFrame
     matched: bool
+    control: dict[str, float]
     control_failed: bool
 
     @property
@@ -209,12 +216,13 @@ def _compared_values(
 
 def _bayesdrive_paths(
     key: Array,
+    model: DriverModel,
     windows: LeaderWindows,
     param_sets: Callable[[Array, int], Any],
     num_rollouts: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """bayesdrive's rollouts (:func:`~bayesdrive.simulation.rollout.rollout`) of every window,
-    ``param_sets(key, window)`` giving the IDM parameters (leaves (num_rollouts, 1))."""
+    ``param_sets(key, window)`` giving the model's parameters (leaves (num_rollouts, 1))."""
     v_out, gap_out = [], []
     for index, keys in enumerate(jax.random.split(key, (len(windows.vehicle), 2))):
         scene = platoon_scene(
@@ -225,7 +233,7 @@ def _bayesdrive_paths(
             dt=windows.dt,
         )
         params = param_sets(keys[0], index)
-        simulated = rollout(keys[1], IDM, params, scene, num_rollouts=num_rollouts)
+        simulated = rollout(keys[1], model, params, scene, num_rollouts=num_rollouts)
         v_out.append(np.asarray(simulated.v[:, 0], np.float64))
         gap_out.append(np.asarray(simulated.gap[:, 0], np.float64))
     return np.stack(v_out), np.stack(gap_out)
@@ -255,6 +263,7 @@ def _sumo_paths(
             dt=windows.dt,
             leader_length=DEFAULT_LENGTH_M,
             folder=folder,
+            **leader_braking(drivers[vehicle]),
         )
         v_out.append(followed.v[None])
         gap_out.append(followed.gap[None])
@@ -292,6 +301,13 @@ def _distance_rows(
     return rows
 
 
+def leader_braking(driver: Driver) -> dict[str, float]:
+    """What the replayed leader announces for SUMO's Krauss to plan with: Gipps' b_lead."""
+    if "b_lead" in driver.params:
+        return {"leader_apparent_decel": driver.params["b_lead"]}
+    return {}
+
+
 def _with_factors(drivers: list[Driver], factors: Mapping[str, float]) -> list[Driver]:
     return [
         d._replace(params={k: v * factors.get(k, 1.0) for k, v in d.params.items()})
@@ -311,17 +327,18 @@ def validate_sumo(
     num_bootstrap: int = 200,
     stepping: float,
 ) -> SumoValidation:
-    """Run the result's exported IDM drivers in SUMO behind the data's recorded leaders and
+    """Run the result's exported drivers (IDM or Gipps) in SUMO behind the data's recorded leaders and
     compare (module docstring). ``num_vehicles`` keeps the first fitted vehicles the data hold;
     ``num_rollouts`` is the number of posterior-predictive rollouts per window; ``stepping`` the
     SUMO IDM's sub-step (s, the fitted data's step length). The key splits into one key for the
     predictive rollouts, one for the deterministic rollouts and one for the bootstrap."""
     meta = metadata(tree)
     model = get_model(meta["model"])
-    if model.name != IDM.name:
+    base = base_model(tree)
+    if model.name != base or base not in CONTROL:
         raise ValueError(
-            f"validate sumo runs the IDM, which SUMO carries; the result is of {model.name!r} "
-            "(`bayesdrive export sumo` says what SUMO cannot carry)"
+            f"validate sumo runs {' and '.join(CONTROL)} results; the result is of "
+            f"{model.name!r} (`bayesdrive export sumo` says what SUMO cannot carry)"
         )
     drivers = {d.id.removeprefix("vehicle_"): d for d in per_vehicle_drivers(tree)}
     held = [v for v in drivers if v in set(traj.vehicle_ids)]
@@ -354,27 +371,27 @@ def validate_sumo(
 
     def exported(_key: Array, index: int) -> Any:
         params = {**drivers[windows.vehicle[index]].params, "sigma": 0.0}
-        return broadcast_params(IDM.params_type(**params), 1, 1)
+        return broadcast_params(model.params_type(**params), 1, 1)
 
     names = tuple(meta["params"])
     draws = particles_by_vehicle(tree, names)
-    fixed = fixed_params(IDM, meta)
+    fixed = fixed_params(model, meta)
 
     def posterior(draw_key: Array, index: int) -> Any:
         particles = draws[windows.vehicle[index]][None]
-        return draw_particles(draw_key, IDM, names, particles, num_rollouts, fixed=fixed)
+        return draw_particles(draw_key, model, names, particles, num_rollouts, fixed=fixed)
 
     paths = {
         "data": (windows.v[:, None], windows.gap[:, None]),
-        "bayesdrive": _bayesdrive_paths(key_fixed, windows, exported, 1),
+        "bayesdrive": _bayesdrive_paths(key_fixed, model, windows, exported, 1),
         "bayesdrive_predictive": _bayesdrive_paths(
-            key_predictive, windows, posterior, num_rollouts
+            key_predictive, model, windows, posterior, num_rollouts
         ),
     }
     with tempfile.TemporaryDirectory(prefix="bayesdrive-sumo-") as folder:
         chosen = {v: drivers[v] for v in dict.fromkeys(windows.vehicle)}
         paths["sumo"] = _sumo_paths(windows, chosen, stepping, Path(folder))
-        wrong = dict(zip(chosen, _with_factors(list(chosen.values()), CONTROL), strict=True))
+        wrong = dict(zip(chosen, _with_factors(list(chosen.values()), CONTROL[base]), strict=True))
         paths["sumo_control"] = _sumo_paths(windows, wrong, stepping, Path(folder))
     sources = _compared_values(paths, windows.dt)
     pairs = [
@@ -393,4 +410,4 @@ def validate_sumo(
     matched = bool(table.loc[table["compared"] == "sumo vs bayesdrive", "within_tolerance"].all())
     control = table["compared"] == "sumo_control vs bayesdrive"
     control_failed = not bool(table.loc[control, "within_tolerance"].all())
-    return SumoValidation(windows, left_out, paths, table, matched, control_failed)
+    return SumoValidation(windows, left_out, paths, table, matched, CONTROL[base], control_failed)
