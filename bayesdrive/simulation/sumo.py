@@ -68,7 +68,7 @@ b_lead        (none)                 the follower's estimate of its leader's bra
 ============  =====================  =========================================================
 
 How far Krauss is from Gipps is measured by ``bayesdrive validate sumo`` on a Gipps result
-(``reports/sumo.md``).
+(``reports/sumo/README.md``).
 
 Not mapped and worth knowing: bayesdrive integrates positions by the trapezoid rule (SUMO's
 ``--step-method.ballistic``), SUMO's default is semi-implicit Euler; bayesdrive's IDM has no
