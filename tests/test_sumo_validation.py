@@ -28,7 +28,8 @@ from typer.testing import CliRunner
 from bayesdrive.cli.main import app
 from bayesdrive.simulation.sumo import sumo_home
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
+MODELS = Path(__file__).resolve().parents[1] / "models"
+MODEL = MODELS / "ngsim_i80_chains_idm_smc.nc"
 runner = CliRunner()
 
 
@@ -70,3 +71,19 @@ def test_exported_drivers_in_sumo_match_bayesdrives_rollouts_and_the_wrong_tau_f
 
     # The results folder is complete and kept: rerunning into it is refused.
     assert runner.invoke(app, arguments).exit_code == 2
+
+
+def test_a_model_sumo_cannot_run_or_a_bad_window_is_refused_before_any_work(tmp_path):
+    extended = MODELS / "ngsim_i80_chains_idm_reaction_delay_autocorrelated_noise_smc.nc"
+    out = tmp_path / "refused"
+    done = runner.invoke(
+        app, ["validate", "sumo", str(extended), "ngsim_i80_chains", "--out", str(out)]
+    )
+    assert done.exit_code == 2
+    assert "'idm+reaction_delay+autocorrelated_noise'" in " ".join(done.output.split())
+    done = runner.invoke(
+        app,
+        ["validate", "sumo", str(MODEL), "ngsim_i80_chains", "--window", "late", "--out", str(out)],
+    )
+    assert done.exit_code == 2 and "--window 'late'" in done.output
+    assert not out.exists()

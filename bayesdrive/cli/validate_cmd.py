@@ -37,6 +37,7 @@ from bayesdrive.simulation.sumo_validation import (
     TOLERANCE,
     SumoValidation,
     validate_sumo,
+    validated_model,
 )
 
 app = typer.Typer(help="Check fitted drivers in other simulators.", no_args_is_help=True)
@@ -94,6 +95,7 @@ def sumo(
     folder = results_folder(out, "validate sumo", force=force)
     try:
         tree = load_result(result)
+        validated_model(tree)  # before the data load, which takes seconds
         traj = load(data)
         outcome = validate_sumo(
             jax.random.key(seed),
@@ -135,7 +137,10 @@ def _summary(outcome: SumoValidation, seed: int) -> dict[str, Any]:
         "vehicles": len(set(outcome.windows.vehicle)),
         "windows_left_out": outcome.left_out,
         "seed": seed,
-        "distances": outcome.distances.to_dict(orient="records"),
+        # Rows without a tolerance hold None there, not NaN, which JSON lacks.
+        "distances": outcome.distances.astype(object)
+        .where(outcome.distances.notna(), None)
+        .to_dict(orient="records"),
     }
 
 

@@ -87,12 +87,15 @@ and 1.3e-5 m/s of bayesdrive's deterministic rollout; SUMO's default Euler updat
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from types import ModuleType
 from typing import Any, NamedTuple
 
 import jax
@@ -400,9 +403,19 @@ START_M = 100.0
 _REPLAY_LIMIT = 20.0
 
 
+def _libsumo() -> ModuleType:
+    """libsumo, imported with what it prints on import (a pyarrow version notice, about output
+    formats not used here) sent to standard error, so standard output stays the command's."""
+    with contextlib.redirect_stdout(sys.stderr):
+        import libsumo
+    return libsumo
+
+
 def sumo_home() -> Path:
-    """SUMO's installation (the ``sumo`` extra's eclipse-sumo); a clear error without it."""
+    """SUMO's installation (the ``sumo`` extra's eclipse-sumo, with libsumo to drive it); a clear
+    error without them."""
     try:
+        _libsumo()
         import sumo
     except ImportError:
         raise RuntimeError(
@@ -456,8 +469,7 @@ def follow_in_sumo(
     bumper) behind it at speed ``v0``. ``leader_apparent_decel`` is the braking (m/s^2) the
     leader announces, which SUMO's Krauss plans with (Gipps' b_lead). Positions are integrated
     by SUMO's ballistic update, as bayesdrive integrates them (module docstring)."""
-    import libsumo
-
+    libsumo = _libsumo()
     routes = folder / "routes.xml"
     routes.write_text(
         f'<routes><vType id="replay" length="{float(leader_length)!r}" maxSpeed="60" '
@@ -476,6 +488,9 @@ def follow_in_sumo(
             *("-n", str(net), "-a", str(vtypes), "-r", str(routes)),
             *("--step-length", str(dt), "--step-method.ballistic", "true"),
             *("--no-step-log", "true", "--no-warnings", "true"),
+            # A collision is a result to compare (bayesdrive keeps the colliding car), not a
+            # reason to teleport the follower away.
+            *("--collision.action", "none"),
         ]
     )
     try:

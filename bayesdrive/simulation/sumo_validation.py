@@ -66,7 +66,6 @@ from bayesdrive.simulation.rollout import (
 )
 from bayesdrive.simulation.sumo import (
     Driver,
-    base_model,
     follow_in_sumo,
     per_vehicle_drivers,
     straight_road,
@@ -84,6 +83,7 @@ __all__ = [
     "leader_braking",
     "leader_windows",
     "validate_sumo",
+    "validated_model",
 ]
 
 # Quantity -> unit; compared over the steps after each window's start.
@@ -315,6 +315,18 @@ def _with_factors(drivers: list[Driver], factors: Mapping[str, float]) -> list[D
     ]
 
 
+def validated_model(tree: xr.DataTree) -> DriverModel:
+    """The result's model if :func:`validate_sumo` runs it (a base model SUMO carries), else a
+    one-line error naming it."""
+    model = get_model(metadata(tree)["model"])
+    if model.name not in CONTROL:
+        raise ValueError(
+            f"validate sumo runs {' and '.join(CONTROL)} results; the result is of "
+            f"{model.name!r} (`bayesdrive export sumo` says what SUMO cannot carry)"
+        )
+    return model
+
+
 def validate_sumo(
     key: Array,
     tree: xr.DataTree,
@@ -333,13 +345,8 @@ def validate_sumo(
     SUMO IDM's sub-step (s, the fitted data's step length). The key splits into one key for the
     predictive rollouts, one for the deterministic rollouts and one for the bootstrap."""
     meta = metadata(tree)
-    model = get_model(meta["model"])
-    base = base_model(tree)
-    if model.name != base or base not in CONTROL:
-        raise ValueError(
-            f"validate sumo runs {' and '.join(CONTROL)} results; the result is of "
-            f"{model.name!r} (`bayesdrive export sumo` says what SUMO cannot carry)"
-        )
+    model = validated_model(tree)
+    base = model.name
     drivers = {d.id.removeprefix("vehicle_"): d for d in per_vehicle_drivers(tree)}
     held = [v for v in drivers if v in set(traj.vehicle_ids)]
     if not held:
