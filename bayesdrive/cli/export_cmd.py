@@ -39,8 +39,8 @@ def sumo(
     stepping: float | None = typer.Option(
         None,
         "--stepping",
-        help="SUMO IDM sub-step (s); default: the step length of the "
-        "fitted data, recorded in the result.",
+        help="SUMO's IDM sub-step, or Krauss' tau for Gipps (s); default: the step "
+        "length of the fitted data, recorded in the result.",
     ),
     distribution_id: str | None = typer.Option(
         None, "--id", help="Id of the vTypeDistribution (default: the result file's stem)."

@@ -75,7 +75,9 @@ def sumo(
         200, "--bootstrap", min=20, help="Bootstrap resamples of the windows per interval."
     ),
     stepping: float | None = typer.Option(
-        None, "--stepping", help="SUMO IDM sub-step (s); default: the fitted step length."
+        None,
+        "--stepping",
+        help="SUMO's IDM sub-step, or Krauss' tau for Gipps (s); default: the fitted step.",
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the draws and the bootstrap (recorded)."),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),

@@ -102,8 +102,7 @@ ROAD_MARGIN_M = 500.0
 
 class LeaderWindows(NamedTuple):
     """Windows behind one recorded leader each: (window,) vehicle ids and start times (s);
-    (window, T + 1) the
-    leader's speed and the follower's recorded speed and bumper gap; dt (s)."""
+    (window, T + 1) the leader's speed and the follower's recorded speed and bumper gap; dt (s)."""
 
     vehicle: tuple[str, ...]
     t0: np.ndarray
@@ -117,8 +116,8 @@ class SumoValidation(NamedTuple):
     """What :func:`validate_sumo` found.
 
     windows: the windows compared. left_out: "vehicle at t=..." of the windows left out, whose
-    follower starts faster than its v_des (module docstring). paths: source -> (v, gap), each (window, rollout, T + 1).
-    distances: one row per comparison and quantity (W1, its interval, the tolerance where it
+    follower starts faster than its v_des (module docstring). paths: source -> (v, gap), each
+    (window, rollout, T + 1). distances: one row per comparison and quantity (W1, its interval, the tolerance where it
     applies, and whether it is met). matched: SUMO's rollouts are within the tolerance of
     bayesdrive's; control: the control's parameter factors; control_failed: its rollouts are
     not within the tolerance.
