@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any
 
-import jax
-import pandas as pd
 import typer
 from rich.markup import escape
 from rich.table import Table
@@ -25,20 +23,9 @@ from bayesdrive.cli.common import (
     results_command,
     results_folder,
 )
-from bayesdrive.data.atomic import write_text_atomic
-from bayesdrive.data.errors import DataError
-from bayesdrive.data.registry import load
-from bayesdrive.data.views import Window
-from bayesdrive.inference.output import load_result
-from bayesdrive.reports.sumo_plots import plot_sumo_distributions
-from bayesdrive.simulation.sumo import fitted_step_length
-from bayesdrive.simulation.sumo_validation import (
-    QUANTITIES,
-    TOLERANCE,
-    SumoValidation,
-    validate_sumo,
-    validated_model,
-)
+
+if TYPE_CHECKING:
+    from bayesdrive.simulation.sumo_validation import SumoValidation
 
 app = typer.Typer(help="Check fitted drivers in other simulators.", no_args_is_help=True)
 
@@ -95,6 +82,15 @@ def sumo(
         raise fail(f"{result}: no such result file")
     check_json_out(json_out)
     folder = results_folder(out, "validate sumo", force=force)
+    # The libraries load here, not at import: `--help` answers without them.
+    import jax
+
+    from bayesdrive.data.errors import DataError
+    from bayesdrive.data.registry import load
+    from bayesdrive.inference.output import load_result
+    from bayesdrive.simulation.sumo import fitted_step_length
+    from bayesdrive.simulation.sumo_validation import validate_sumo, validated_model
+
     try:
         tree = load_result(result)
         validated_model(tree)  # before the data load, which takes seconds
@@ -104,7 +100,7 @@ def sumo(
             tree,
             traj,
             horizon_s=horizon,
-            window=cast(Window, window),
+            window=window,
             num_vehicles=vehicles,
             num_rollouts=rollouts,
             num_bootstrap=bootstrap,
@@ -129,6 +125,8 @@ FILES = ("distances.csv", "windows.csv", "distributions.png", "summary.json")
 
 
 def _summary(outcome: SumoValidation, seed: int) -> dict[str, Any]:
+    from bayesdrive.simulation.sumo_validation import TOLERANCE
+
     return {
         "passed": outcome.passed,
         "sumo_matches_bayesdrive": outcome.matched,
@@ -147,6 +145,12 @@ def _summary(outcome: SumoValidation, seed: int) -> dict[str, Any]:
 
 
 def _write(outcome: SumoValidation, summary: dict[str, Any], staged: Path, *, title: str) -> None:
+    import pandas as pd
+
+    from bayesdrive.data.atomic import write_text_atomic
+    from bayesdrive.reports.sumo_plots import plot_sumo_distributions
+    from bayesdrive.simulation.sumo_validation import QUANTITIES
+
     write_text_atomic(staged / "distances.csv", outcome.distances.to_csv(index=False))
     windows = pd.DataFrame({"vehicle": outcome.windows.vehicle, "t_start_s": outcome.windows.t0})
     write_text_atomic(staged / "windows.csv", windows.to_csv(index=False))
