@@ -24,7 +24,6 @@ mapping) must miss the tolerance.
 from __future__ import annotations
 
 import os
-import subprocess
 from pathlib import Path
 
 import jax
@@ -36,7 +35,10 @@ from bayesdrive.drivers.idm import IDM, IDMParams
 from bayesdrive.inference.output import load_result
 from bayesdrive.simulation.rollout import broadcast_params, platoon_scene, rollout
 from bayesdrive.simulation.sumo import (
+    follow_in_sumo,
     per_vehicle_drivers,
+    straight_road,
+    sumo_home,
     vtype_distribution,
     write_vtype_distribution,
 )
@@ -48,87 +50,32 @@ LENGTH_M = 4.5
 DT_S = 0.1
 POSITION_TOL_M = 5e-3
 SPEED_TOL_MPS = 1e-3
-START_M = 100.0  # the follower's starting position on the SUMO road
 
 
 def _sumo_home() -> Path:
     try:
-        import sumo
-    except ImportError:
-        message = "eclipse-sumo is not installed (pip install -e '.[sumo]')"
+        return sumo_home()
+    except RuntimeError as error:
         if os.environ.get("CI"):
-            pytest.fail(message)
-        pytest.skip(message)
-    return Path(sumo.SUMO_HOME)
+            pytest.fail(str(error))
+        pytest.skip(str(error))
 
 
-def _road(folder: Path, sumo_home: Path) -> Path:
-    (folder / "road.nod.xml").write_text(
-        '<nodes><node id="a" x="0" y="0"/><node id="b" x="5000" y="0"/></nodes>'
-    )
-    (folder / "road.edg.xml").write_text(
-        '<edges><edge id="road" from="a" to="b" numLanes="1" speed="50"/></edges>'
-    )
-    net = folder / "road.net.xml"
-    subprocess.run(
-        [
-            sumo_home / "bin" / "netconvert",
-            "-n",
-            folder / "road.nod.xml",
-            "-e",
-            folder / "road.edg.xml",
-            "-o",
-            net,
-        ],
-        check=True,
-        capture_output=True,
-    )
-    return net
-
-
-def _sumo_follower(folder, sumo_home, net, vtypes, vtype_id, lead_v, lead_offset, v0):
+def _sumo_follower(folder, home, net, vtypes, vtype_id, lead_v, lead_offset, v0):
     """SUMO's follower positions (from its start) and speeds, one per 0.1 s step."""
-    import libsumo
-
-    routes = folder / "routes.xml"
-    routes.write_text(
-        f'<routes><vType id="replay" length="{LENGTH_M}" maxSpeed="60" accel="20" decel="20" '
-        'emergencyDecel="20" sigma="0"/><route id="r" edges="road"/>'
-        f'<vehicle id="leader" type="replay" route="r" depart="0" '
-        f'departPos="{START_M + lead_offset}" departSpeed="{lead_v[0]}" insertionChecks="none"/>'
-        f'<vehicle id="follower" type="{vtype_id}" route="r" depart="0" departPos="{START_M}" '
-        f'departSpeed="{v0}" insertionChecks="none"/></routes>'
+    followed = follow_in_sumo(
+        home,
+        net,
+        vtypes,
+        vtype_id,
+        lead_v,
+        gap=lead_offset - LENGTH_M,
+        v0=v0,
+        dt=DT_S,
+        leader_length=LENGTH_M,
+        folder=folder,
     )
-    libsumo.start(
-        [
-            str(sumo_home / "bin" / "sumo"),
-            "-n",
-            str(net),
-            "-a",
-            str(vtypes),
-            "-r",
-            str(routes),
-            "--step-length",
-            str(DT_S),
-            "--step-method.ballistic",
-            "true",
-            "--no-step-log",
-            "true",
-        ]
-    )
-    try:
-        libsumo.simulationStep()  # inserts both cars at their recorded state
-        libsumo.vehicle.setSpeedMode("leader", 0)
-        x, v = [], []
-        for speed in [*lead_v[1:], None]:
-            x.append(libsumo.vehicle.getLanePosition("follower") - START_M)
-            v.append(libsumo.vehicle.getSpeed("follower"))
-            if speed is not None:
-                libsumo.vehicle.setSpeed("leader", float(speed))
-                libsumo.simulationStep()
-    finally:
-        libsumo.close()
-    return np.array(x), np.array(v)
+    return followed.x, followed.v
 
 
 @pytest.mark.realdata
@@ -148,7 +95,7 @@ def test_an_exported_type_follows_a_recorded_leader_in_sumo_as_bayesdrives_idm_d
         per_vehicle_drivers(tree), distribution_id="ngsim", stepping=DT_S, header="test"
     )
     write_vtype_distribution(vtypes, xml)
-    net = _road(tmp_path, sumo_home)
+    net = straight_road(tmp_path, sumo_home, 5000.0)
     sumo_x, sumo_v = _sumo_follower(
         tmp_path, sumo_home, net, vtypes, "ngsim_vehicle_124", lead_v, lead_offset, v0
     )

@@ -7,12 +7,18 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 import xarray as xr
 from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
-from bayesdrive.inference.output import load_result
-from bayesdrive.simulation.sumo import population_drivers
+from bayesdrive.drivers.gipps import GIPPS
+from bayesdrive.inference.output import load_result, set_metadata
+from bayesdrive.simulation.sumo import (
+    per_vehicle_drivers,
+    population_drivers,
+    vtype_distribution,
+)
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
 runner = CliRunner()
@@ -29,8 +35,10 @@ def _export(tmp_path: Path, *options: str) -> tuple[int, ET.Element | None, str]
 
 
 def test_one_type_per_vehicle_carries_its_posterior_medians_under_sumos_names(tmp_path):
-    code, root, _ = _export(tmp_path)
+    code, root, output = _export(tmp_path)
     assert code == 0
+    # Execution noise has no SUMO carrier: one line says so, naming the parameter.
+    assert "sigma (sd of Gaussian execution noise on the acceleration" in " ".join(output.split())
     posterior = load_result(MODEL)["posterior"].to_dataset()
     vtypes = {v.get("id"): v for v in root.iter("vType")}
     assert len(vtypes) == posterior.sizes["vehicle"]
@@ -92,3 +100,53 @@ def test_population_drivers_are_rows_of_the_population_new_driver_draws():
         drawn = [driver.params[name] for name in params]
         assert any(np.allclose(drawn, row) for row in flat), drawn
     assert drivers != population_drivers(jax.random.key(1), tree, 6)
+
+
+@pytest.mark.parametrize(
+    ("model", "named"),
+    [
+        ("idm+autocorrelated_noise", "rho has no SUMO carrier"),
+        ("idm+reaction_delay", "reaction_time has no SUMO carrier"),
+        ("idm+drifting_parameters", "tau_drift has no SUMO carrier"),
+    ],
+)
+def test_a_driver_parameter_sumo_cannot_carry_is_refused_by_name(model, named):
+    tree = load_result(MODEL)
+    set_metadata(tree, model=model)
+    with pytest.raises(ValueError, match=named):
+        per_vehicle_drivers(tree)
+
+
+def test_a_gipps_driver_becomes_a_krauss_type_with_its_reaction_time_as_tau():
+    # A Gipps fit of v_des, d_min and a_max (the IDM result's draws stand in for them); the
+    # other Gipps parameters stay at the model's defaults, as in a fit that held them fixed.
+    tree = load_result(MODEL)
+    set_metadata(tree, model="gipps", params=["v_des", "d_min", "a_max"], fixed={})
+    driver = per_vehicle_drivers(tree)[3]
+    xml = vtype_distribution([driver], distribution_id="g", stepping=0.1, header="test")
+    vtype = next(xml.getroot().iter("vType"))
+    posterior = tree["posterior"].to_dataset()
+    vehicle = str(posterior["vehicle"].values[3])
+    median = {n: float(np.median(posterior[n].sel(vehicle=vehicle))) for n in posterior.data_vars}
+    defaults = {spec.name: spec.default for spec in GIPPS.specs}
+    expected = {
+        "maxSpeed": median["v_des"],
+        "desiredMaxSpeed": median["v_des"],
+        "minGap": median["d_min"],
+        "accel": median["a_max"],
+        "decel": defaults["b_max"],
+        "tau": 0.1,
+        "sigma": 0.0,
+    }
+    assert vtype.get("carFollowModel") == "Krauss"
+    for attribute, value in expected.items():
+        np.testing.assert_allclose(float(vtype.get(attribute)), value, rtol=1e-6, err_msg=attribute)
+    assert vtype.get("delta") is None and vtype.get("stepping") is None
+    params = {
+        p.get("key"): float(p.get("value"))
+        for p in vtype.iter("param")
+        if "source" not in p.get("key")
+    }
+    assert params == pytest.approx(
+        {"bayesdrive.b_lead": defaults["b_lead"], "bayesdrive.sigma": defaults["sigma"]}
+    )

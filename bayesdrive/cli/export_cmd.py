@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 
-from bayesdrive.cli.common import console, fail
+from bayesdrive.cli.common import console, err_console, fail
 
 app = typer.Typer(help="Export fitted drivers to other tools.", no_args_is_help=True)
 
@@ -38,14 +39,15 @@ def sumo(
     stepping: float | None = typer.Option(
         None,
         "--stepping",
-        help="SUMO IDM sub-step (s); default: the step length of the "
-        "fitted data, recorded in the result.",
+        help="SUMO's IDM sub-step, or Krauss' tau for Gipps (s); default: the step "
+        "length of the fitted data, recorded in the result.",
     ),
     distribution_id: str | None = typer.Option(
         None, "--id", help="Id of the vTypeDistribution (default: the result file's stem)."
     ),
 ) -> None:
-    """Write a SUMO vTypeDistribution of IDM vehicle types (mapping: bayesdrive.simulation.sumo).
+    """Write a SUMO vTypeDistribution of vehicle types: SUMO's IDM for an IDM result, its Krauss
+    for a Gipps result (mappings: bayesdrive.simulation.sumo).
 
     Use the types with --step-method.ballistic, as bayesdrive integrates positions that way.
     """
@@ -78,4 +80,8 @@ def sumo(
     except ValueError as error:
         raise fail(f"{result}: {error}") from None
     export.write_vtype_distribution(out, xml)
-    console.print(f"{len(drivers)} SUMO IDM vehicle types ({how}, stepping {step:g} s): {out}")
+    for name, line in export.NOT_CARRIED.items():
+        if name in drivers[0].params:
+            err_console.print(escape(line), soft_wrap=True)
+    kind = export.SUMO_MODELS[drivers[0].model].car_follow_model
+    console.print(f"{len(drivers)} SUMO {kind} vehicle types ({how}, stepping {step:g} s): {out}")

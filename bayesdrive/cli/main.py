@@ -33,6 +33,9 @@ COMMANDS: dict[str, LazyCommand] = {
     "export": LazyCommand(
         "bayesdrive.cli.export_cmd", "app", "Export fitted drivers to other tools."
     ),
+    "validate": LazyCommand(
+        "bayesdrive.cli.validate_cmd", "app", "Check fitted drivers in other simulators."
+    ),
     "fit": LazyCommand(
         "bayesdrive.cli.fit_cmd",
         "fit",
