@@ -177,8 +177,10 @@ def test_sbc_command_calibrates_any_registered_model():
     """`--model` reaches the study: the OVM's own parameters are simulated, fitted and ranked."""
     run = CliRunner().invoke(
         app,
-        ["sbc", "--engine", "smc", "--model", "ovm", "--replications", "10", "--steps", "16"]
-        + ["--particles", "128", "--seed", "1", "--json", "-"],
+        [
+            *("sbc", "--engine", "smc", "--model", "ovm", "--replications", "10"),
+            *("--steps", "16", "--particles", "128", "--seed", "1", "--json", "-"),
+        ],
     )
     assert run.exit_code == 0, run.output
     digest = json.loads(run.output)
