@@ -70,7 +70,7 @@ COMMANDS: dict[str, LazyCommand] = {
     "sbc": LazyCommand(
         "bayesdrive.cli.sbc_cmd",
         "sbc",
-        "Simulation-based calibration: are the engine's posteriors calibrated on the IDM?",
+        "Simulation-based calibration: are the engine's posteriors calibrated on the model?",
     ),
     "criticize": LazyCommand(
         "bayesdrive.cli.criticize_cmd",
