@@ -105,14 +105,27 @@ def test_permutations_keep_what_the_null_makes_exchangeable():
     assert all(np.any(drawn[:, rows][:, 0] == 0) for rows in whole)
 
 
-def test_cluster_interval_by_hand():
-    # Ten vehicles of two segments, 16 of 20 right: per-vehicle hits minus 1.6 are 0.4 (six
-    # vehicles) and -0.6 (four); variance 10/9 * 2.4 / 20^2, half-width 1.96 * sqrt of it.
-    groups = np.repeat(np.arange(10), 2)
-    correct = np.array([1, 1] * 3 + [1, 0] * 4 + [1, 1] * 3, dtype=float)
-    low, high = _cluster_interval(correct, groups)
-    half = 1.96 * np.sqrt(10 / 9 * 2.4 / 400)
-    np.testing.assert_allclose([low, high], [0.8 - half, 0.8 + half])
+def wilson_by_hand(p, n, z=1.96):
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return [centre - half, centre + half]
+
+
+def test_the_interval_counts_a_vehicles_segments_as_fewer_trials():
+    # Five vehicles of four segments, 16 of 20 right, per-vehicle hits 4, 3, 4, 2, 3: deviations
+    # from 3.2 of 0.8, -0.2, 0.8, -1.2, -0.2, clustered variance 5/4 * 2.8 / 20^2 = 0.00875
+    # against the binomial 0.8 * 0.2 / 20 = 0.008: 20 / 1.09375 effective trials.
+    groups = np.repeat(np.arange(5), 4)
+    correct = np.array([1, 1, 1, 1, 1, 1, 1, 0, 1, 1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 0], dtype=float)
+    np.testing.assert_allclose(
+        _cluster_interval(correct, groups), wilson_by_hand(0.8, 20 / 1.09375)
+    )
+    # Hits 4, 4, 4, 0, 4: the clustered variance is five times the binomial, more than the largest
+    # design effect, the group size 4: five effective trials, one per vehicle.
+    correct = np.array([1.0] * 12 + [0.0] * 4 + [1.0] * 4)
+    np.testing.assert_allclose(_cluster_interval(correct, groups), wilson_by_hand(0.8, 5))
+    # All right: no variance to go by, so one trial per vehicle again; the interval is not [1, 1].
+    np.testing.assert_allclose(_cluster_interval(np.ones(20), groups), wilson_by_hand(1.0, 5))
 
 
 def boosted_between(features, groups, is_real, **options):

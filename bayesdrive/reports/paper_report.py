@@ -106,7 +106,7 @@ def turing_table(rows: dict[str, Any]) -> pd.DataFrame:
                 "accuracy, logistic on levels only": f"{levels['accuracy']:.3f}",
                 "95% CI, levels only": _ci(levels),
                 "accuracy, boosted": _share(boosted and boosted["accuracy"]),
-                "95% CI, boosted (by vehicle)": "-" if boosted is None else _ci(boosted),
+                "95% CI, boosted (approx.)": "-" if boosted is None else _ci(boosted),
                 "p, boosted": _share(boosted and boosted["p_value"]),
             }
         )
@@ -486,8 +486,9 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "acceleration, jerk, relative speed and time headway and the acceleration's "
         "autocorrelation, sign changes and correlation with the closing speed; its folds are "
         "grouped by vehicle (no vehicle is tested by a classifier trained on it) and its interval "
-        "is cluster-robust by vehicle. A linear boundary on six summaries can call a model "
-        "indistinguishable that the trees still tell apart."
+        "counts a vehicle's segments, which are not independent, as fewer trials. A linear "
+        "boundary on six summaries can call a model indistinguishable that the trees still tell "
+        "apart."
     )
     # The folder's name, not its absolute path: the clips travel with the report.
     turing.text(

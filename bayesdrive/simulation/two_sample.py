@@ -17,8 +17,9 @@ smoothness (acceleration autocorrelation, sign changes, the acceleration's corre
 closing speed) (:func:`trajectory_features`). Its folds are grouped by vehicle: every segment of
 one vehicle, real or generated, is in one fold, so the classifier is never tested on a vehicle it
 was trained on. Its p-value is again a permutation test with the same folds, permuting labels only
-where they are exchangeable under the null (:func:`permuted_labellings`), and its interval is
-cluster-robust by vehicle (segments of one vehicle are not independent), also approximate.
+where they are exchangeable under the null (:func:`permuted_labellings`), and its Wilson interval
+counts the segments of one vehicle, which are not independent, as fewer trials (a design effect),
+also approximate.
 """
 
 from __future__ import annotations
@@ -76,8 +77,8 @@ BOOSTING = {"max_iter": 100, "learning_rate": 0.1, "early_stopping": False}
 
 class TwoSampleResult(NamedTuple):
     accuracy: float
-    # 95% interval, approximate (see the module docstring): Wilson's, or cluster-robust by group
-    # (vehicle) where the folds are grouped
+    # Wilson 95% interval, approximate (see the module docstring); on the effective number of
+    # rows where the folds are grouped
     ci_low: float
     ci_high: float
     p_value: float
@@ -167,7 +168,7 @@ def _fit_logistic(features: np.ndarray, labels: np.ndarray, l2: float) -> np.nda
     return weights
 
 
-def _wilson(successes: int, trials: int, z: float = 1.96) -> tuple[float, float]:
+def _wilson(successes: float, trials: float, z: float = 1.96) -> tuple[float, float]:
     p = successes / trials
     centre = (p + z**2 / (2 * trials)) / (1 + z**2 / trials)
     half = z * np.sqrt(p * (1 - p) / trials + z**2 / (4 * trials**2)) / (1 + z**2 / trials)
@@ -253,19 +254,22 @@ def permuted_labellings(
     return out
 
 
-def _cluster_interval(
-    correct: np.ndarray, groups: np.ndarray, z: float = 1.96
-) -> tuple[float, float]:
-    """Normal interval of the accuracy with the cluster-robust (sandwich) variance of a ratio
-    estimator: each group's correct count against its share of the accuracy."""
+def _cluster_interval(correct: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
+    """Wilson interval of the accuracy on the effective number of rows: their number divided by
+    the design effect, the cluster-robust (sandwich) variance of the accuracy over the binomial
+    one, at least 1 and at most the mean group size (every group one trial). Where all rows or
+    none are right neither variance says anything, so the design effect is that largest one."""
     _, group_index = np.unique(groups, return_inverse=True)
     hits = np.bincount(group_index, weights=correct)
     sizes = np.bincount(group_index)
-    accuracy = hits.sum() / sizes.sum()
-    count = len(sizes)
-    variance = count / (count - 1) * np.sum((hits - accuracy * sizes) ** 2) / sizes.sum() ** 2
-    half = z * np.sqrt(variance)
-    return float(max(accuracy - half, 0.0)), float(min(accuracy + half, 1.0))
+    rows, count = sizes.sum(), len(sizes)
+    accuracy = hits.sum() / rows
+    binomial = accuracy * (1 - accuracy) / rows
+    clustered = count / (count - 1) * np.sum((hits - accuracy * sizes) ** 2) / rows**2
+    largest = rows / count
+    design_effect = np.clip(clustered / binomial, 1.0, largest) if binomial > 0 else largest
+    effective = rows / design_effect
+    return _wilson(accuracy * effective, effective)
 
 
 def boosted_two_sample_test(
