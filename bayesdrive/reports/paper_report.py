@@ -18,6 +18,7 @@ from bayesdrive.drivers.registry import MODELS
 from bayesdrive.inference.agreement import agreement_summary, agreement_table
 from bayesdrive.reports.filter_plots import plot_convergence
 from bayesdrive.reports.html import Report, Section
+from bayesdrive.simulation.two_sample import BOOSTING
 
 __all__ = ["build_report"]
 
@@ -488,7 +489,9 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "grouped by vehicle (no vehicle is tested by a classifier trained on it) and its interval "
         "counts a vehicle's segments, which are not independent, as fewer trials. A linear "
         "boundary on six summaries can call a model indistinguishable that the trees still tell "
-        "apart."
+        "apart. A fold that trains on fewer than "
+        f"{2 * BOOSTING['min_samples_leaf']} segments (a quick run) cannot split a tree: there "
+        "the boosted accuracy is chance by construction and says nothing."
     )
     # The folder's name, not its absolute path: the clips travel with the report.
     turing.text(

@@ -71,8 +71,9 @@ TRAJECTORY_FEATURE_NAMES = (
 HEADWAY_SPEED_FLOOR = 1.0
 HEADWAY_CAP_S = 10.0
 # Early stopping off: every fit uses all its training rows and gives the same trees for the same
-# seed; otherwise scikit-learn's defaults, fixed before any comparison was run.
-BOOSTING = {"max_iter": 100, "learning_rate": 0.1, "early_stopping": False}
+# seed; otherwise scikit-learn's defaults, fixed before any comparison was run. A leaf holds at
+# least min_samples_leaf rows, so a fold that trains on fewer than twice that cannot split.
+BOOSTING = {"max_iter": 100, "learning_rate": 0.1, "min_samples_leaf": 20, "early_stopping": False}
 
 
 class TwoSampleResult(NamedTuple):
