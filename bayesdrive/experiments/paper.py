@@ -78,8 +78,10 @@ from bayesdrive.simulation.scenarios import (
 )
 from bayesdrive.simulation.two_sample import (
     LEVEL_FEATURES,
+    boosted_two_sample_test,
     classifier_two_sample_test,
     segment_features,
+    trajectory_features,
 )
 
 __all__ = ["FULL", "QUICK", "SEEDS", "Settings", "run_all"]
@@ -107,6 +109,8 @@ BASELINE_MODELS = ("idm-default", "idm-nls", "idm-lm", "cv", "ca", "blackbox")
 MERGE_DATA = "ngsim_merge_episodes"
 MERGE_MODELS = ("cidm-c1", "idm-nomerge", "cv")
 CLIP_PAIRS = 3
+# Folds of the boosted Turing classifier, grouped by vehicle.
+TURING_FOLDS = 5
 # Key of the criticism's final model among a highway step's fits (beside "smc" and "pf").
 FINAL = "final"
 
@@ -134,6 +138,8 @@ class Settings:
     criticism_rounds: int = 3
     # Highway labels the criticism runs on (None: every one but the acc-contrast recordings).
     criticised: tuple[str, ...] | None = None
+    # Label permutations of the boosted Turing classifier's test (each refits it on every fold).
+    turing_permutations: int = 99
 
 
 FULL = Settings(
@@ -171,6 +177,7 @@ QUICK = Settings(
     holdout_sets=("ngsim_i80_pairs_a",),
     criticism_rounds=1,
     criticised=("ngsim_i80_chains",),
+    turing_permutations=19,
 )
 
 
@@ -435,14 +442,86 @@ def parameter_table(trees: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame(frames)
 
 
+def turing_models(
+    label: str, traj: Trajectories, trees: dict[str, Any], settings: Settings
+) -> tuple[ScenarioSet, dict[str, Any]]:
+    """The held-out platoon scenarios the Turing test compares on (those every fitted tree
+    covers) and its models: each fitted tree's policy, the default IDM and constant velocity."""
+    scenarios = _covered(_highway_scenarios(label, traj, settings), trees)
+    policies = dict(_learned_policy(t) for t in trees.values())
+    for name in ("idm-default", "cv"):
+        policies[name] = baseline_policy(
+            name, jax.random.key(SEEDS["baselines"]), traj, scenarios.simulated_ids
+        )
+    return scenarios, policies
+
+
+def _turing_rollout(policy, scenario, index: int):
+    """The one rollout of ``policy`` on the ``index``-th scenario that the Turing test compares."""
+    key = jax.random.fold_in(jax.random.key(SEEDS["turing"]), index)
+    key_params, key_roll = jax.random.split(key)
+    params = policy.params_for(key_params, scenario.simulated_ids, 1)
+    return rollout(key_roll, policy.model, params, scene_arrays(scenario), num_rollouts=1)
+
+
+def turing_comparison(
+    scenarios: ScenarioSet, policies: dict[str, Any], permutations: int
+) -> dict[str, dict]:
+    """Both classifier two-sample tests of the real held-out segments (one per simulated vehicle
+    and scenario) against one rollout of each policy on the same scenarios: the logistic
+    regression on :func:`segment_features`, once on all six and once on the speed and gap levels
+    only (``levels_only``), and the gradient-boosted trees on :func:`trajectory_features` with
+    folds grouped by vehicle (``boosted``; leave-one-vehicle-out where fewer than
+    :data:`TURING_FOLDS` vehicles)."""
+    dt = scenarios.dt
+    real_v, real_g, real_lead, vehicles = [], [], [], []
+    for scenario in scenarios.scenarios:
+        data = observed_data(scenario)
+        real_v.append(data.v)
+        real_g.append(data.gap)
+        real_lead.append(scenario.v[:-1])
+        vehicles.extend(scenario.simulated_ids)
+    real_v, real_g = np.concatenate(real_v), np.concatenate(real_g)
+    real = segment_features(real_v, real_g, dt)
+    real_trajectory = trajectory_features(real_v, real_g, np.concatenate(real_lead), dt)
+    groups = np.array(vehicles)
+    folds = min(TURING_FOLDS, len(set(vehicles)))
+    rows = {}
+    for name, policy in policies.items():
+        sim_v, sim_g, sim_lead = [], [], []
+        for index, scenario in enumerate(scenarios.scenarios):
+            simulated = _turing_rollout(policy, scenario, index)
+            speed = np.asarray(simulated.v[0], dtype=np.float64)
+            sim_v.append(speed)
+            sim_g.append(np.asarray(simulated.gap[0]))
+            # The replayed head leads the first follower; each simulated car leads the next.
+            sim_lead.append(np.vstack([scenario.v[:1], speed[:-1]]))
+        sim_v, sim_g = np.concatenate(sim_v), np.concatenate(sim_g)
+        generated = segment_features(sim_v, sim_g, dt)
+        rows[name] = {
+            **classifier_two_sample_test(real, generated, seed=SEEDS["turing"])._asdict(),
+            "levels_only": classifier_two_sample_test(
+                real[:, LEVEL_FEATURES], generated[:, LEVEL_FEATURES], seed=SEEDS["turing"]
+            )._asdict(),
+            "boosted": boosted_two_sample_test(
+                real_trajectory,
+                trajectory_features(sim_v, sim_g, np.concatenate(sim_lead), dt),
+                real_groups=groups,
+                generated_groups=groups,
+                seed=SEEDS["turing"],
+                folds=folds,
+                permutations=permutations,
+            )._asdict(),
+        }
+    return rows
+
+
 def turing_step(
     out: Path, highway: dict[str, dict], trajs: dict[str, Trajectories], settings: Settings
 ) -> dict:
-    """Classifier two-sample test: real held-out segments against one rollout of each model on
-    the same scenarios (features of :func:`segment_features`), once on all features and once on
-    the speed and gap levels only (``levels_only``: no acceleration or jerk). Also writes the material for a
-    human test: paired clips (real and idm-smc, seeded order) in ``out``, and the answer sheet
-    beside that folder, never in it."""
+    """The automated Turing test of every highway label (:func:`turing_comparison`). Also
+    writes the material for a human test: paired clips (real and idm-smc, seeded order) in
+    ``out``, and the answer sheet beside that folder, never in it."""
     from bayesdrive.reports.clips import write_answer_sheet, write_clip_pair
 
     out.mkdir(parents=True, exist_ok=True)
@@ -450,55 +529,27 @@ def turing_step(
     answers = []
     results = {}
     for label, experiment in highway.items():
-        traj = trajs[label]
         folder = highway_folder(out.parent, label)
         trees = {e: load_result(p) for e, p in fit_paths(experiment, folder).items()}
-        scenarios = _covered(_highway_scenarios(label, traj, settings), trees)
-        real_v, real_g = [], []
-        for scenario in scenarios.scenarios:
-            data = observed_data(scenario)
-            real_v.append(data.v)
-            real_g.append(data.gap)
-        real = segment_features(np.concatenate(real_v), np.concatenate(real_g), scenarios.dt)
-        policies = dict(_learned_policy(t) for t in trees.values())
-        for name in ("idm-default", "cv"):
-            policies[name] = baseline_policy(
-                name, jax.random.key(SEEDS["baselines"]), traj, scenarios.simulated_ids
-            )
-        rows = {}
-        for name, policy in policies.items():
-            sim_v, sim_g = [], []
-            for index, scenario in enumerate(scenarios.scenarios):
-                key = jax.random.fold_in(jax.random.key(SEEDS["turing"]), index)
-                key_params, key_roll = jax.random.split(key)
-                params = policy.params_for(key_params, scenario.simulated_ids, 1)
-                simulated = rollout(
-                    key_roll, policy.model, params, scene_arrays(scenario), num_rollouts=1
+        scenarios, policies = turing_models(label, trajs[label], trees, settings)
+        results[label] = turing_comparison(scenarios, policies, settings.turing_permutations)
+        if "contrast" in label:
+            continue
+        for index, scenario in enumerate(scenarios.scenarios[:CLIP_PAIRS]):
+            simulated = _turing_rollout(policies["idm-smc"], scenario, index)
+            real_x = scenario.x - scenario.origin
+            sim_x = np.vstack([real_x[:1], np.asarray(simulated.x[0])])
+            answers.append(
+                write_clip_pair(
+                    real_x,
+                    sim_x,
+                    scenario.length,
+                    scenario.dt,
+                    out,
+                    f"{label.replace(':', '_')}_{index}",
+                    order_rng,
                 )
-                sim_v.append(np.asarray(simulated.v[0]))
-                sim_g.append(np.asarray(simulated.gap[0]))
-                if name == "idm-smc" and index < CLIP_PAIRS and "contrast" not in label:
-                    real_x = scenario.x - scenario.origin
-                    sim_x = np.vstack([real_x[:1], np.asarray(simulated.x[0])])
-                    answers.append(
-                        write_clip_pair(
-                            real_x,
-                            sim_x,
-                            scenario.length,
-                            scenario.dt,
-                            out,
-                            f"{label.replace(':', '_')}_{index}",
-                            order_rng,
-                        )
-                    )
-            generated = segment_features(np.concatenate(sim_v), np.concatenate(sim_g), scenarios.dt)
-            rows[name] = {
-                **classifier_two_sample_test(real, generated, seed=SEEDS["turing"])._asdict(),
-                "levels_only": classifier_two_sample_test(
-                    real[:, LEVEL_FEATURES], generated[:, LEVEL_FEATURES], seed=SEEDS["turing"]
-                )._asdict(),
-            }
-        results[label] = rows
+            )
     # Outside the clips' folder: whoever is handed the clips to judge blind must not get it.
     sheet = write_answer_sheet(answers, out.parent / f"{out.name}_answer_sheet.json")
     return {
