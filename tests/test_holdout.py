@@ -225,22 +225,25 @@ def test_calibration_on_two_vehicles_gives_coverage_per_model_and_horizon(holdou
     )
     delayed = get_model("idm+reaction_delay")
     result = calibrate_data_set(traj, config, (IDM, delayed))
-    assert result["horizons_s"] == [0.1, 5.0]
+    assert result["lead_times_s"] == [1.0, 2.0, 3.0, 5.0]
     for model in (IDM, delayed):
         entry = result["models"][model.name]
-        assert entry["vehicles"] >= 1 and entry["rollouts"] == 20
-        one_step, five = entry["horizons"]["0.1"], entry["horizons"]["5"]
-        # Every scored held-out step is a one-step window; 5 s windows are fewer.
-        assert one_step["windows"] > five["windows"] >= 1
-        for h in (one_step, five):
-            assert sum(h["pit_counts"]) == h["windows"]
-            assert 0.0 <= h["coverage_50"] <= h["coverage_90"] <= 1.0
-            assert h["rmse_rollouts_m"] ** 2 == pytest.approx(
-                h["rmse_mean_m"] ** 2 + h["spread_m"] ** 2
-            )
-            assert h["constant_velocity_rmse_m"] > 0.0
-            paired = h["minus_constant_velocity"]["crps_minus_abs_error_m"]
-            assert paired["vehicles"] == entry["vehicles"] and np.isfinite(paired["mean"])
+        assert entry["vehicles"] >= 1 and entry["rollouts"] == 20 and entry["windows"] >= 1
+        for start in ("filtered", "stationary"):
+            for h in entry["starts"][start]["horizons"].values():
+                assert sum(h["pit_counts"]) == h["windows"] == entry["windows"]
+                assert 0.0 <= h["coverage_50"] <= h["coverage_90"] <= 1.0
+                assert h["rmse_rollouts_m"] ** 2 == pytest.approx(
+                    h["rmse_mean_m"] ** 2 + h["spread_m"] ** 2
+                )
+                # With the leader replayed the gap's error is the position's, negated.
+                assert h["crps_gap_m"] == pytest.approx(h["crps_m"])
+                assert h["constant_velocity_rmse_m"] > 0.0 and h["energy_score"] > 0.0
+                paired = h["minus_constant_velocity"]["crps_minus_abs_error_m"]
+                assert paired["vehicles"] == entry["vehicles"] and np.isfinite(paired["mean"])
+    # The plain IDM has no state beyond position and speed: both starts are the same forecast.
+    idm = result["models"][IDM.name]["starts"]
+    assert idm["filtered"] == idm["stationary"]
     section = Section("calibration")
     calibration = {"data_sets": {HELD_OUT: {**result, "training_data": "t"}}}
     calibration_section(section, calibration, tmp_path)

@@ -30,9 +30,11 @@ with the documented defaults and scoring them on their later held-out windows is
 6. **Calibration** (:func:`calibrate_data_set`, a step of its own): the IDM and the final model
    that ``criticize`` chose on the training data set of the same kind (never chosen on held-out
    data), each fitted by ``smc`` (defaults) to the same simulated followers' fitting windows;
-   the coverage of the 50% and 90% central predictive intervals and the PIT histogram of the
-   position one step (one sample interval) and :data:`HORIZON_S` ahead, over every held-out
-   window of those followers (:func:`~bayesdrive.simulation.calibration.predictive_calibration`).
+   their forecasts 1, 2, 3 and 5 s ahead over every held-out window of those followers, from the
+   ``filtered`` start with ``stationary`` beside it: CRPS of gap, position and speed, the energy
+   score of the (gap, speed) path, the predictive mean's RMSE, the coverage of the 50% and 90%
+   central predictive intervals and the PIT histogram of the position
+   (:func:`~bayesdrive.simulation.calibration.predictive_calibration`).
 7. **Metrics** (:func:`~bayesdrive.simulation.metrics.evaluate_policy`, one rollout key for every
    method, so methods differ by their parameters only): RMSE of position and speed at each
    scenario's last step and collisions. **Paired intervals**: per scenario, the RMSE of the
@@ -61,7 +63,7 @@ from bayesdrive.inference.output import load_result, metadata, save_result
 from bayesdrive.inference.population import two_stage
 from bayesdrive.simulation.baselines import Policy, baseline_policy
 from bayesdrive.simulation.blackbox import TrainConfig
-from bayesdrive.simulation.calibration import predictive_calibration
+from bayesdrive.simulation.calibration import LEAD_TIMES_S, predictive_calibration
 from bayesdrive.simulation.metrics import evaluate_policy
 from bayesdrive.simulation.posterior import pooled_policy, population_policy, posterior_policy
 from bayesdrive.simulation.scenarios import ScenarioSet, platoon_scenarios
@@ -319,13 +321,12 @@ def calibrate_data_set(
     """Point 6 of the protocol on one held-out data set read as ``traj``: for each of ``models``
     (the IDM and the training set's final model), smc fits of the protocol's simulated followers
     on their fitting windows (kept in ``fit_paths[model.name]`` where given, see
-    :func:`fit_followers`) and the calibration of their predictive on the held-out windows, one
-    step and :data:`HORIZON_S` ahead. Returns ``{"error": reason}`` without such followers."""
+    :func:`fit_followers`) and the forecast scores of their predictive on the held-out windows
+    (:data:`~bayesdrive.simulation.calibration.LEAD_TIMES_S`). Returns ``{"error": reason}`` without such followers."""
     found = holdout_scenarios(traj, config.max_scenarios)
     if not found.scenarios:
         return {"error": f"no {HORIZON_S:g} s leader-follower window in its held-out part"}
     series = scored_series(traj, vehicle_ids=found.simulated_ids)
-    horizons = (float(series.dt), HORIZON_S)
     results = {}
     for model in models:
         tree = fit_followers(traj, config, model, found, (fit_paths or {}).get(model.name))
@@ -334,7 +335,6 @@ def calibrate_data_set(
             model,
             tree,
             series,
-            horizons_s=horizons,
             num_rollouts=config.rollouts,
         )
-    return {"horizons_s": list(horizons), "models": results}
+    return {"lead_times_s": list(LEAD_TIMES_S), "models": results}

@@ -11,12 +11,12 @@ The result is the :class:`~bayesdrive.data.views.FollowerArrays` an engine fits.
 States are kept relative to the current step, as the engines score them, so the recorded
 increments carry no float32 position round-off.
 
-The follower reads its inputs through its model (``model.inputs_at`` on a buffer of the one
-series that the simulation writes into step by step: speeds, gaps, the leader's speed and
-acceleration, the leader's age; no second vehicle ahead), and carries the model's own state, so
-any registered model is simulated, extensions and composites included. A model that reads its
-past starts with a history of the constant start (its first steps are never scored: engines score
-a step only with a full usable history behind it).
+Each follower is a one-vehicle platoon of the one simulator
+(:mod:`bayesdrive.drivers.closed_loop`) from its ``stationary`` start: it reads its inputs through
+its model (speeds, gaps, the leader's speed, acceleration and age; no second vehicle ahead) and
+carries the model's own state, so any registered model is simulated, extensions and composites
+included. A model that reads its past starts with a history of the constant start (its first
+steps are never scored: engines score a step only with a full usable history behind it).
 """
 
 from __future__ import annotations
@@ -28,8 +28,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.data.views import AheadArrays, FollowerArrays, history_steps
-from bayesdrive.drivers.base import DriverModel, EgoState, Series
+from bayesdrive.data.views import AheadArrays, FollowerArrays
+from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.closed_loop import STATIONARY, platoon_scene, rollout_scenes
 
 __all__ = ["simulate_following"]
 
@@ -55,60 +56,21 @@ def simulate_following(
         2 * jnp.pi * t[None, :] / period[:, None] + phase[:, None]
     )
 
-    history = history_steps(dt) if model.reads_history else 0
-
-    def one_vehicle(key, vehicle_params, lead_v, start_v, start_gap):
-        # The buffer's first ``history`` steps are the constant start, then the simulated steps.
-        length = history + num_steps + 1
-        lead = jnp.concatenate([jnp.full(history, lead_v[0]), lead_v])
-        zeros = jnp.zeros(length)
-        buffer = Series(
-            v=jnp.full(length, start_v),
-            next_v=zeros,
-            dx=jnp.full(length, start_v * dt),
-            gap=jnp.full(length, start_gap),
-            lead_v=lead,
-            has_leader=jnp.ones(length),
-            mask=jnp.ones(length),
-            dt=jnp.full(length, dt),
-            ahead=AheadArrays(
-                lead_acc=jnp.concatenate([zeros[:1], jnp.diff(lead) / dt]),
-                gap2=jnp.full(length, 100.0),
-                lead2_v=jnp.ones(length),
-                has_leader2=zeros,
-                lead_age=jnp.arange(length, dtype=zeros.dtype),
-            ),
-        )
-        start = model.initial_sample(
-            jax.random.fold_in(key, num_steps), vehicle_params, EgoState(x=0.0, v=start_v)
-        )
-
-        def step(carry, xs):
-            state, buf = carry
-            key, j = xs
-            v, gap = buf.v[j], buf.gap[j]
-            inputs = model.inputs_at(buf, j, history)
-            nxt = model.transition_sample(key, vehicle_params, state._replace(x=0.0), inputs)
-            lead_dx = 0.5 * (buf.lead_v[j] + buf.lead_v[j + 1]) * dt
-            buf = buf._replace(
-                v=buf.v.at[j + 1].set(nxt.v),
-                dx=buf.dx.at[j].set(nxt.x),
-                gap=buf.gap.at[j + 1].set(gap + lead_dx - nxt.x),
-            )
-            return (nxt, buf), (v, nxt.v, nxt.x, gap)
-
-        keys = jax.random.split(key, num_steps)
-        steps = history + jnp.arange(num_steps)
-        _, out = jax.lax.scan(step, (start, buffer), (keys, steps))
-        return out
-
-    v, next_v, dx, gap = jax.vmap(one_vehicle)(
-        jax.random.split(key_noise, num_vehicles),
-        params,
-        lead_v,
-        lead_v[:, 0],
-        2.0 + headway * lead_v[:, 0],
+    start_v = lead_v[:, 0]
+    scenes = jax.vmap(lambda lead, x0, v0: platoon_scene(lead, x0, v0, length=0.0, dt=dt))(
+        lead_v, -(2.0 + headway * start_v)[:, None], start_v[:, None]
     )
+    one_each = jax.tree.map(lambda leaf: jnp.reshape(leaf, (num_vehicles, 1, 1)), params)
+    simulated = rollout_scenes(
+        jax.random.split(key_noise, num_vehicles),
+        model,
+        one_each,
+        scenes,
+        num_rollouts=1,
+        start=STATIONARY,
+        dt=dt,
+    )
+    path = jax.tree.map(lambda leaf: leaf[:, 0, 0], simulated)
 
     def host(a):
         return np.asarray(a, dtype=np.float64)
@@ -121,14 +83,14 @@ def simulate_following(
         gap2=np.full(shape, 100.0),
         lead2_v=np.ones(shape),
         has_leader2=np.zeros(shape),
-        lead_age=np.broadcast_to(history + np.arange(num_steps, dtype=float), shape).copy(),
+        lead_age=np.broadcast_to(np.arange(num_steps, dtype=float), shape).copy(),
     )
     return FollowerArrays(
         vehicle_ids=tuple(f"sim{i}" for i in range(num_vehicles)),
-        v=host(v),
-        next_v=host(next_v),
-        dx=host(dx),
-        gap=host(gap),
+        v=host(path.v[:, :-1]),
+        next_v=host(path.v[:, 1:]),
+        dx=host(path.dx),
+        gap=host(path.gap[:, :-1]),
         lead_v=host(lead_v[:, :-1]),
         has_leader=np.ones(shape),
         mask=np.ones(shape),

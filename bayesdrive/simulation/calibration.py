@@ -1,22 +1,28 @@
-"""Calibration of a fitted model's predictive on held-out windows: interval coverage and PIT.
+"""Forecast scores of a fitted model's predictive on held-out windows: proper scores, calibration.
 
-For every held-out window of ``horizon_s`` seconds (:func:`~bayesdrive.simulation.follower_rollout.heldout_windows`:
-consecutive, non-overlapping, every step scored; a one-step horizon makes every scored held-out
-step a window) the follower is rolled out from the observed state behind its replayed leader
+Every held-out window of the longest lead time (:data:`LEAD_TIMES_S`;
+:func:`~bayesdrive.simulation.follower_rollout.heldout_windows`: consecutive, non-overlapping,
+every step scored) is forecast by rolling the follower out behind its replayed leader
 (:func:`~bayesdrive.simulation.follower_rollout.rollout`, any driver model, each rollout with a
-fresh posterior draw of that vehicle). The probability integral transform of the observed
-position at the end of the window is the share of rollouts that end behind it (ties, e.g. two
-stopped cars, split at random), so a calibrated predictive gives uniform PITs, and its central
-50% and 90% intervals cover the observation at those rates: coverage is the share of windows
-whose PIT lies within (0.25, 0.75) and (0.05, 0.95).
+fresh posterior draw of that vehicle), once from each start of :data:`STARTS_SHOWN`: ``filtered``
+(the forecast: the model's state filtered from the window's observed history) and ``stationary``
+beside it (the same rollouts without that history). A model whose hidden state the simulator
+cannot filter gets the start's refusal in place of its scores.
 
-Beside calibration, the same rollouts give point scores of the position at the window's end
-(:func:`point_scores`): the RMSE over rollouts (what the closed-loop tables report for a
-stochastic model) splits exactly into the error of the predictive mean and the rollouts' spread,
-``rmse_rollouts**2 = rmse_mean**2 + spread**2``; the CRPS is a proper score of the whole
-predictive, and for a point forecast it is the absolute error. Constant velocity from each
-window's observed first speed (:func:`constant_velocity_offsets`) is scored on the same windows,
-so a stochastic model and a point forecast can be compared fairly.
+At each lead time the rollouts are scored against the observation by proper scores from
+``scoringrules`` (Zamo & Naveau's ensemble estimators): the CRPS of the gap, the position and the
+speed (with the leader replayed, the gap's error is the position's negated, so their CRPS agree),
+and the energy score of the joint (gap, speed) path from the first step to the lead time, each
+variable divided by its unit, :data:`ENERGY_UNITS` (1 m and 1 m/s, fixed beforehand and
+independent of the data), so the score is in those units. Beside them, not deciding anything:
+the RMSE of the predictive mean, the RMSE over rollouts (what the closed-loop tables report; it
+splits exactly into the mean's error and the rollouts' spread,
+``rmse_rollouts**2 = rmse_mean**2 + spread**2``, so it penalises a calibrated spread), and the
+probability integral transform of the observed position (the share of rollouts that end behind
+it; ties, e.g. two stopped cars, split at random), whose central 50% and 90% intervals cover the
+observation at those rates for a calibrated predictive. Constant velocity from each window's
+observed first speed (:func:`constant_velocity_offsets`) is scored on the same windows: for a
+point forecast the CRPS is the absolute error.
 """
 
 from __future__ import annotations
@@ -26,21 +32,32 @@ from typing import Any
 
 import jax
 import numpy as np
+import scoringrules
 import xarray as xr
 from jax import Array
 from scipy import stats
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.closed_loop import FILTERED, STATIONARY, check_start
 from bayesdrive.drivers.extensions import as_extended
-from bayesdrive.simulation.follower_rollout import RolloutWindows, heldout_windows, rollout
+from bayesdrive.simulation.follower_rollout import (
+    Rollouts,
+    RolloutWindows,
+    heldout_windows,
+    rollout,
+)
 from bayesdrive.simulation.posterior import particles_by_vehicle
 
 __all__ = [
+    "ENERGY_UNITS",
+    "LEAD_TIMES_S",
     "LEVELS",
     "PIT_BINS",
+    "STARTS_SHOWN",
     "by_vehicle_difference",
     "constant_velocity_offsets",
+    "forecast_scores",
     "pit_summary",
     "point_scores",
     "predictive_calibration",
@@ -48,6 +65,10 @@ __all__ = [
 
 LEVELS = (0.5, 0.9)
 PIT_BINS = 10
+LEAD_TIMES_S = (1.0, 2.0, 3.0, 5.0)
+# The energy score's units of the gap (m) and the speed (m/s): stated, not estimated from data.
+ENERGY_UNITS = {"gap_m": 1.0, "speed_mps": 1.0}
+STARTS_SHOWN = (FILTERED, STATIONARY)
 
 
 def pit_summary(pit: np.ndarray) -> dict[str, Any]:
@@ -63,13 +84,9 @@ def pit_summary(pit: np.ndarray) -> dict[str, Any]:
     return summary
 
 
-def _crps(offsets: np.ndarray) -> np.ndarray:
-    """(window,) CRPS of each row's empirical distribution at 0: ``E|X| - E|X - X'| / 2``, the
-    mean pair distance from the sorted sample, ``2 sum_i (2i - R - 1) x_(i) / R**2``."""
-    num_rollouts = offsets.shape[1]
-    weights = 2.0 * np.arange(1, num_rollouts + 1) - num_rollouts - 1
-    mean_pair_distance = 2.0 * (np.sort(offsets, axis=1) @ weights) / num_rollouts**2
-    return np.abs(offsets).mean(axis=1) - 0.5 * mean_pair_distance
+def _crps(errors: np.ndarray) -> np.ndarray:
+    """(window,) CRPS of each row's ensemble of forecast errors (simulated minus observed) at 0."""
+    return np.asarray(scoringrules.crps_ensemble(np.zeros(errors.shape[0]), errors, m_axis=1))
 
 
 def by_vehicle_difference(difference: np.ndarray, row: np.ndarray) -> dict[str, float | int | None]:
@@ -109,12 +126,42 @@ def point_scores(end_offsets: np.ndarray) -> dict[str, float | None]:
     }
 
 
-def constant_velocity_offsets(series: FollowerArrays, windows: RolloutWindows) -> np.ndarray:
-    """(window,) position at each window's end of constant velocity from the window's first
-    observed speed, minus the observed position there (m)."""
-    steps = windows.start[:, None] + np.arange(windows.horizon)[None, :]
+def constant_velocity_offsets(
+    series: FollowerArrays, windows: RolloutWindows, lead_time_s: float | None = None
+) -> np.ndarray:
+    """(window,) position ``lead_time_s`` after each window's start (default: at its end) of
+    constant velocity from the window's first observed speed, minus the observed position (m)."""
+    horizon = windows.horizon if lead_time_s is None else round(lead_time_s / series.dt)
+    steps = windows.start[:, None] + np.arange(horizon)[None, :]
     travelled = series.dx[windows.row[:, None], steps].sum(axis=1)
-    return windows.horizon * series.dt * series.v[windows.row, windows.start] - travelled
+    return horizon * series.dt * series.v[windows.row, windows.start] - travelled
+
+
+def forecast_scores(key: Array, rolled: Rollouts, dt: float, lead_time_s: float) -> dict[str, Any]:
+    """The scores of ``rolled`` at ``lead_time_s`` (module docstring); ``key`` breaks PIT ties."""
+    steps = round(lead_time_s / dt)
+    position = rolled.offset[:, :, steps - 1]
+    speed = rolled.speed_offset[:, :, steps - 1]
+    # The joint path of steps 1..lead time, in units: (window, rollout, 2 * steps).
+    path = np.concatenate(
+        [
+            -rolled.offset[:, :, :steps] / ENERGY_UNITS["gap_m"],
+            rolled.speed_offset[:, :, :steps] / ENERGY_UNITS["speed_mps"],
+        ],
+        axis=2,
+    )
+    energy = np.asarray(scoringrules.es_ensemble(np.zeros(path[:, 0].shape), path))
+    behind, level = (position < 0.0).mean(axis=1), (position == 0.0).mean(axis=1)
+    pit = behind + level * np.asarray(jax.random.uniform(key, behind.shape))
+    windows = position.shape[0]
+    return {
+        **pit_summary(pit),
+        **point_scores(position),
+        "crps_gap_m": float(_crps(-position).mean()) if windows else None,
+        "crps_speed_mps": float(_crps(speed).mean()) if windows else None,
+        "energy_score": float(energy.mean()) if windows else None,
+        "collisions": int(rolled.collisions.sum()),
+    }
 
 
 def predictive_calibration(
@@ -123,44 +170,65 @@ def predictive_calibration(
     tree: xr.DataTree,
     series: FollowerArrays,
     *,
-    horizons_s: Sequence[float],
+    lead_times_s: Sequence[float] = LEAD_TIMES_S,
     num_rollouts: int = 100,
 ) -> dict[str, Any]:
-    """PIT and interval coverage of ``model``'s predictive (fitted as ``tree``, every parameter of
-    ``model`` inferred) on the held-out windows of ``series`` (a ``scored_series``), for each
-    horizon; vehicles of ``series`` without a posterior in ``tree`` are left out and counted."""
+    """Forecast scores of ``model``'s predictive (fitted as ``tree``, every parameter of ``model``
+    inferred) on the held-out windows of ``series`` (a ``scored_series``) at each lead time, per
+    start of :data:`STARTS_SHOWN`; vehicles of ``series`` without a posterior in ``tree`` are left
+    out and counted."""
     draws = particles_by_vehicle(tree, model.param_names)
     rows = [i for i, v in enumerate(series.vehicle_ids) if v in draws]
     kept = series.subset(rows)
     theta = np.stack([draws[v] for v in kept.vehicle_ids])
+    windows = heldout_windows(kept, max(lead_times_s))
     out: dict[str, Any] = {
         "vehicles": len(rows),
         "vehicles_without_fit": len(series.vehicle_ids) - len(rows),
         "rollouts": num_rollouts,
-        "horizons": {},
+        "windows": len(windows.row),
+        "window_s": max(lead_times_s),
+        "energy_units": ENERGY_UNITS,
+        "starts": {},
     }
-    for horizon_s in horizons_s:
-        key, key_rollout, key_ties = jax.random.split(key, 3)
-        windows = heldout_windows(kept, horizon_s)
+    # Every start rolls out with the same key: common random numbers sharpen their difference.
+    key_rollout, key_ties = jax.random.split(key)
+    for start in STARTS_SHOWN:
+        try:
+            check_start(model, start, has_past=True)
+        except ValueError as refused:
+            out["starts"][start] = {"error": str(refused)}
+            continue
         rolled = rollout(
-            key_rollout, as_extended(model), theta, kept, windows, num_rollouts=num_rollouts
+            key_rollout,
+            as_extended(model),
+            theta,
+            kept,
+            windows,
+            num_rollouts=num_rollouts,
+            start=start,
         )
-        end = rolled.offset[:, :, -1]
-        behind, level = (end < 0.0).mean(axis=1), (end == 0.0).mean(axis=1)
-        pit = behind + level * np.asarray(jax.random.uniform(key_ties, behind.shape))
-        cv = constant_velocity_offsets(kept, windows)
-        out["horizons"][f"{horizon_s:g}"] = {
-            **pit_summary(pit),
-            **point_scores(end),
-            "constant_velocity_rmse_m": float(np.sqrt(np.mean(cv**2))) if cv.size else None,
-            "constant_velocity_mae_m": float(np.mean(np.abs(cv))) if cv.size else None,
-            "minus_constant_velocity": {
-                "crps_minus_abs_error_m": by_vehicle_difference(
-                    _crps(end) - np.abs(cv), windows.row
-                ),
-                "squared_error_of_mean_minus_squared_error_m2": by_vehicle_difference(
-                    end.mean(axis=1) ** 2 - cv**2, windows.row
-                ),
-            },
-        }
+        horizons = {}
+        for lead_time_s, key_lead in zip(
+            lead_times_s, jax.random.split(key_ties, len(lead_times_s)), strict=True
+        ):
+            scores = forecast_scores(key_lead, rolled, kept.dt, lead_time_s)
+            end = rolled.offset[:, :, round(lead_time_s / kept.dt) - 1]
+            cv_at = constant_velocity_offsets(kept, windows, lead_time_s)
+            horizons[f"{lead_time_s:g}"] = {
+                **scores,
+                "constant_velocity_rmse_m": float(np.sqrt(np.mean(cv_at**2)))
+                if cv_at.size
+                else None,
+                "constant_velocity_mae_m": float(np.mean(np.abs(cv_at))) if cv_at.size else None,
+                "minus_constant_velocity": {
+                    "crps_minus_abs_error_m": by_vehicle_difference(
+                        _crps(end) - np.abs(cv_at), windows.row
+                    ),
+                    "squared_error_of_mean_minus_squared_error_m2": by_vehicle_difference(
+                        end.mean(axis=1) ** 2 - cv_at**2, windows.row
+                    ),
+                },
+            }
+        out["starts"][start] = {"horizons": horizons}
     return out

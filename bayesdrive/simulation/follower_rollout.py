@@ -1,21 +1,18 @@
-"""Closed-loop rollouts of one follower behind its replayed leader, over held-out windows.
+"""Held-out forecasts: one follower behind its replayed leader, from each held-out window's start.
 
-The multi-step checks and the gain's RMSE need what the model does when its own errors feed back:
-each held-out window of ``horizon_s`` seconds starts from the observed state, the follower is then
-driven by the model (``transition_sample``; any extended model, its state lifted from the observed
-past at the start), and everything ahead of it is replayed from the data. The simulated gap is the
-observed gap minus the accumulated position offset of the simulated follower,
+The multi-step checks, the gain's RMSE and the held-out calibration need what the model does when
+its own errors feed back: each held-out window of ``horizon_s`` seconds is a scene of the one
+simulator (:mod:`bayesdrive.drivers.closed_loop`) with the follower simulated and everything ahead
+of it replayed from the data (its leader as the scene's head, the leader's own leader as the second
+vehicle ahead). Positions are the follower's, from its observed position at the window's start,
+so the simulated gap is the observed gap minus the accumulated position offset of the simulated
+follower,
 
     gap_sim[j] = gap_obs[j] - (x_sim[j] - x_obs[j]),
 
-(the same for the gap to the second vehicle ahead), so only increments are ever added and float32
-never holds a kilometre-sized position. The inputs come from the model's own ``inputs_at`` on a
-local buffer of the one series that holds the observed
-history before the window and the simulated values inside it, so a reaction delay sees the data
-before the window and its own simulation after.
-
-This complements ``bayesdrive.simulation`` (platoon scenarios with base inputs): it handles the
-extended inputs and states the extensions need, for one follower at a time.
+and float32 never holds a kilometre-sized position. Each scene carries the data's series over the
+steps before the window as its past, so the ``filtered`` start (the default: a forecast) reads
+the observed history, and ``stationary`` is the same window without it.
 
 Windows are fixed by rule, never by results: consecutive, non-overlapping windows from the first
 scored held-out step, kept when every step of the window is scored.
@@ -23,7 +20,6 @@ scored held-out step, kept when every step of the window is scored.
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -31,8 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.data.views import FollowerArrays
-from bayesdrive.drivers.base import EgoState, Series, device_series, fill_params
+from bayesdrive.data.views import FollowerArrays, history_steps
+from bayesdrive.drivers.base import Series, device_series, fill_params
+from bayesdrive.drivers.closed_loop import FILTERED, SceneArrays, rollout_scenes
 from bayesdrive.drivers.extensions.compose import ExtendedModel
 
 __all__ = ["RolloutWindows", "Rollouts", "heldout_windows", "rollout"]
@@ -47,11 +44,16 @@ class RolloutWindows(NamedTuple):
 
 
 class Rollouts(NamedTuple):
-    """Position offsets simulated minus observed (m): (window, rollout, horizon step)."""
+    """Forecast errors, simulated minus observed, (window, rollout, horizon step) for steps
+    1..H: ``offset`` of the position (m; the gap's is its negative), ``speed_offset`` of the
+    speed (m/s); ``collisions`` (window, rollout): the simulated gap reached <= 0; ``start``:
+    the simulator's start (:data:`~bayesdrive.drivers.closed_loop.STARTS`)."""
 
     windows: RolloutWindows
     offset: np.ndarray
-    collisions: np.ndarray  # (window, rollout): the simulated gap reached <= 0
+    speed_offset: np.ndarray
+    collisions: np.ndarray
+    start: str
 
     def rmse_per_vehicle(self, num_vehicles: int) -> np.ndarray:
         """Root mean square position error over each vehicle's windows, rollouts and steps."""
@@ -80,71 +82,46 @@ def heldout_windows(series: FollowerArrays, horizon_s: float) -> RolloutWindows:
     return RolloutWindows(np.asarray(rows, int), np.asarray(starts, int), horizon)
 
 
-def _window_buffer(data: Series, row: Array, start: Array, history: int, horizon: int) -> Series:
-    """Vehicle ``row``'s arrays from ``history`` steps before ``start`` to the end of the window,
-    sliced straight from the (vehicle, step) arrays: gathering the row first would hold a whole
-    series per window, which runs out of memory with one-step windows on long recordings."""
-    length = history + horizon + 1
+def _window_scenes(data: Series, windows: RolloutWindows, past: int) -> SceneArrays:
+    """Each window as a scene (leaves with a leading window axis), sliced from ``data`` (one
+    series (vehicle, step), padded by ``past`` steps before and ``horizon + 1`` after): gathering
+    whole rows first would hold a series per window, out of memory with one-step windows."""
+    horizon = windows.horizon
 
-    def cut(a: Array) -> Array:
-        corner = (row, start - history) + (0,) * (a.ndim - 2)
-        return jax.lax.dynamic_slice(a, corner, (1, length, *a.shape[2:]))[0]
+    def cut(a: Array, row: Array, first: Array, length: int) -> Array:
+        return jax.lax.dynamic_slice(a, (row, first), (1, length))[0]
 
-    return jax.tree.map(cut, data)
+    def one(row: Array, start: Array) -> SceneArrays:
+        at = start + past  # the window's start in the padded arrays
 
+        def window(a: Array) -> Array:
+            return cut(a, row, at, horizon + 1)
 
-def _one_rollout(
-    key: Array,
-    extended: ExtendedModel,
-    params,
-    buffer: Series,
-    history: int,
-    horizon: int,
-) -> tuple[Array, Array]:
-    """Simulate ``horizon`` steps from local index ``history``; returns offsets and a collision."""
-    model = extended.model
-    zero = jnp.zeros_like(buffer.v[0])
-    first_inputs = model.inputs_at(buffer, history, history)
-    state = model.lift(params, EgoState(zero, buffer.v[history]), first_inputs)
-    observed = buffer
-
-    def step(carry, k):
-        state, buf, offset = carry
-        j = history + k
-        inputs = model.inputs_at(buf, j, history)
-        moved = model.transition_sample(
-            jax.random.fold_in(key, k), params, state._replace(x=zero), inputs
+        gap, ahead = window(data.gap), data.ahead
+        travelled = jnp.concatenate([jnp.zeros(1, gap.dtype), jnp.cumsum(window(data.dx)[:-1])])
+        before = jax.tree.map(lambda a: cut(a, row, start, past)[None], data._replace(merge=None))
+        zeros = jnp.zeros_like(gap)
+        return SceneArrays(
+            head_x=travelled + gap,
+            head_v=window(data.lead_v),
+            head_present=window(data.has_leader),
+            head_gap=zeros if ahead is None else window(ahead.gap2) - gap,
+            head_lead_v=zeros if ahead is None else window(ahead.lead2_v),
+            head_has_leader=zeros if ahead is None else window(ahead.has_leader2),
+            x0=zeros[:1],
+            v0=window(data.v)[:1],
+            lead_length=zeros[:1],
+            road_end=jnp.full(1, jnp.inf, gap.dtype),
+            step_mask=jnp.ones(horizon, gap.dtype),
+            merge_x=jnp.zeros((0, horizon + 1), gap.dtype),
+            merge_v=jnp.zeros((0, horizon + 1), gap.dtype),
+            merge_present=jnp.zeros((0, horizon + 1), gap.dtype),
+            merge_length=jnp.zeros(0, gap.dtype),
+            dt=data.dt[0, 0],
+            past=before,
         )
-        offset = offset + moved.x - observed.dx[j]
-        buf = buf._replace(
-            v=buf.v.at[j + 1].set(moved.v),
-            dx=buf.dx.at[j].set(moved.x),
-            gap=buf.gap.at[j + 1].set(observed.gap[j + 1] - offset),
-        )
-        if buf.ahead is not None:
-            ahead = buf.ahead
-            gap2 = ahead.gap2.at[j + 1].set(observed.ahead.gap2[j + 1] - offset)
-            buf = buf._replace(ahead=ahead._replace(gap2=gap2))
-        return (moved, buf, offset), offset
 
-    _, offsets = jax.lax.scan(step, (state, buffer, zero), jnp.arange(horizon))
-    crashed = jnp.any(observed.gap[history + 1 : history + horizon + 1] - offsets <= 0)
-    return offsets, crashed
-
-
-@functools.partial(jax.jit, static_argnames=("extended", "history", "horizon"))
-def _rollout_windows(keys, thetas, buffers, *, extended, history, horizon):
-    """(window, rollout) keys and parameter draws, (window,) buffers -> offsets, collisions."""
-    names = extended.model.param_names
-
-    def per_window(window_keys, window_thetas, buffer):
-        def per_draw(key, theta):
-            params = fill_params(extended.model, names, theta)
-            return _one_rollout(key, extended, params, buffer, history, horizon)
-
-        return jax.vmap(per_draw)(window_keys, window_thetas)
-
-    return jax.vmap(per_window)(keys, thetas, buffers)
+    return jax.vmap(one)(jnp.asarray(windows.row), jnp.asarray(windows.start))
 
 
 def rollout(
@@ -155,36 +132,51 @@ def rollout(
     windows: RolloutWindows,
     *,
     num_rollouts: int = 32,
+    start: str = FILTERED,
 ) -> Rollouts:
-    """``num_rollouts`` closed-loop rollouts per window, each with a fresh posterior draw.
+    """``num_rollouts`` closed-loop rollouts per window from ``start``, each with a fresh
+    posterior draw.
 
     ``theta`` (vehicle, particle, param) are equally weighted draws of the model's parameters (in
     ``extended.model.param_names`` order). The same ``key`` gives every model the same noise and
-    the same draw indices (common random numbers), so RMSE differences between models are sharper.
+    the same draw indices (common random numbers), so differences between models are sharper.
     """
-    num_windows = len(windows.row)
+    num_windows, horizon = len(windows.row), windows.horizon
     if num_windows == 0:
-        return Rollouts(
-            windows, np.zeros((0, num_rollouts, windows.horizon)), np.zeros((0, num_rollouts), bool)
+        empty = np.zeros((0, num_rollouts, horizon))
+        return Rollouts(windows, empty, empty, np.zeros((0, num_rollouts), bool), start)
+    if series.merge is not None:
+        raise ValueError(
+            "held-out window rollouts replay car-following scenes; merge scenes are simulated "
+            "through bayesdrive.simulation.scenarios (merge_scenarios)"
         )
-    history = series.history
-    data = device_series(series)
-    # Pad the step axis so every window's buffer slice stays inside the arrays.
-    pad = [(0, 0), (history, windows.horizon + 1)]
-    data = jax.tree.map(lambda a: jnp.pad(a, pad + [(0, 0)] * (a.ndim - 2), mode="edge"), data)
+    past = history_steps(series.dt)
+    data = device_series(series, jnp.float32)
+    # Pad the step axis so every window's slice, past and horizon, stays inside the arrays.
+    data = jax.tree.map(lambda a: jnp.pad(a, [(0, 0), (past, horizon + 1)], mode="edge"), data)
+    scenes = _window_scenes(data, windows, past)
     key_draw, key_noise = jax.random.split(key)
     picks = jax.random.randint(key_draw, (num_windows, num_rollouts), 0, theta.shape[1])
     rows = jnp.asarray(windows.row)
-    thetas = jnp.asarray(theta, dtype=data.v.dtype)[rows[:, None], picks]
-    buffers = jax.vmap(
-        lambda row, start: _window_buffer(data, row, start + history, history, windows.horizon)
-    )(rows, jnp.asarray(windows.start))
-    offsets, crashed = _rollout_windows(
-        jax.random.split(key_noise, (num_windows, num_rollouts)),
-        thetas,
-        buffers,
-        extended=extended,
-        history=history,
-        horizon=windows.horizon,
+    thetas = jnp.asarray(theta, jnp.float32)[rows[:, None], picks]
+    model = extended.model
+    params = fill_params(model, model.param_names, thetas[:, :, None, :])
+    rolled = rollout_scenes(
+        jax.random.split(key_noise, num_windows),
+        model,
+        params,
+        scenes,
+        num_rollouts=num_rollouts,
+        start=start,
+        dt=series.dt,
     )
-    return Rollouts(windows, np.asarray(offsets, np.float64), np.asarray(crashed))
+    steps = windows.start[:, None] + np.arange(horizon)[None, :]
+    observed_x = np.cumsum(series.dx[windows.row[:, None], steps], axis=1)[:, None, :]
+    observed_v = series.next_v[windows.row[:, None], steps][:, None, :]
+    return Rollouts(
+        windows,
+        offset=np.asarray(rolled.x[:, :, 0, 1:], np.float64) - observed_x,
+        speed_offset=np.asarray(rolled.v[:, :, 0, 1:], np.float64) - observed_v,
+        collisions=np.asarray(rolled.collision[:, :, 0].any(axis=-1)),
+        start=start,
+    )
