@@ -60,6 +60,7 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import SPLIT_RULE, FollowerArrays, follower_arrays, scored_series
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.closed_loop import FILTERED, forecast_start
 from bayesdrive.drivers.extensions import (
     CAUSES,
     NO_CAUSE,
@@ -332,8 +333,20 @@ def criticize(
                 start=start,
                 chunk_size=chunk_size or DEFAULT_CHUNK_SIZE,
             )
+        start_of_rollouts = forecast_start(extended.model)
+        if start_of_rollouts != FILTERED and windows.row.size:
+            say(
+                f"{extended.name}: rollouts start {start_of_rollouts} (its hidden state is not "
+                "filtered by the simulator)"
+            )
         rolled = rollout(
-            rollout_key, extended, fit.theta, series, windows, num_rollouts=config.num_rollouts
+            rollout_key,
+            extended,
+            fit.theta,
+            series,
+            windows,
+            num_rollouts=config.num_rollouts,
+            start=start_of_rollouts,
         )
         return fit, rolled
 
@@ -384,6 +397,7 @@ def criticize(
                 entry["gain"] = _gain_entry(gains[cause], series, cause in significant)
                 entry["gain"]["rmse_position_change"] = _finite_or_none(change)
                 entry["gain"]["rmse_position_change_se"] = _finite_or_none(change_se)
+                entry["gain"]["rollout_start"] = rolled[cause].start
                 entry["posterior"] = _posterior_summary(fits[cause], extended.new_params)
             entries.append(entry)
         return {
@@ -464,6 +478,7 @@ def criticize(
             "elpd": float(base.log_z_held.sum()),
             "log_evidence_fit": float(base.log_z_fit.sum()),
             "rmse_position_m": float(np.nanmean(base_rmse)) if windows.row.size else None,
+            "rollout_start": base_rollouts.start,
             "posterior": _posterior_summary(base, base.names),
         },
         "checks": [

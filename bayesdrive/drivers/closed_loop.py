@@ -65,6 +65,7 @@ __all__ = [
     "RolloutKeys",
     "SceneArrays",
     "check_start",
+    "forecast_start",
     "platoon_scene",
     "rollout",
     "rollout_keys",
@@ -155,13 +156,19 @@ def rollout_keys(key: Array, num_steps: int, num_vehicles: int) -> RolloutKeys:
     )
 
 
+def forecast_start(model: DriverModel) -> str:
+    """The start a forecast of ``model`` takes: ``filtered`` where the simulator can filter its
+    state, else ``stationary`` (a hidden state: callers record which start they used)."""
+    return FILTERED if model.observed_exactly and model.filter is None else STATIONARY
+
+
 def check_start(model: DriverModel, start: str, has_past: bool) -> None:
     """Refuse a start this simulator cannot give ``model`` on a scene (module docstring)."""
     if start not in STARTS:
         raise ValueError(f"unknown start {start!r}; the starts are {list(STARTS)}")
     if start != FILTERED:
         return
-    if not model.observed_exactly or model.filter is not None:
+    if forecast_start(model) != FILTERED:
         hidden = model.observation if not model.observed_exactly else "a filtered hidden state"
         raise ValueError(
             f"the {FILTERED!r} start lifts the state from the observed history; {model.name!r} "
