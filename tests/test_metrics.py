@@ -51,6 +51,7 @@ def tiny_scenario():
         x=x,
         v=v,
         gap=np.full((2, 2, 4), 5.0),
+        dx=np.diff(x, axis=-1),
         collision=collision,
         hard_braking=hard,
         off_road=np.zeros((2, 2, 3), bool),

@@ -14,6 +14,7 @@ from bayesdrive.simulation.scenarios import (
     merge_scenarios,
     platoon_scenarios,
     scenario_capacity,
+    with_history,
 )
 
 DT = 0.1
@@ -132,6 +133,31 @@ def test_followers_are_re_anchored_to_the_measured_gap_at_the_start():
     np.testing.assert_allclose(first.x[:-1, 0] - first.x[1:, 0] - LENGTH, 18.5)
     np.testing.assert_allclose(first.x[1] - first.x[1, 0], 10.0 * DT * np.arange(21), atol=1e-9)
     assert found.summary()["anchor_shift_m"] == {"median": 6.0, "max": 9.0}
+
+
+def test_with_history_takes_each_followers_steps_before_t0_and_drops_scenarios_without():
+    """Hand-made chain at 10 m/s, 20 m front to front: a scenario's past holds its followers'
+    last 16 steps (history_steps(0.1): 1.5 s and one more) before t0, with their speeds,
+    increments, gaps and leader speeds; a follower with a flagged sample there leaves its scenario
+    out (counted): the negative control."""
+    traj = chain_trajectories(dict.fromkeys("ABC", (0.0, 30.0)), FOLLOWS)
+    found = platoon_scenarios(traj, vehicles_per_scenario=2, horizon_s=2.0)
+    kept, dropped = with_history(found, traj)
+    assert dropped == 0 and len(kept.scenarios) == len(found.scenarios)
+    past = kept.scenarios[0].past
+    assert past.v.shape == (2, 16)
+    np.testing.assert_allclose(past.v, 10.0)
+    np.testing.assert_allclose(past.dx, 10.0 * DT, atol=1e-9)
+    np.testing.assert_allclose(past.gap, 20.0 - LENGTH)
+    np.testing.assert_allclose(past.lead_v, 10.0)
+
+    # A flagged sample of C half a second before t0 breaks its history (not its window).
+    t0 = found.scenarios[0].t0
+    flagged = chain_trajectories(dict.fromkeys("ABC", (0.0, 30.0)), FOLLOWS, [("C", t0 - 0.5)])
+    first_window = platoon_scenarios(flagged, vehicles_per_scenario=2, horizon_s=2.0).first(1)
+    assert first_window.scenarios[0].t0 == pytest.approx(t0)
+    kept, dropped = with_history(first_window, flagged)
+    assert dropped == 1 and kept.scenarios == []
 
 
 def test_a_horizon_off_the_sampling_grid_is_refused():

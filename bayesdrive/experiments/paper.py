@@ -39,6 +39,7 @@ from bayesdrive.data.trajectories import Trajectories, summary
 from bayesdrive.data.views import FollowerArrays, pooled_series
 from bayesdrive.drivers.base import DriverModel, PriorBox
 from bayesdrive.drivers.cidm import CIDM
+from bayesdrive.drivers.closed_loop import STATIONARY, forecast_start
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.experiments.holdout import (
@@ -75,6 +76,7 @@ from bayesdrive.simulation.scenarios import (
     merge_follower_arrays,
     merge_scenarios,
     platoon_scenarios,
+    with_history,
 )
 from bayesdrive.simulation.two_sample import (
     LEVEL_FEATURES,
@@ -299,16 +301,23 @@ def highway_step(
             out, traj, vehicle_ids, "smc", settings, force, model=get_model(final_model)
         )
     trees = {e: load_result(p) for e, p in results_nc.items()}
-    scored = _covered(scenarios, trees)
+    covered = _covered(scenarios, trees)
+    # Forecasts start from the state filtered from each scenario's observed history.
+    scored, without_history = with_history(covered, traj)
 
-    def evaluate(name: str, policy) -> dict:
+    def evaluate(name: str, policy, start: str) -> dict:
         started = time.perf_counter()
         result = evaluate_policy(
-            jax.random.key(SEEDS["evaluate"]), policy, scored, num_rollouts=settings.rollouts
+            jax.random.key(SEEDS["evaluate"]),
+            policy,
+            scored,
+            num_rollouts=settings.rollouts,
+            start=start,
         )
         return {
             "model": name,
             "policy": policy.description,
+            "start": start,
             "seconds": time.perf_counter() - started,
             **result,
         }
@@ -316,16 +325,19 @@ def highway_step(
     rows = {}
     for tree in trees.values():
         name, policy = _learned_policy(tree)
-        rows[name] = evaluate(name, policy)
+        rows[name] = evaluate(name, policy, forecast_start(policy.model))
+        # The same rollouts without the observed history, beside the forecast.
+        rows[f"{name} ({STATIONARY})"] = evaluate(name, policy, STATIONARY)
     for name in BASELINE_MODELS:
         policy = baseline_policy(
             name, jax.random.key(SEEDS["baselines"]), traj, scored.simulated_ids
         )
-        rows[name] = evaluate(name, policy)
+        rows[name] = evaluate(name, policy, forecast_start(policy.model))
     return {
         "label": label,
         "scenario_set": scored.summary(),
-        "scenarios_dropped_without_posterior": len(scenarios.scenarios) - len(scored.scenarios),
+        "scenarios_dropped_without_posterior": len(scenarios.scenarios) - len(covered.scenarios),
+        "scenarios_dropped_without_history": without_history,
         "fits": {e: p.name for e, p in results_nc.items()},
         "models": rows,
         "seed": SEEDS["evaluate"],

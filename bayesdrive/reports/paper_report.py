@@ -14,7 +14,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from bayesdrive.data.atomic import write_atomic
-from bayesdrive.drivers.closed_loop import FILTERED
+from bayesdrive.drivers.closed_loop import FILTERED, STATIONARY
 from bayesdrive.drivers.registry import MODELS
 from bayesdrive.inference.agreement import agreement_summary, agreement_table
 from bayesdrive.reports.filter_plots import plot_convergence
@@ -73,6 +73,7 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
         rows.append(
             {
                 "model": name,
+                "start": result.get("start", STATIONARY),
                 "RMSE position at 5 s (m)": _mean_sd(result["rmse_position_m"]),
                 "RMSE speed at 5 s (m/s)": _mean_sd(result["rmse_speed_mps"]),
                 "paper's MAE position, last step (m)": _mean_sd(paper["position_m"]),

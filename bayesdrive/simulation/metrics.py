@@ -35,6 +35,7 @@ import numpy as np
 from jax import Array
 from scipy import stats
 
+from bayesdrive.drivers.closed_loop import STATIONARY
 from bayesdrive.simulation.baselines import Policy
 from bayesdrive.simulation.rollout import HARD_BRAKING_MPS2, Rollout, rollout, scene_arrays
 from bayesdrive.simulation.scenarios import Scenario, ScenarioSet
@@ -304,14 +305,19 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
 
 
 def evaluate_scenario(
-    key: Array, policy: Policy, scenario: Scenario, *, num_rollouts: int
+    key: Array, policy: Policy, scenario: Scenario, *, num_rollouts: int, start: str = STATIONARY
 ) -> tuple[ScenarioMetrics, DistributionSamples]:
-    """Run ``policy`` on one scenario: ``key`` splits into a parameter-draw key and a rollout
-    key. Returns the scenario's metrics and its distribution samples."""
+    """Run ``policy`` on one scenario from ``start``: ``key`` splits into a parameter-draw key and
+    a rollout key. Returns the scenario's metrics and its distribution samples."""
     key_params, key_rollout = jax.random.split(key)
     params = policy.params_for(key_params, scenario.simulated_ids, num_rollouts)
     simulated = rollout(
-        key_rollout, policy.model, params, scene_arrays(scenario), num_rollouts=num_rollouts
+        key_rollout,
+        policy.model,
+        params,
+        scene_arrays(scenario),
+        num_rollouts=num_rollouts,
+        start=start,
     )
     data = observed_data(scenario)
     return scenario_metrics(scenario.scenario_id, simulated, data), distribution_samples(
@@ -330,11 +336,12 @@ def evaluate_policy(
     scenarios: ScenarioSet,
     *,
     num_rollouts: int,
+    start: str = STATIONARY,
     on_scenario: Callable[[ScenarioMetrics], None] | None = None,
 ) -> dict[str, Any]:
-    """Run ``policy`` on every scenario (:func:`evaluate_scenario` with its key from
-    :func:`scenario_keys`) and summarize (:func:`summarize`). ``on_scenario`` is called after
-    each scenario (progress display).
+    """Run ``policy`` on every scenario from ``start`` (:func:`evaluate_scenario` with its key
+    from :func:`scenario_keys`) and summarize (:func:`summarize`). ``on_scenario`` is called
+    after each scenario (progress display).
     """
     if not scenarios.scenarios:
         raise ValueError(f"{scenarios.source}: no scenarios to evaluate")
@@ -343,7 +350,7 @@ def evaluate_policy(
         scenarios.scenarios, scenario_keys(key, scenarios), strict=True
     ):
         scored, sampled = evaluate_scenario(
-            scenario_key, policy, scenario, num_rollouts=num_rollouts
+            scenario_key, policy, scenario, num_rollouts=num_rollouts, start=start
         )
         metrics.append(scored)
         samples.append(sampled)

@@ -8,7 +8,8 @@ re-exports the simulator's names for the simulation's callers.
 
 Positions are float32 metres from the scenario's origin (the head's position at t0 for a platoon,
 the merge point for a merge scene), so a 5 s horizon never adds small increments to large numbers.
-The scenarios hold no observed history before t0, so their rollouts start ``stationary``.
+A scenario carries its observed history before t0 where
+:func:`~bayesdrive.simulation.scenarios.with_history` added it, so that it can start ``filtered``.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ def scene_arrays(scenario: Scenario) -> SceneArrays:
         merge_present=f32(scenario.merge_present),
         merge_length=f32(scenario.merge_length),
         dt=f32(scenario.dt),
+        past=None if scenario.past is None else jax.tree.map(f32, scenario.past),
     )
 
 

@@ -46,10 +46,14 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import (
     FIT_FRACTION,
     SPLIT_RULE,
+    AheadArrays,
     FollowerArrays,
     MergeArrays,
+    follower_arrays,
+    history_steps,
     split_time,
 )
+from bayesdrive.drivers.base import Series
 
 __all__ = [
     "MERGE_FIT_STAY_S",
@@ -66,6 +70,7 @@ __all__ = [
     "merge_scenarios",
     "platoon_scenarios",
     "scenario_capacity",
+    "with_history",
 ]
 
 MIN_MERGE_WINDOW_S = 1.0
@@ -104,6 +109,9 @@ class Scenario(NamedTuple):
     origin: the position subtracted before simulating in float32 (the head's start for a
         platoon, 0 = the merge point for a merge scene, whose model needs that axis).
     merge_x, merge_v, merge_present: (K, T + 1) replayed merge-lane vehicles; merge_length (K,).
+    past: the simulated vehicles' observed series over the ``history_steps(dt)`` steps before t0
+        (:class:`~bayesdrive.drivers.base.Series` of (N, K) arrays), what the ``filtered`` start
+        reads (:func:`with_history`); None where not taken.
     """
 
     scenario_id: str
@@ -123,6 +131,7 @@ class Scenario(NamedTuple):
     merge_v: np.ndarray
     merge_present: np.ndarray
     merge_length: np.ndarray
+    past: Series | None = None
 
     @property
     def simulated_ids(self) -> tuple[str, ...]:
@@ -390,6 +399,46 @@ def _platoons(
         split_rule=SPLIT_RULE,
         selection_rule=SELECTION_RULE,
     )
+
+
+def with_history(scenarios: ScenarioSet, traj: Trajectories) -> tuple[ScenarioSet, int]:
+    """The scenarios whose simulated vehicles all have ``history_steps(dt)`` usable steps right
+    before t0 in ``traj``, each with those steps as its ``past`` (what the ``filtered`` start
+    reads), and how many scenarios were left out for lacking them."""
+    ids = sorted({vid for scenario in scenarios.scenarios for vid in scenario.simulated_ids})
+    series = follower_arrays(traj, window="all", vehicle_ids=ids) if ids else None
+    row_of = {} if series is None else {vid: i for i, vid in enumerate(series.vehicle_ids)}
+    past_steps = history_steps(scenarios.dt)
+
+    def history(vid: str, t0: float) -> np.ndarray | None:
+        """The vehicle's steps before t0, or None without a usable history there."""
+        row = row_of.get(vid)
+        if row is None:
+            return None
+        at = np.flatnonzero(np.abs(series.t[row] - t0) < scenarios.dt / 2)
+        if len(at) != 1 or at[0] < past_steps:
+            return None
+        steps = np.arange(at[0] - past_steps, at[0])
+        return steps if series.mask[row, steps].all() else None
+
+    def cut(values: np.ndarray, rows: list[int], steps: list[np.ndarray]) -> np.ndarray:
+        return np.stack([values[row, step] for row, step in zip(rows, steps, strict=True)])
+
+    kept = []
+    for scenario in scenarios.scenarios:
+        steps = [history(vid, scenario.t0) for vid in scenario.simulated_ids]
+        if any(step is None for step in steps):
+            continue
+        rows = [row_of[vid] for vid in scenario.simulated_ids]
+        fields = {
+            name: cut(getattr(series, name), rows, steps)
+            for name in ("v", "next_v", "dx", "gap", "lead_v", "has_leader", "mask")
+        }
+        ahead = AheadArrays(*(cut(values, rows, steps) for values in series.ahead))
+        past = Series(**fields, dt=np.full_like(fields["v"], scenarios.dt), ahead=ahead)
+        kept.append(scenario._replace(past=past))
+    dropped = len(scenarios.scenarios) - len(kept)
+    return scenarios._replace(scenarios=kept), dropped
 
 
 def scenario_capacity(traj: Trajectories, *, horizon_s: float, max_size: int = 30) -> list[dict]:
