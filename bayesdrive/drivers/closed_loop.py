@@ -241,7 +241,7 @@ def _start_buffer(scene: SceneArrays, past: int) -> Series:
         before = jax.tree.map(lambda a: jnp.zeros((num_vehicles, past), jnp.float32), columns)
     else:
         given = scene.past._replace(merge=None)
-        if given.ahead is None:  # data without the scene ahead: the models that read it refuse
+        if given.ahead is None:  # data without the scene ahead: none known, no leader acceleration
             given = given._replace(
                 ahead=AheadArrays(*(jnp.zeros_like(given.v) for _ in AheadArrays._fields))
             )
