@@ -74,13 +74,14 @@ def test_filtered_start_recovers_the_delay_buffer_and_the_ar_residual(generated)
     )
     data = device_series(series, jnp.float32)
     params = fill_params(model, model.param_names, jnp.asarray(theta[0, 0], jnp.float32))
-    expected = []
-    for row, start in zip(windows.row, windows.start, strict=True):
-        one = jax.tree.map(lambda a, r=row: a[r], data)
-        inputs = model.inputs_at(one, int(start), series.history)
+
+    def mean_at(row, start):
+        one = jax.tree.map(lambda a: a[row], data)
+        inputs = model.inputs_at(one, start, series.history)
         state = model.lift(params, EgoState(0.0, one.v[start]), inputs)
-        expected.append(float(model.mean_acceleration(params, state, inputs)))
-    expected = np.asarray(expected)[:, None]
+        return model.mean_acceleration(params, state, inputs)
+
+    expected = np.asarray(jax.jit(jax.vmap(mean_at))(windows.row, windows.start))[:, None]
     recovered = _first_acceleration(filtered, series)
     np.testing.assert_allclose(recovered, np.broadcast_to(expected, recovered.shape), atol=1e-3)
     missed = np.abs(_first_acceleration(stationary, series) - expected)[:, 0] > 0.05
