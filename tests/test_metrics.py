@@ -83,6 +83,13 @@ def test_scenario_metrics_by_hand():
     assert m.off_road == 0
     # Vehicle-rollouts with a first event at steps 1 (two of them) and 3; one never has any.
     np.testing.assert_allclose(m.undesirable_by_step, [0.0, 0.5, 0.5, 0.75])
+    # CRPS of two members {a, b} at 0: (|a| + |b|) / 2 - |a - b| / 4; position {0, 2} and
+    # {0, 4}: 0.5 and 1; speed {0, 0} and {1.2, 1.2}: 0 and 1.2.
+    assert m.crps_position_last == pytest.approx(0.75)
+    assert m.crps_speed_last == pytest.approx(0.6)
+    # Equal members: the energy score is the norm of the path error; gaps are exact, vehicle 1's
+    # speed errors are 0.4, 1.0, 1.2 (m/s, in the 1 m/s unit).
+    assert m.energy_score_path == pytest.approx(np.sqrt(0.4**2 + 1.0 + 1.2**2) / 2)
 
 
 def test_steps_past_the_end_of_a_scene_are_not_scored():

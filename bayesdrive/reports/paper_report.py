@@ -80,10 +80,19 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
                 "collisions": result["collisions"]["total"],
                 "colliding vehicle-rollouts": f"{result['collisions']['fraction']:.2%}",
                 "hard braking per rollout": f"{result['hard_braking']['per_rollout']:.1f}",
+                "CRPS position at 5 s (m)": _scored(result, "crps_position_m"),
+                "energy score of the (gap, speed) path (1 m, 1 m/s)": _scored(
+                    result, "energy_score_path"
+                ),
                 "speed distribution: Wasserstein-1 to data (m/s)": f"{result['speed_distribution_mps']['wasserstein']:.2f}",
             }
         )
     return pd.DataFrame(rows)
+
+
+def _scored(result: dict[str, Any], name: str) -> str:
+    """A proper score's mean and sd, "-" for results written before the score was."""
+    return _mean_sd(result[name]) if name in result else "-"
 
 
 def _interval(paired: dict[str, Any]) -> str:

@@ -57,6 +57,8 @@ __all__ = [
     "STARTS_SHOWN",
     "by_vehicle_difference",
     "constant_velocity_offsets",
+    "crps",
+    "energy_score",
     "forecast_scores",
     "pit_summary",
     "point_scores",
@@ -84,9 +86,18 @@ def pit_summary(pit: np.ndarray) -> dict[str, Any]:
     return summary
 
 
-def _crps(errors: np.ndarray) -> np.ndarray:
-    """(window,) CRPS of each row's ensemble of forecast errors (simulated minus observed) at 0."""
+def crps(errors: np.ndarray) -> np.ndarray:
+    """(row,) CRPS of each row's ensemble of forecast errors (simulated minus observed) at 0."""
     return np.asarray(scoringrules.crps_ensemble(np.zeros(errors.shape[0]), errors, m_axis=1))
+
+
+def energy_score(gap_errors: np.ndarray, speed_errors: np.ndarray) -> np.ndarray:
+    """(row,) energy score of each row's ensemble of joint (gap, speed) path errors, each
+    (row, member, step), every variable divided by its unit in :data:`ENERGY_UNITS`."""
+    path = np.concatenate(
+        [gap_errors / ENERGY_UNITS["gap_m"], speed_errors / ENERGY_UNITS["speed_mps"]], axis=2
+    )
+    return np.asarray(scoringrules.es_ensemble(np.zeros(path[:, 0].shape), path))
 
 
 def by_vehicle_difference(difference: np.ndarray, row: np.ndarray) -> dict[str, float | int | None]:
@@ -121,7 +132,7 @@ def point_scores(end_offsets: np.ndarray) -> dict[str, float | None]:
         "rmse_rollouts_m": float(np.sqrt(np.mean(offsets**2))),
         "rmse_mean_m": float(np.sqrt(np.mean(offsets.mean(axis=1) ** 2))),
         "spread_m": float(np.sqrt(np.mean(offsets.var(axis=1)))),
-        "crps_m": float(_crps(offsets).mean()),
+        "crps_m": float(crps(offsets).mean()),
         "mae_median_m": float(np.mean(np.abs(np.median(offsets, axis=1)))),
     }
 
@@ -142,23 +153,16 @@ def forecast_scores(key: Array, rolled: Rollouts, dt: float, lead_time_s: float)
     steps = round(lead_time_s / dt)
     position = rolled.offset[:, :, steps - 1]
     speed = rolled.speed_offset[:, :, steps - 1]
-    # The joint path of steps 1..lead time, in units: (window, rollout, 2 * steps).
-    path = np.concatenate(
-        [
-            -rolled.offset[:, :, :steps] / ENERGY_UNITS["gap_m"],
-            rolled.speed_offset[:, :, :steps] / ENERGY_UNITS["speed_mps"],
-        ],
-        axis=2,
-    )
-    energy = np.asarray(scoringrules.es_ensemble(np.zeros(path[:, 0].shape), path))
+    # The joint path of steps 1..lead time.
+    energy = energy_score(-rolled.offset[:, :, :steps], rolled.speed_offset[:, :, :steps])
     behind, level = (position < 0.0).mean(axis=1), (position == 0.0).mean(axis=1)
     pit = behind + level * np.asarray(jax.random.uniform(key, behind.shape))
     windows = position.shape[0]
     return {
         **pit_summary(pit),
         **point_scores(position),
-        "crps_gap_m": float(_crps(-position).mean()) if windows else None,
-        "crps_speed_mps": float(_crps(speed).mean()) if windows else None,
+        "crps_gap_m": float(crps(-position).mean()) if windows else None,
+        "crps_speed_mps": float(crps(speed).mean()) if windows else None,
         "energy_score": float(energy.mean()) if windows else None,
         "collisions": int(rolled.collisions.sum()),
     }
@@ -223,7 +227,7 @@ def predictive_calibration(
                 "constant_velocity_mae_m": float(np.mean(np.abs(cv_at))) if cv_at.size else None,
                 "minus_constant_velocity": {
                     "crps_minus_abs_error_m": by_vehicle_difference(
-                        _crps(end) - np.abs(cv_at), windows.row
+                        crps(end) - np.abs(cv_at), windows.row
                     ),
                     "squared_error_of_mean_minus_squared_error_m2": by_vehicle_difference(
                         end.mean(axis=1) ** 2 - cv_at**2, windows.row

@@ -14,6 +14,11 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
 * **Undesirable events over time**: the share of simulated vehicle-rollouts that have collided,
   braked hard or left the road at least once by horizon step t (the paper's undesirable-event
   curve; cumulative, so it never decreases).
+* **Proper scores** at the last step (the energy score over the whole path): the CRPS of each
+  vehicle's position and speed over the rollouts and the energy score of its joint (gap, speed)
+  path (steps 1..T, gap in 1 m, speed in 1 m/s; a step without a leader has no gap to forecast
+  and adds 0), averaged over vehicles (:mod:`bayesdrive.simulation.calibration`, scoringrules).
+  Lower is better; unlike the RMSE over rollouts they do not penalise a calibrated spread.
 * **Off road**: vehicle-steps past the end of the vehicle's lane. No simulated vehicle of the
   current scene types drives on a lane that ends (in merge scenes the merging car replays), so
   this is 0 by construction there; it counts for scenes that simulate merging cars.
@@ -37,6 +42,7 @@ from scipy import stats
 
 from bayesdrive.drivers.closed_loop import STATIONARY
 from bayesdrive.simulation.baselines import Policy
+from bayesdrive.simulation.calibration import crps, energy_score
 from bayesdrive.simulation.rollout import HARD_BRAKING_MPS2, Rollout, rollout, scene_arrays
 from bayesdrive.simulation.scenarios import Scenario, ScenarioSet
 
@@ -94,6 +100,9 @@ class ScenarioMetrics(NamedTuple):
     data_hard_braking: int
     off_road: int
     undesirable_by_step: np.ndarray
+    crps_position_last: float
+    crps_speed_last: float
+    energy_score_path: float
 
     @property
     def last_step(self) -> int:
@@ -149,6 +158,11 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
         [np.zeros((num_rollouts, num_vehicles, 1), bool), np.logical_or.accumulate(event, axis=-1)],
         axis=-1,
     )
+    # (vehicle, rollout, step) errors over the real steps 1..last; no leader: no gap error.
+    steps = slice(1, last + 1)
+    gap_error = np.nan_to_num(np.asarray(rollout.gap, np.float64) - observed.gap[None])
+    gap_error = np.moveaxis(gap_error[:, :, steps], 0, 1)
+    speed_error = np.moveaxis((v - observed.v[None])[:, :, steps], 0, 1)
     # The simulator's realised-acceleration rule, applied to the observed speeds.
     observed_acceleration = np.diff(observed.v, axis=1) / observed.dt
     return ScenarioMetrics(
@@ -165,6 +179,9 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
         data_hard_braking=int(np.sum((observed_acceleration <= HARD_BRAKING_MPS2) & real)),
         off_road=int(np.sum(rollout.off_road)),
         undesirable_by_step=np.where(past_end, np.nan, had_event.mean(axis=(0, 1))),
+        crps_position_last=float(crps((x[:, :, last] - observed.x[None, :, last]).T).mean()),
+        crps_speed_last=float(crps((v[:, :, last] - observed.v[None, :, last]).T).mean()),
+        energy_score_path=float(energy_score(gap_error, speed_error).mean()),
     )
 
 
@@ -283,6 +300,9 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
             "data_total": sum(m.data_hard_braking for m in metrics),
         },
         "off_road": {"total": sum(m.off_road for m in metrics)},
+        "crps_position_m": _mean_sd([m.crps_position_last for m in metrics]),
+        "crps_speed_mps": _mean_sd([m.crps_speed_last for m in metrics]),
+        "energy_score_path": _mean_sd([m.energy_score_path for m in metrics]),
         "undesirable_events": final("undesirable_by_step"),
         "speed_distribution_mps": distribution_distance(
             pooled("simulated_speed"), pooled("observed_speed")
