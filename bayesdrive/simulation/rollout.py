@@ -26,7 +26,6 @@ from bayesdrive.drivers.base import DriverModel, fill_params
 from bayesdrive.drivers.closed_loop import (
     HARD_BRAKING_MPS2,
     Rollout,
-    RolloutKeys,
     SceneArrays,
     platoon_scene,
     rollout,
@@ -37,7 +36,6 @@ from bayesdrive.simulation.scenarios import Scenario
 __all__ = [
     "HARD_BRAKING_MPS2",
     "Rollout",
-    "RolloutKeys",
     "SceneArrays",
     "broadcast_params",
     "draw_particles",
