@@ -110,10 +110,10 @@ def test_fit_takes_a_held_out_name_and_logs_that_nothing_may_be_tuned(
     name = "ngsim_i80_pairs_raw_c"
     args = ["fit", name, "--data-dir", str(holdout_dir), "--vehicles", "1"]
     args += ["--particles", "32", "--params", "v_des,sigma", "--out", str(tmp_path / "fit")]
-    with caplog.at_level(logging.WARNING, logger="bayesdrive.cli.fit_cmd"):
+    with caplog.at_level(logging.WARNING, logger="bayesdrive.data.registry"):
         result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
-    notes = [r.getMessage() for r in caplog.records if r.name == "bayesdrive.cli.fit_cmd"]
+    notes = [r.getMessage() for r in caplog.records if r.name == "bayesdrive.data.registry"]
     assert len(notes) == 1 and name in notes[0]
     assert "held out for evaluation only" in notes[0] and "never choose or tune" in notes[0]
     meta = metadata(load_result(tmp_path / "fit" / "result.nc"))

@@ -131,7 +131,7 @@ def sbc(
     names = [p.strip() for p in params.split(",") if p.strip()]
     options: dict[str, Any] = {} if particles is None else {"num_particles": particles}
     fit_model = sd_doubled(IDM) if sd_doubled_model else IDM
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     results = None if out is None else results_folder(out, "sbc", force=force)
     with Progress(
         TextColumn("{task.description}"),

@@ -71,7 +71,7 @@ def simulate(
     """Generate scenes of VEHICLES cars for DURATION seconds; write trajectories, figures, summary."""
     from bayesdrive.reports.scene_plots import plot_speed_gap_kde, plot_sweep
 
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     key_params, key_scenes, key_sweep = jax.random.split(jax.random.key(seed), 3)
     preset_path = _preset_path(source)
     if preset_path is not None:
