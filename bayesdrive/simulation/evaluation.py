@@ -7,7 +7,11 @@ other data platoon scenes (see :mod:`bayesdrive.simulation.scenarios`). The mode
 name, or the driver model of a fitted posterior (a result tree or its netCDF file); a posterior
 fitted on another split, window or data source is refused. A posterior fitted on some vehicles
 only (``fit --vehicles N``) scores the scenarios whose simulated vehicles it has draws for; the
-others are skipped, and the result names them (``skipped``).
+others are skipped, and the result names them (``skipped``). Platoon scenarios take the largest
+size the data allow unless a size is given, and the result says so (``scenario_size``).
+Baselines that fit (``idm-lm``, ``blackbox``) follow the held-out protocol of
+:mod:`bayesdrive.experiments.holdout` on any data, held-out sets included: fitted on the fitting
+windows with their documented settings, scored on the held-out windows.
 """
 
 from __future__ import annotations
