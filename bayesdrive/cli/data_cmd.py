@@ -150,7 +150,7 @@ def info(
     check_json_out(json_out, force)
     try:
         format, options = column_map_options(format, columns, units, headway)
-        if path_or_name in registry.HOLDOUT and not Path(path_or_name).exists():
+        if registry.is_holdout_name(path_or_name):
             traj = registry.load_holdout(
                 path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options
             )
