@@ -90,8 +90,8 @@ _DRAW_GROUPS = ("posterior", "prior", "sample_stats")
 # What to compare models by where PSIS-LOO cannot be trusted (the README says the same).
 PSIS_ALTERNATIVE = (
     "compare the models by their held-out predictive density instead (bayesdrive criticize "
-    "scores each extension on the held-out window), or refit with smc or nuts, whose draws are "
-    "distinct"
+    "scores each extension on the held-out window), or refit with nuts, or with smc and more "
+    "particles where its draws hold copies"
 )
 # Vehicle ids named in a problem line before the rest are counted.
 _NAMED_VEHICLES = 10
