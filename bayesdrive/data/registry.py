@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 import os
 from importlib import resources
 from pathlib import Path
@@ -35,9 +36,12 @@ from bayesdrive.data import readers
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "DATASETS",
     "DATA_DIR_ENV",
+    "HELD_OUT_NOTE",
     "HOLDOUT",
     "HOLDOUT_DIR_ENV",
     "DataFile",
@@ -48,7 +52,9 @@ __all__ = [
     "data_dir",
     "get",
     "holdout_dir",
+    "is_holdout_name",
     "load",
+    "load_any",
     "load_holdout",
     "resolve",
     "resolve_holdout",
@@ -488,6 +494,33 @@ def load_holdout(
     """Read a held-out data set by name, for evaluation only (see :func:`load`)."""
     path, dataset = _resolve(name, holdout_dir, "holdout")
     return _read(path, dataset, format, strict, options)
+
+
+HELD_OUT_NOTE = (
+    "%s is held out for evaluation only: fit it with fixed, documented settings to measure the "
+    "toolkit; never choose or tune a default, prior, threshold, seed or model on it"
+)
+
+
+def is_holdout_name(name_or_path: str | os.PathLike) -> bool:
+    """Whether ``name_or_path`` names a held-out data set (and no existing path)."""
+    return str(name_or_path) in HOLDOUT and not Path(name_or_path).exists()
+
+
+def load_any(
+    name_or_path: str | os.PathLike,
+    format: str | None = None,
+    data_dir: str | os.PathLike | None = None,
+    strict: bool = False,
+    **options,
+) -> Trajectories:
+    """:func:`load`, or for a held-out name :func:`load_holdout` (``data_dir`` then names the
+    held-out folder) with :data:`HELD_OUT_NOTE` logged: what users call, where fitting a held-out
+    set's vehicles with fixed settings is evaluation."""
+    if is_holdout_name(name_or_path):
+        log.warning(HELD_OUT_NOTE, name_or_path)
+        return load_holdout(str(name_or_path), format, data_dir, strict, **options)
+    return load(name_or_path, format, data_dir, strict, **options)
 
 
 def sha256_file(path: Path) -> str:

@@ -46,8 +46,14 @@ from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.convergence import check_convergence, log_problems
-from bayesdrive.inference.fit import first_vehicles, fit
-from bayesdrive.inference.output import load_result, metadata, save_result, set_metadata
+from bayesdrive.inference.fit import MCMC_OPTIONS, first_vehicles, fit
+from bayesdrive.inference.output import (
+    load_result,
+    metadata,
+    psis_loo_check,
+    save_result,
+    set_metadata,
+)
 from bayesdrive.inference.tempering import FitConfig, FitResult, fit_model, join_fits
 
 __all__ = [
@@ -358,6 +364,8 @@ def fit_on_cluster(
         compile_time_s=sum(p["compile_time_s"] for p in parts),
         wall_time_s=sum(p["wall_time_s"] for p in parts),
         created_at=datetime.now(UTC).isoformat(timespec="seconds"),
+        # Checked on the whole: each chunk's verdict saw its own vehicles only.
+        psis_loo=psis_loo_check(tree, markov_chains=engine in MCMC_OPTIONS),
     )
     report = check_convergence(tree)
     log_problems(report)
