@@ -265,6 +265,7 @@ JSON_COMMANDS = (
     ["data", "info", "absent.csv"],
     ["data", "verify", "ngsim_i80_chains"],
     ["data", "fetch", "ngsim_i80_chains"],
+    ["validate", "sumo", "result.nc", "absent.csv", "--out", "r"],
 )
 
 
