@@ -1,6 +1,6 @@
 """``fit`` on a Dask cluster: chunks of vehicles as tasks, each chunk's result saved as it finishes.
 
-The criticism's fits (:func:`~bayesdrive.inference.tempering.fit_model`) run in chunks the same
+The criticism's fits (:func:`~bayesdrive.inference.heldout_evidence.fit_model`) run in chunks the same
 way (:func:`fit_model_on_cluster`), each vehicle from its own key, so a criticism on a cluster
 reports what the plain run reports; its chunks are not saved (a criticism is one result).
 
@@ -47,8 +47,9 @@ from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.convergence import check_convergence, log_problems
 from bayesdrive.inference.fit import first_vehicles, fit
+from bayesdrive.inference.heldout_evidence import FitResult, fit_model, join_fits
 from bayesdrive.inference.output import load_result, metadata, save_result, set_metadata
-from bayesdrive.inference.tempering import FitConfig, FitResult, fit_model, join_fits
+from bayesdrive.inference.smc_core import TemperingConfig
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
@@ -379,11 +380,11 @@ def fit_model_on_cluster(
     series: FollowerArrays,
     extended: ExtendedModel,
     *,
-    config: FitConfig,
+    config: TemperingConfig,
     start: FitResult | None = None,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> FitResult:
-    """:func:`~bayesdrive.inference.tempering.fit_model` (one vehicle at a time) of ``series`` in
+    """:func:`~bayesdrive.inference.heldout_evidence.fit_model` (one vehicle at a time) of ``series`` in
     chunks of ``chunk_size`` vehicles on the Dask ``client``: the same result, bit for bit."""
     rows = chunk_rows(len(series.vehicle_ids), chunk_size)
     parts: dict[int, FitResult] = {}
