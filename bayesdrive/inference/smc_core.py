@@ -51,7 +51,7 @@ from bayesdrive.inference.kernels import (
     walk_step,
 )
 from bayesdrive.inference.resampling import systematic
-from bayesdrive.inference.weights import effective_sample_size, weighted_mean_cov
+from bayesdrive.inference.weights import effective_sample_size, normalize, weighted_mean_cov
 
 __all__ = [
     "BISECTION_STEPS",
@@ -113,7 +113,8 @@ def step(
 ) -> tuple[SMCState, SMCInfo]:
     """Reweight by ``potential(particles)`` (N,) incremental log weights, then, when the ESS is
     below ``resample_below * N`` (``inf``: always), resample and ``move(key, particles) ->
-    (particles, info)``; otherwise keep the reweighted cloud (module docstring)."""
+    (particles, info)``; otherwise keep the reweighted cloud, its log weights normalised (module
+    docstring)."""
     key_resample, key_move = jax.random.split(key)
     log_weights = state.log_weights + potential(state.particles)
     num = log_weights.shape[0]
@@ -129,7 +130,9 @@ def step(
     def keep():
         unmoved = jax.eval_shape(move, key_move, state.particles)[1]
         info = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), unmoved)
-        return SMCState(state.particles, log_weights), jnp.arange(num, dtype=jnp.int32), info
+        # Normalised, so that weights kept over many steps stay near 0 in float32.
+        kept = SMCState(state.particles, normalize(log_weights))
+        return kept, jnp.arange(num, dtype=jnp.int32), info
 
     if resample_below == float("inf"):
         # Always: no branch in the program (under vmap a branch would run both sides).
