@@ -38,8 +38,8 @@ def test_the_step_reweights_and_resamples_and_moves_only_below_the_threshold(slo
     """Eight particles 0..7 with unequal log weights, reweighted by -slope (x - 3)^2: the evidence
     increment is log sum(W exp(increment)) (numpy, float64, within 1e-5); above half the
     particles' ESS the cloud keeps its particles and the summed weights (normalised) and the
-    kernel does not run (info zeros); below, the particles are resampled towards x = 3, moved, and equally
-    weighted. A 0-d leaf (a shared proposal scale) passes resampling unchanged."""
+    kernel does not run (info zeros); below, the particles are resampled towards x = 3, moved,
+    and equally weighted. A 0-d leaf (a shared proposal scale) passes resampling unchanged."""
     log_weights = 0.1 * X
 
     def potential(particles):

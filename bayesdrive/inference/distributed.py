@@ -1,7 +1,7 @@
 """``fit`` on a Dask cluster: chunks of vehicles as tasks, each chunk's result saved as it finishes.
 
-The criticism's fits (:func:`~bayesdrive.inference.heldout_evidence.fit_model`) run in chunks the same
-way (:func:`fit_model_on_cluster`), each vehicle from its own key, so a criticism on a cluster
+The criticism's fits (:func:`~bayesdrive.inference.heldout_evidence.fit_model`) run in chunks the
+same way (:func:`fit_model_on_cluster`), each vehicle from its own key, so a criticism on a cluster
 reports what the plain run reports; its chunks are not saved (a criticism is one result).
 
 Vehicles are split into chunks of ``chunk_size`` in the data's order, never by the number of
@@ -384,8 +384,9 @@ def fit_model_on_cluster(
     start: FitResult | None = None,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> FitResult:
-    """:func:`~bayesdrive.inference.heldout_evidence.fit_model` (one vehicle at a time) of ``series`` in
-    chunks of ``chunk_size`` vehicles on the Dask ``client``: the same result, bit for bit."""
+    """:func:`~bayesdrive.inference.heldout_evidence.fit_model` (one vehicle at a time) of
+    ``series`` in chunks of ``chunk_size`` vehicles on the Dask ``client``: the same result, bit
+    for bit."""
     rows = chunk_rows(len(series.vehicle_ids), chunk_size)
     parts: dict[int, FitResult] = {}
     run_tasks(

@@ -48,9 +48,10 @@ along the data, also known as IBIS (Chopin 2002, Biometrika 89:539), from its ow
 At step t the SMC core's step (:func:`~bayesdrive.inference.smc_core.step`) reweights every
 particle by the exact one-step density of the observed transition, so the weighted set targets
 :math:`p(\theta \mid y_{1:t})`; when the ESS falls below ``ess_threshold * N`` it is resampled
-(systematic) and rejuvenated by ``num_moves`` moves that score steps 1..t, in blocks of :data:`SCORE_BLOCK` steps. It gives the per-step diagnostics
-(ESS, distinct particles, the learning curve) and ``sequential_log_evidence``; one far below
-``log_evidence`` flags a mode switch like vehicle 107's.
+(systematic) and rejuvenated by ``num_moves`` moves that score steps 1..t, in blocks of
+:data:`SCORE_BLOCK` steps. It gives the per-step diagnostics (ESS, distinct particles, the learning
+curve) and ``sequential_log_evidence``; one far below ``log_evidence`` flags a mode switch like
+vehicle 107's.
 
 **Replicates.** Draws of one SMC run are correlated through resampling in a way no
 autocorrelation along the draw order measures. ``replicates`` independent runs (replicate r of a
