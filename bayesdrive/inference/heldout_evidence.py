@@ -1,22 +1,23 @@
 r"""Fitting any (extended) driver model and scoring its held-out predictive density, per vehicle.
 
-**Why a second assembly beside ``smc``.** The engines fit one window; the criticism needs the
-fitting-window posterior *and* its continuation into the held-out window (phase 2 below), whose
-normalising constant is the held-out predictive density. Both are assembled from the sampler
-core (:mod:`bayesdrive.inference.kernels`: the temperature search, the random-walk move on the
-logit scale and the stopping rules), and every model's steps come from the model itself
+**Beside ``smc``.** The engines fit one window; the criticism needs the fitting-window posterior
+*and* its continuation into the held-out window (phase 2 below), whose normalising constant is
+the held-out predictive density. Both this and ``smc`` run the one adaptive tempering of the SMC
+core (:mod:`bayesdrive.inference.smc_core`: its step, temperature search, proposal fit, moves and
+stop rules, with one settings type, :class:`~bayesdrive.inference.smc_core.TemperingConfig`), and
+every model's steps come from the model itself
 (:func:`~bayesdrive.inference.likelihood.step_inputs`, :func:`~bayesdrive.inference.likelihood.step_logpdfs`).
 For the base model its log-evidence is checked against ``smc``'s in the tests.
 
 **The sampler.** Adaptive-tempering SMC (Del Moral, Doucet & Jasra 2006; Jasra et al. 2011) for
 each vehicle. Phase 1 bridges from the prior to the fitting-window posterior through
 :math:`\pi_\lambda \propto p(\theta)\, p(y_{fit} \mid \theta)^\lambda`, each temperature chosen by
-bisection so that the incremental weights keep an effective sample size of ``ess_target * N``;
-after each reweighting the particles are resampled (systematic) and moved by ``num_moves``
-random-walk Metropolis-Hastings steps invariant for :math:`\pi_\lambda` (on the logit scale of the
-prior box, Gaussian proposal with the particles' covariance there scaled by :math:`s`, :math:`s`
-adapted towards acceptance 0.234). The product
-of the mean incremental weights estimates :math:`p(y_{fit})` (``log_z_fit``).
+bisection so that the incremental weights keep an effective sample size of
+``ess_threshold * N``; after each reweighting the particles are resampled (systematic) and moved
+by at least ``num_moves`` random-walk Metropolis-Hastings steps invariant for
+:math:`\pi_\lambda` (on the logit scale of the prior box, Gaussian proposal with the reweighted
+particles' covariance there scaled by :math:`s`, :math:`s` adapted towards acceptance 0.234). The
+product of the mean incremental weights estimates :math:`p(y_{fit})` (``log_z_fit``).
 
 **How many moves.** A fixed handful of moves at acceptance ~0.23 leaves about a third of the
 particles where resampling put them (0.77^4 = 0.35); stage after stage the cloud then loses
@@ -63,10 +64,8 @@ log-likelihood differences between particles, not their absolute values, in the 
 from __future__ import annotations
 
 import functools
-import math
-import time
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -76,47 +75,27 @@ from jax import Array
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.inference.kernels import (
-    Box,
-    WalkState,
-    fixed_moves,
-    moves_until_moved,
-    next_temperature,
-    to_free,
-    walk_step,
-)
+from bayesdrive.inference.kernels import Box, WalkState
 from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
-from bayesdrive.inference.resampling import systematic
-from bayesdrive.inference.vehicles import vehicle_keys
-from bayesdrive.inference.weights import log_mean_weight
+from bayesdrive.inference.smc_core import TemperingConfig, adaptive_tempering, check_finished
+from bayesdrive.inference.vehicles import map_vehicles, vehicle_keys
 
 __all__ = [
+    "BRIDGE_MAX_STAGES",
     "DEFAULT_CONFIG",
-    "FitConfig",
+    "STUCK_MARGIN",
     "FitResult",
     "fit_model",
     "join_fits",
 ]
 
-
-class FitConfig(NamedTuple):
-    """Settings of the tempering sampler (module docstring)."""
-
-    num_particles: int = 128
-    num_moves: int = 4
-    ess_target: float = 0.5
-    max_stages: int = 200
-    bridge_max_stages: int = 30
-    stuck_margin: float = 10.0
-    target_acceptance: float = 0.234
-    # Keep moving past num_moves until prod(1 - acceptance) <= this (0: exactly num_moves).
-    unmoved_tolerance: float = 0.01
-    max_moves: int = 64
-
-
-DEFAULT_CONFIG = FitConfig()
-# Bisection steps of the temperature search.
-BISECTION_STEPS = 50
+# The criticism's sampler: 128 particles, at least 4 moves a stage, then until every particle has
+# likely moved (module docstring, "How many moves").
+DEFAULT_CONFIG = TemperingConfig(num_particles=128, num_moves=4)
+# A bridge from the base posterior is capped at this many stages (see fit_model).
+BRIDGE_MAX_STAGES = 30
+# Log evidence (nats) below the base model's at which an extension's fit counts as stuck.
+STUCK_MARGIN = 10.0
 
 
 class FitResult(NamedTuple):
@@ -181,99 +160,6 @@ def _window_logliks(
     return fit, held
 
 
-class _Cloud(NamedTuple):
-    theta: Array  # (N, d)
-    log_prior: Array  # (N,)
-    anchor: Array  # (N,) log-likelihood fully included in the target
-    tempered: Array  # (N,) log-likelihood being tempered in
-    lam: Array  # () current temperature
-    log_z: Array  # ()
-    log_scale: Array  # ()
-    stages: Array  # ()
-    max_stages: Array  # () stop after this many stages even if lam < 1
-    accepted: Array  # () sum of acceptance rates
-    moves: Array  # () number of move sweeps
-
-
-def _temper(
-    key: Array,
-    cloud: _Cloud,
-    loglik: Callable[[Array], tuple[Array, Array]],
-    prior: Any,
-    config: FitConfig,
-) -> _Cloud:
-    """Temper ``cloud.tempered`` in from lam = 0 to 1 (module docstring); anchor stays at 1.
-
-    Each stage is the sampler core's (:mod:`bayesdrive.inference.kernels`): the next temperature
-    by bisection, systematic resampling, then random-walk moves on the logit scale of the prior
-    box with the resampled cloud's covariance, until every particle has likely moved."""
-    d = cloud.theta.shape[1]
-    box = Box(prior.lower, prior.upper)
-    prior_logpdf = jax.vmap(prior.logpdf)
-    # A floor on the proposal covariance keeps moves alive when resampling leaves one survivor.
-    jitter = jnp.diag(jnp.full(d, 1e-6, cloud.theta.dtype))
-
-    def stage(carry):
-        cloud, key = carry
-        key, key_resample, key_moves = jax.random.split(key, 3)
-        new_lam = next_temperature(cloud.tempered, cloud.lam, config.ess_target, BISECTION_STEPS)
-        increment = (new_lam - cloud.lam) * cloud.tempered
-        log_z = cloud.log_z + log_mean_weight(increment)
-        parents = systematic(key_resample, increment)
-        walk = WalkState(
-            theta=cloud.theta[parents],
-            log_prior=cloud.log_prior[parents],
-            anchor=cloud.anchor[parents],
-            tempered=cloud.tempered[parents],
-            log_scale=cloud.log_scale,
-        )
-        free = to_free(walk.theta, box)
-        chol = jnp.linalg.cholesky(jnp.cov(free, rowvar=False).reshape(d, d) + jitter)
-        move = functools.partial(
-            walk_step,
-            loglik=loglik,
-            prior_logpdf=prior_logpdf,
-            power=new_lam,
-            chol=chol,
-            box=box,
-            target_acceptance=config.target_acceptance,
-        )
-        if config.unmoved_tolerance > 0:
-            walk, num_moves, rate_sum = moves_until_moved(
-                key_moves,
-                walk,
-                move,
-                num_moves=config.num_moves,
-                unmoved_tolerance=config.unmoved_tolerance,
-                max_moves=config.max_moves,
-            )
-        else:
-            walk, rate = fixed_moves(key_moves, walk, move, config.num_moves)
-            num_moves = jnp.asarray(config.num_moves, walk.theta.dtype)
-            rate_sum = rate * num_moves
-        moved = _Cloud(
-            theta=walk.theta,
-            log_prior=walk.log_prior,
-            anchor=walk.anchor,
-            tempered=walk.tempered,
-            lam=new_lam,
-            log_z=log_z,
-            log_scale=walk.log_scale,
-            stages=cloud.stages + 1,
-            max_stages=cloud.max_stages,
-            accepted=cloud.accepted + rate_sum,
-            moves=cloud.moves + num_moves,
-        )
-        return moved, key
-
-    def unfinished(carry):
-        cloud, _ = carry
-        return (cloud.lam < 1.0) & (cloud.stages < cloud.max_stages)
-
-    cloud, _ = jax.lax.while_loop(unfinished, stage, (cloud, key))
-    return cloud
-
-
 def _new_and_old_columns(extended: ExtendedModel) -> tuple[np.ndarray, np.ndarray]:
     """Columns of the extension's new parameters and of the model it extends, in its layout."""
     names = extended.model.param_names
@@ -287,7 +173,7 @@ class _VehicleFit(NamedTuple):
     log_z_held: Array
     stages_fit: Array
     stages_held: Array
-    finished: Array
+    temperature: Array  # (phase,) where each phase's tempering stopped (1: finished)
     acceptance: Array
 
 
@@ -298,11 +184,12 @@ def _fit_vehicle(
     from_prior: Array,
     *,
     extended: ExtendedModel,
-    config: FitConfig,
+    config: TemperingConfig,
 ) -> _VehicleFit:
     """Both phases for one vehicle (module docstring and :func:`fit_model`).
 
-    Phase 1 tempers ``tempered`` in on top of ``anchor`` (see :func:`_temper`): from the prior,
+    Phase 1 tempers ``tempered`` in on top of ``anchor``
+    (:func:`~bayesdrive.inference.smc_core.adaptive_tempering`): from the prior,
     anchor 0 and tempered the fit-window log-likelihood; as a bridge from ``start_theta`` (base
     posterior draws, paired with prior draws of the new parameters), anchor the extension switched
     off (= the base model) and tempered the log-likelihood ratio of the extension to it. Which one
@@ -342,39 +229,33 @@ def _fit_vehicle(
         tempered = jnp.where(phase > 0, held, fit - bridging * fit_off)
         return anchor, tempered
 
-    zero = jnp.zeros((), theta.dtype)
-    cloud = _Cloud(
-        theta=theta,
-        log_prior=jax.vmap(prior.logpdf)(theta),
-        anchor=jnp.zeros(theta.shape[0], theta.dtype),
-        tempered=jnp.zeros(theta.shape[0], theta.dtype),
-        lam=zero,
-        log_z=zero,
-        log_scale=jnp.log(2.38 / jnp.sqrt(theta.shape[-1])).astype(theta.dtype),
-        stages=jnp.zeros((), jnp.int32),
-        max_stages=jnp.zeros((), jnp.int32),
-        accepted=zero,
-        moves=zero,
-    )
-    fit_limit = jnp.where(from_prior, config.max_stages, config.bridge_max_stages)
+    log_prior_of = jax.vmap(prior.logpdf)
+    zero = jnp.zeros(theta.shape[0], theta.dtype)
+    log_scale = jnp.log(2.38 / jnp.sqrt(theta.shape[-1])).astype(theta.dtype)
+    fit_limit = jnp.where(from_prior, config.max_stages, BRIDGE_MAX_STAGES)
 
-    def phase_step(cloud: _Cloud, xs):
+    def phase_step(carry, xs):
         # One traced body for both phases keeps the compiled program (and compile time) small.
+        walk, moves, acceptance_sum = carry
         phase, key = xs
-        anchor, tempered = split(phase, cloud.theta)
-        cloud = cloud._replace(
-            anchor=anchor,
-            tempered=tempered,
-            lam=zero,
-            log_z=zero,
-            stages=jnp.zeros_like(cloud.stages),
-            max_stages=jnp.where(phase > 0, config.max_stages, fit_limit).astype(jnp.int32),
+        anchor, tempered = split(phase, walk.theta)
+        run = adaptive_tempering(
+            key,
+            walk._replace(anchor=anchor, tempered=tempered),
+            loglik=functools.partial(split, phase),
+            prior_logpdf=log_prior_of,
+            box=Box(prior.lower, prior.upper),
+            config=config,
+            max_stages=jnp.where(phase > 0, config.max_stages, fit_limit),
         )
-        cloud = _temper(key, cloud, lambda th: split(phase, th), prior, config)
-        return cloud, (cloud.theta, cloud.log_z, cloud.stages, cloud.lam)
+        carry = (run.particles, moves + run.moves, acceptance_sum + run.acceptance_sum)
+        return carry, (run.particles.theta, run.log_evidence, run.stages, run.temperature)
 
-    cloud, (thetas, log_z, stages, lam) = jax.lax.scan(
-        phase_step, cloud, (jnp.arange(2), jnp.stack([key_fit, key_held]))
+    start = WalkState(theta, log_prior_of(theta), zero, zero, log_scale)
+    (_, moves, acceptance_sum), (thetas, log_z, stages, temperature) = jax.lax.scan(
+        phase_step,
+        (start, zero[0], zero[0]),
+        (jnp.arange(2), jnp.stack([key_fit, key_held])),
     )
     return _VehicleFit(
         theta=thetas[0],
@@ -382,35 +263,9 @@ def _fit_vehicle(
         log_z_held=log_z[1],
         stages_fit=stages[0],
         stages_held=stages[1],
-        finished=jnp.all(lam >= 1.0),
-        acceptance=cloud.accepted / jnp.maximum(cloud.moves, 1.0),
+        temperature=temperature,
+        acceptance=acceptance_sum / jnp.maximum(moves, 1.0),
     )
-
-
-# Compiled per-batch programs, keyed by model, settings and input shapes: every criticism run in a
-# process (and every test) reuses them, so a model compiles once per padded shape.
-_COMPILED: dict[Any, Any] = {}
-
-
-def _compiled_batch(
-    extended: ExtendedModel,
-    config: FitConfig,
-    keys: Array,
-    steps: StepInputs,
-    start_theta: Array | None,
-    from_prior: Array,
-):
-    """The jitted, vmapped per-vehicle fit for this batch shape; returns (function, compile time)."""
-    leaves = jax.tree.leaves((steps, start_theta, from_prior))
-    shapes = tuple((a.shape, str(a.dtype)) for a in leaves)
-    signature = (extended, config, keys.shape, start_theta is None, shapes)
-    if signature in _COMPILED:
-        return _COMPILED[signature], 0.0
-    per_vehicle = functools.partial(_fit_vehicle, extended=extended, config=config)
-    started = time.perf_counter()
-    compiled = jax.jit(jax.vmap(per_vehicle)).lower(keys, steps, start_theta, from_prior).compile()
-    _COMPILED[signature] = compiled
-    return compiled, time.perf_counter() - started
 
 
 def fit_model(
@@ -418,39 +273,36 @@ def fit_model(
     series: FollowerArrays,
     extended: ExtendedModel,
     *,
-    config: FitConfig = DEFAULT_CONFIG,
+    config: TemperingConfig = DEFAULT_CONFIG,
     start: FitResult | None = None,
     vehicle_batch: int = 1,
     progress: Callable[[int, int], None] | None = None,
 ) -> FitResult:
     """Fit ``extended`` to every vehicle's fitting window and score its held-out window.
 
-    All the model's parameters are inferred under its uniform prior box. Vehicles are vectorised
-    ``vehicle_batch`` at a time (the last batch is padded by repeating its last vehicle, so one
-    program serves every batch: one compile per model and padded shape, cached for the process).
-    ``series`` comes from :func:`~bayesdrive.data.views.scored_series` (its ``windows`` are the
-    scored steps); ``progress(done, total)`` is called after each batch. Batching changes only the speed, not the algorithm: under ``vmap``
-    the tempering and move loops run until the batch's slowest vehicle is done, so one vehicle
-    at a time (the default) was 1.6-2.2x faster at fixed moves and 1.7-2.3x at moves until moved
-    (20 vehicles x 60 s, 256 particles; a single vehicle's 256 particles x steps already fill
-    the vector units).
+    All the model's parameters are inferred under its uniform prior box. Vehicles run through
+    :func:`~bayesdrive.inference.vehicles.map_vehicles`, as every engine's do: one vehicle per
+    compiled call by default, or ``vehicle_batch`` of them vectorised together (one compile per
+    model, settings and padded shape, cached for the process). ``series`` comes from
+    :func:`~bayesdrive.data.views.scored_series` (its ``windows`` are the scored steps);
+    ``progress(done, total)`` is called as vehicles finish. Batching changes only the speed, not
+    the algorithm: under ``vmap`` the tempering and move loops run until the batch's slowest
+    vehicle is done, so one vehicle at a time (the default) is faster on CPU cores.
 
     With ``start`` (the base model's fit of the same series and particle count), an extension
-    whose phase 1 from the prior ends with a fit-window log evidence more than ``stuck_margin``
-    below the base model's is refitted by a **bridge**: phase 1 then starts from the base
-    posterior, each particle paired with a prior draw of the new parameters, and tempers the
-    likelihood from the extension switched off (which is the base model) to the extension; the
-    fit with the higher fit-window evidence is kept. The extension contains the base model, so its
-    evidence can only fall that far below the base's when the sampler is stuck in a poor mode (a
-    large AR coefficient absorbing a misfit mean, seen in tests); starting where the base model
-    fits gets it out. A bridge is capped at ``bridge_max_stages`` (it is slow when the two
-    posteriors are far apart, which is exactly when the prior start works). The choice uses the
-    fitting window only. ``from_prior`` records it per vehicle.
+    whose phase 1 from the prior ends with a fit-window log evidence more than
+    :data:`STUCK_MARGIN` below the base model's is refitted by a **bridge**: phase 1 then starts
+    from the base posterior, each particle paired with a prior draw of the new parameters, and
+    tempers the likelihood from the extension switched off (which is the base model) to the
+    extension; the fit with the higher fit-window evidence is kept. The extension contains the
+    base model, so its evidence can only fall that far below the base's when the sampler is stuck
+    in a poor mode (a large AR coefficient absorbing a misfit mean, seen in tests); starting where
+    the base model fits gets it out. A bridge is capped at :data:`BRIDGE_MAX_STAGES` stages (it is
+    slow when the two posteriors are far apart, which is exactly when the prior start works). The
+    choice uses the fitting window only. ``from_prior`` records it per vehicle.
     """
     steps = step_inputs(series, extended.model)
     num_vehicles = len(series.vehicle_ids)
-    # Batches are multiples of 8 vehicles, so data sets of similar size share one compiled program.
-    batch = max(1, min(vehicle_batch, 8 * math.ceil(num_vehicles / 8)))
     keys = vehicle_keys(key, series.vehicle_ids)
     start_theta = None
     if start is not None:
@@ -465,52 +317,48 @@ def fit_model(
                 f"{extended.name} with {config.num_particles} particles on {num_vehicles} vehicles"
             )
         start_theta = jnp.asarray(start.theta, dtype=steps.v.dtype)
+    per_vehicle = functools.partial(_fit_vehicle, extended=extended, config=config)
 
-    def run(rows: np.ndarray, from_prior: bool):
-        """Fit the vehicles ``rows`` in padded batches; returns numpy outputs and times."""
-        flag = jnp.full(batch, from_prior)
+    def run(rows: np.ndarray, from_prior: bool, report: Callable[[int, int], None] | None):
+        """Fit the vehicles ``rows``; returns numpy outputs, compile and run time."""
+        # Rows picked in numpy: a JAX gather would compile a program per input shape.
+        inputs = (
+            keys[rows],
+            jax.tree.map(lambda a: np.asarray(a)[rows], steps),
+            None if start_theta is None else np.asarray(start_theta)[rows],
+            np.full(len(rows), from_prior),
+        )
+        # The chunk is one batch, so the bridge's few vehicles reuse the first pass's program.
+        return map_vehicles(
+            per_vehicle,
+            inputs,
+            chunk=vehicle_batch,
+            batch=vehicle_batch,
+            progress=report,
+            cache_key=("heldout_evidence", extended, config),
+        )
 
-        def batch_inputs(first: int):
-            picked = rows[np.minimum(np.arange(first, first + batch), len(rows) - 1)]
-            chosen = None if start_theta is None else start_theta[picked]
-            return keys[picked], jax.tree.map(lambda a: a[picked], steps), chosen, flag
-
-        compiled, compile_time = _compiled_batch(extended, config, *batch_inputs(0))
-        pieces, run_time = [], 0.0
-        for first in range(0, len(rows), batch):
-            started = time.perf_counter()
-            out = jax.block_until_ready(compiled(*batch_inputs(first)))
-            run_time += time.perf_counter() - started
-            keep = min(batch, len(rows) - first)
-            pieces.append(jax.tree.map(lambda a, keep=keep: np.asarray(a)[:keep], out))
-            if progress is not None:
-                progress(first + keep, num_vehicles)
-        out = jax.tree.map(lambda *parts: np.concatenate(parts), *pieces)
-        return out, compile_time, run_time
-
-    everyone = np.arange(num_vehicles)
-    out, compile_time, run_time = run(everyone, from_prior=True)
+    out, compile_time, run_time = run(np.arange(num_vehicles), True, progress)
+    finished = np.all(out.temperature >= 1.0, axis=1)
     from_prior = np.ones(num_vehicles, bool)
     log_z_fit = np.asarray(out.log_z_fit, np.float64)
     if start is not None:
         # The extension contains the base model (switched off), so its evidence cannot fall far
         # below the base's: if it does, the sampler is stuck in a poor mode; bridge instead.
-        stuck = np.flatnonzero(~out.finished | (log_z_fit < start.log_z_fit - config.stuck_margin))
+        stuck = np.flatnonzero(~finished | (log_z_fit < start.log_z_fit - STUCK_MARGIN))
         if stuck.size:
-            bridged, _, more_time = run(stuck, from_prior=False)
+            bridged, more_compile, more_time = run(stuck, False, None)
+            compile_time += more_compile
             run_time += more_time
             bridged_z = bridged.log_z_fit + start.log_z_fit[stuck]
-            better = bridged.finished & (~out.finished[stuck] | (bridged_z > log_z_fit[stuck]))
+            bridged_finished = np.all(bridged.temperature >= 1.0, axis=1)
+            better = bridged_finished & (~finished[stuck] | (bridged_z > log_z_fit[stuck]))
             rows = stuck[better]
             chosen = jax.tree.map(lambda a: np.asarray(a)[better], bridged)
             out = jax.tree.map(lambda whole, part: _put(whole, rows, part), out, chosen)
             log_z_fit[rows] = bridged_z[better]
             from_prior[rows] = False
-    if not out.finished.all():
-        raise FloatingPointError(
-            f"{extended.name}: tempering did not reach the posterior within {config.max_stages} "
-            f"stages for vehicle rows {np.flatnonzero(~out.finished).tolist()}"
-        )
+    check_finished(out.temperature.T, series.vehicle_ids, extended.name, config.max_stages)
     return FitResult(
         model=extended,
         names=extended.model.param_names,
