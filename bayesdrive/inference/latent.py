@@ -32,7 +32,7 @@ signature, returning an :class:`~bayesdrive.inference.output.EngineResult`). Eac
 chains and scoring filters draw from the vehicle's own key, the seed with its id folded in
 (:mod:`bayesdrive.inference.vehicles`), so a vehicle's draws do not depend on the others.
 Chains and vehicles are flattened into lanes of one ``vmap`` level: nested ``vmap`` of the threefry RNG multiplies XLA
-compile time (about 2x per level on CPU). **Starting values matter**: far from the posterior the
+compile time on CPU. **Starting values matter**: far from the posterior the
 filter degenerates, its estimate's variance explodes and PMMH chains stick; warm-up from prior
 draws can take thousands of iterations (``benchmarks/bench_latent.py`` measures it). Choose
 ``num_state_particles`` so that the estimate's sd at the posterior is about 1-1.7 nats (Doucet et

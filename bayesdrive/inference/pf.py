@@ -112,7 +112,7 @@ def dither_steps(key: Array, shape: tuple[int, int]) -> Array:
     """Independent uniform steps in {-1, 0, +1} for (N, d) grid indices.
 
     One random 32-bit word per particle gives its d steps as base-3 digits: random bits are the
-    costly part on a CPU, and d draws per particle made dithering 70x slower than this. The digits
+    costly part on a CPU, and d draws per particle made dithering far slower than this. The digits
     are uniform up to 3^d / 2^32 (under 2e-7 for six parameters).
     """
     num, dims = shape

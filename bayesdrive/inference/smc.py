@@ -30,18 +30,17 @@ from a multivariate Student-t (``independent_df`` degrees of freedom) with the c
 covariance of u, which forgets the start whenever it is accepted. With ``temper_moves=10,
 final_moves=5, max_final_moves=1000, num_moves=3`` it agrees with the NUTS reference as the
 random walk does (``benchmarks/bench_smc_moves.py``; fewer moves a stage left a tempering-path
-bias that closing moves do not remove: on vehicle 140, 3 paired moves a stage put the v_des mean
-at 17.7 against 14.6). The random walk stays the default: it was faster per move than the
-likelihood once the likelihood got cheap (integer powers, the stop term only on series with a
-stop), so the paired moves' fewer closing moves no longer pay (``reports/agreement/smc_moves.md``).
+bias that closing moves do not remove). The random walk stays the default: with a cheap
+likelihood its moves cost less than the paired ones, so the paired moves' fewer closing moves do
+not pay (``reports/agreement/smc_moves.md``).
 
 **Closing moves.** After the last stage, moves under the full posterior run in blocks of
 ``final_moves`` until every parameter's draws correlate with their values at the start of this
 closing phase by at most ``decorrelation`` (or the noise level 3.5 / sqrt(N) of that correlation,
 if larger; at most ``max_final_moves``): the correlation across particles is the kernel's
-autocorrelation at that lag, measured on the target. A fixed count was not enough: on NGSIM
-vehicle 140 80 random-walk moves left the tempering path's excess mass in the long v_des tail
-(mean 15.5 against 14.6 from 400 000 NUTS draws), 240 removed it (14.64).
+autocorrelation at that lag, measured on the target. A fixed count was not enough: on a long
+posterior tail the tempering path's excess mass outlived a fixed number of closing moves
+(``reports/agreement/reference.md`` holds the long NUTS references this was judged against).
 
 **Sequential pass** (``sequential=True``, off by default; it changes no draw): resample-move SMC
 along the data, also known as IBIS (Chopin 2002, Biometrika 89:539), from its own prior draws.
