@@ -1,7 +1,7 @@
 """bayesdrive: distributions over rule-based driver-model parameters from real trajectories.
 
 The flat API (``import bayesdrive as bd``; :mod:`bayesdrive.api`): ``bd.load`` (a data set by
-name, a file or a folder; ``bd.data_path`` finds a data set's folder), ``bd.from_dataframe`` (a
+name, held-out names included, a file or a folder; ``bd.data_path`` finds a data set's folder), ``bd.from_dataframe`` (a
 pandas DataFrame), ``bd.fit``, ``bd.save_result``/``bd.load_result``, ``bd.summary`` (a
 DataFrame), ``bd.posterior_predictive`` (followers simulated behind a given leader),
 ``bd.evaluate``, ``bd.criticize`` and the driver models (``bd.models``, ``bd.get_model``). The

@@ -17,8 +17,9 @@ from jax import Array
 
 from bayesdrive.criticism.criticize import CriticismResult, CriticizeConfig
 from bayesdrive.criticism.criticize import criticize as _criticize
+from bayesdrive.data import registry
 from bayesdrive.data.readers.columns import read_dataframe
-from bayesdrive.data.registry import load
+from bayesdrive.data.registry import load_any as load
 from bayesdrive.data.registry import resolve as data_path
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.base import DriverModel
@@ -86,7 +87,8 @@ def fit(
     """Per-vehicle posteriors of ``model``'s ``params`` (default: all) from ``data``, as
     ``bayesdrive fit`` computes them (:func:`bayesdrive.inference.fit.fit`).
 
-    ``data`` is trajectories or a data set name or path (read with :func:`load`); merge episodes
+    ``data`` is trajectories or a data set name or path (read with :func:`load`, held-out names
+    included, as ``bayesdrive fit`` reads them); merge episodes
     are fitted per stay of the cooperating car behind the merging car. ``vehicles`` keeps the first
     N vehicles with usable steps. ``seed`` is recorded beside the key's data. Returns the ArviZ
     DataTree that :func:`save_result` writes and :func:`load_result` reads.
@@ -139,7 +141,8 @@ def criticize(
     ``num_rollouts``, ``causes``). The report (``.report``) is JSON-ready; its ``power_warning``
     says when too few vehicles give the checks no power.
     """
-    traj = data if isinstance(data, Trajectories) else load(data, data_dir=data_dir)
+    # Not load: the criticism chooses a model, which a held-out set must never decide.
+    traj = data if isinstance(data, Trajectories) else registry.load(data, data_dir=data_dir)
     return _criticize(
         traj,
         seed=seed,

@@ -66,6 +66,18 @@ def test_a_dataframe_reads_as_the_same_csv_does(data_dir):
 
 
 @pytest.mark.realdata
+def test_load_takes_a_held_out_name_as_bayesdrive_fit_does(holdout_dir, caplog):
+    name = "openacc_casale"
+    with caplog.at_level("WARNING", logger="bayesdrive.data.registry"):
+        traj = bd.load(name, data_dir=holdout_dir)
+    assert traj.source == name and traj.vehicle_ids
+    assert "held out for evaluation only" in caplog.text and "never choose or tune" in caplog.text
+    # The criticism chooses a model, which a held-out set must never decide: still refused.
+    with pytest.raises(DataError, match="held out for evaluation only"):
+        bd.criticize(name, seed=1, data_dir=holdout_dir)
+
+
+@pytest.mark.realdata
 def test_a_bad_dataframe_value_is_named_by_frame_row_and_column(data_dir):
     frame = pd.read_csv(data_dir / "ngsim_i80_chains" / CHAIN)
     frame["Y2"] = frame["Y2"].astype(object)

@@ -25,9 +25,10 @@ from bayesdrive.drivers.execution_noise import (
     step_logpdf,
 )
 from bayesdrive.drivers.extensions.compose import ExtendedModel
+from bayesdrive.inference.heldout_evidence import DEFAULT_CONFIG, fit_model
 from bayesdrive.inference.kernels import WalkInfo, WalkState, moves_until_moved
 from bayesdrive.inference.likelihood import step_inputs, step_logpdfs
-from bayesdrive.inference.tempering import FitConfig, fit_model
+from bayesdrive.inference.smc_core import TemperingConfig
 
 SIGMA = 0.4
 DT = 0.1
@@ -126,8 +127,8 @@ def gaussian_evidence(series: FollowerArrays, row: int, mask: np.ndarray):
 # 2048 particles: at 512 the fit-window evidence of fixed moves spreads with sd 0.17 nats over
 # seeds, too wide for the 0.3-nat check below; at 2048, 0.08 (fixed) and 0.05 (until moved).
 CONFIGS = {
-    "fixed_moves": FitConfig(num_particles=2048, num_moves=5, unmoved_tolerance=0.0),
-    "until_moved": FitConfig(num_particles=2048, num_moves=2, unmoved_tolerance=0.01),
+    "fixed_moves": TemperingConfig(num_particles=2048, num_moves=5, unmoved_tolerance=0.0),
+    "until_moved": TemperingConfig(num_particles=2048, num_moves=2, unmoved_tolerance=0.01),
 }
 
 
@@ -240,7 +241,10 @@ def test_base_evidence_agrees_with_the_smc_engine(tmp_path):
     generate(8, path, None, platoons=1, followers=2, duration_s=20.0, cut_ins=0)
     series = scored_series(read(path, format="ngsim_raw"))
     ours = fit_model(
-        jax.random.key(1), series, as_extended(IDM), config=FitConfig(num_particles=256)
+        jax.random.key(1),
+        series,
+        as_extended(IDM),
+        config=DEFAULT_CONFIG._replace(num_particles=256),
     )
     same_steps = series._replace(mask=series.windows.fit, windows=None)
     theirs = smc.run(jax.random.key(2), same_steps, model=IDM, num_particles=512)

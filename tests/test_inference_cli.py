@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
 from bayesdrive.data.registry import HOLDOUT
+from bayesdrive.data.views import full_history_mask, history_steps
 from bayesdrive.inference.output import load_result, metadata
 
 runner = CliRunner()
@@ -110,10 +111,10 @@ def test_fit_takes_a_held_out_name_and_logs_that_nothing_may_be_tuned(
     name = "ngsim_i80_pairs_raw_c"
     args = ["fit", name, "--data-dir", str(holdout_dir), "--vehicles", "1"]
     args += ["--particles", "32", "--params", "v_des,sigma", "--out", str(tmp_path / "fit")]
-    with caplog.at_level(logging.WARNING, logger="bayesdrive.cli.fit_cmd"):
+    with caplog.at_level(logging.WARNING, logger="bayesdrive.data.registry"):
         result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
-    notes = [r.getMessage() for r in caplog.records if r.name == "bayesdrive.cli.fit_cmd"]
+    notes = [r.getMessage() for r in caplog.records if r.name == "bayesdrive.data.registry"]
     assert len(notes) == 1 and name in notes[0]
     assert "held out for evaluation only" in notes[0] and "never choose or tune" in notes[0]
     meta = metadata(load_result(tmp_path / "fit" / "result.nc"))
@@ -176,7 +177,11 @@ def test_fit_runs_the_cross_check_engines(
     assert "wrote result.nc, summary.json to" in printed
     assert printed_size in printed and "particles" not in printed
     loo = arviz.loo(tree)
-    assert np.isfinite(loo.elpd) and loo.n_data_points == meta["usable_steps"]
+    # Every usable step with a full history behind it, the steps every model scores.
+    observed = tree["observed_data"]
+    history = history_steps(observed.attrs["dt"])
+    scored = full_history_mask(observed["mask"].values, history).sum()
+    assert np.isfinite(loo.elpd) and loo.n_data_points == scored < meta["usable_steps"]
     problems = json.loads((tmp_path / "summary.json").read_text())["convergence"]["problems"]
     if exit_code == 3:
         vehicle = str(tree["posterior"]["vehicle"].values[0])

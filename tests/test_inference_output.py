@@ -67,38 +67,79 @@ def test_tree_has_the_shared_layout(tree, arrays):
     assert list(tree["posterior"]["vehicle"].values) == list(arrays.vehicle_ids)
 
 
-def test_log_likelihood_holds_the_real_observations_and_every_draw(arrays):
-    """Masked steps are left out (not scored as 0) and every posterior draw is scored: the obs
-    coordinates name each kept (vehicle, step), and its value is the padded score there."""
-    mask = np.ones((2, 6))
-    mask[0, 4:] = 0  # vehicle a: steps 0-3; vehicle b: steps 1, 2 and 5
-    mask[1, [0, 3, 4]] = 0
+def _small_tree(arrays, scores, posterior, **options):
+    """A two-vehicle tree of ``arrays``' first two rows with holes in their masks (the layout
+    under test, no engine): vehicle a usable on steps 0-29, vehicle b on every step but 40."""
+    mask = np.ones((2, STEPS))
+    mask[0, 30:] = 0
+    mask[1, 40] = 0
     small = arrays._replace(
         vehicle_ids=("a", "b"),
         mask=mask,
-        **{n: getattr(arrays, n)[:2, :6] for n in ("v", "next_v", "dx", "gap", "lead_v", "t")},
-        has_leader=arrays.has_leader[:2, :6],
+        **{n: getattr(arrays, n)[:2] for n in ("v", "next_v", "dx", "gap", "lead_v", "t")},
+        has_leader=arrays.has_leader[:2],
     )
-    scores = np.random.default_rng(3).normal(size=(2, 5, 2, 6))
-    meta = {k: 0 for k in REQUIRED_METADATA} | {"params": ["v_des"]}
+    meta = {k: 0 for k in REQUIRED_METADATA} | {"params": list(posterior)}
     built = build_tree(
-        posterior={"v_des": np.zeros((2, 5, 2))},
+        posterior=posterior,
         sample_stats={},
         log_likelihood=scores,
         arrays=small,
         metadata=meta,
+        **options,
     )
+    return small, built
+
+
+def test_log_likelihood_holds_the_steps_with_a_full_history_and_every_draw(arrays):
+    """Steps without a full history (1.5 s at dt = 0.1 s plus one step: 16 usable steps before
+    them) are left out for every model, as masked steps are (not scored as 0), and every
+    posterior draw is scored: the obs coordinates name each kept (vehicle, step), and its value
+    is the padded score there."""
+    assert float(arrays.dt) == pytest.approx(0.1)
+    scores = np.random.default_rng(3).normal(size=(2, 5, 2, STEPS))
+    small, built = _small_tree(arrays, scores, {"v_des": np.zeros((2, 5, 2))})
     log_lik = built["log_likelihood"]["dx"]
     assert log_lik.dims == ("chain", "draw", "obs") and log_lik.dtype == np.float32
-    assert log_lik.shape == (2, 5, 7)  # 4 + 3 real steps, all 2 x 5 draws
-    assert list(log_lik["vehicle"].values) == ["a"] * 4 + ["b"] * 3
-    assert list(log_lik["step"].values) == [0, 1, 2, 3, 1, 2, 5]
-    np.testing.assert_array_equal(
-        log_lik["t"].values, small.t[[0, 0, 0, 0, 1, 1, 1], [0, 1, 2, 3, 1, 2, 5]]
-    )
-    np.testing.assert_allclose(log_lik.values[:, :, 5], scores[:, :, 1, 2], rtol=1e-6)
-    np.testing.assert_allclose(log_lik.values[:, :, 3], scores[:, :, 0, 3], rtol=1e-6)
+    # Counted by hand: a scores 16-29; b scores 16-39, and 57-99 after its hole at step 40.
+    steps_a, steps_b = list(range(16, 30)), [*range(16, 40), *range(57, STEPS)]
+    assert log_lik.shape == (2, 5, len(steps_a) + len(steps_b))
+    assert list(log_lik["vehicle"].values) == ["a"] * len(steps_a) + ["b"] * len(steps_b)
+    assert list(log_lik["step"].values) == steps_a + steps_b
+    rows = [0] * len(steps_a) + [1] * len(steps_b)
+    np.testing.assert_array_equal(log_lik["t"].values, small.t[rows, steps_a + steps_b])
+    np.testing.assert_allclose(log_lik.values, scores[:, :, rows, steps_a + steps_b], rtol=1e-6)
     assert metadata(built)["num_draws"] == 10 and metadata(built)["num_chains"] == 2
+
+
+def test_psis_loo_metadata_names_copied_draws_and_constant_observations(arrays):
+    """Distinct draws with varying scores are reliable; copies among draws that are not Markov
+    chains, and an observation scored the same under every draw, are named (seed 4)."""
+    rng = np.random.default_rng(4)
+    scores = rng.normal(size=(1, 50, 2, STEPS))
+    distinct = {"v_des": rng.uniform(20.0, 30.0, size=(1, 50, 2))}
+    assert metadata(_small_tree(arrays, scores, distinct)[1])["psis_loo"] == {
+        "reliable": True,
+        "problems": [],
+    }
+
+    copied = {"v_des": distinct["v_des"].copy()}
+    copied["v_des"][0, 25:, 1] = copied["v_des"][0, :25, 1]  # vehicle b: 25 draws, each twice
+    verdict = metadata(_small_tree(arrays, scores, copied)[1])["psis_loo"]
+    assert not verdict["reliable"] and "criticize" in verdict["instead"]
+    (problem,) = verdict["problems"]
+    assert "1 vehicle(s) hold copies" in problem and "fewest distinct: 25, vehicle b" in problem
+    # The same repeats in a Markov chain are rejections, which PSIS's relative efficiency handles.
+    markov = _small_tree(arrays, scores, copied, markov_chains=True)[1]
+    assert metadata(markov)["psis_loo"]["reliable"]
+
+    flat = scores.copy()
+    flat[:, :, 1, 20:23] = -1.5  # three observations of vehicle b, the same under every draw
+    verdict = metadata(_small_tree(arrays, flat, distinct)[1])["psis_loo"]
+    assert verdict["problems"] == [
+        "3 observation(s) score the same under every draw (vehicles b): PSIS cannot fit their "
+        "tail and arviz.loo raises"
+    ]
 
 
 def test_metadata_is_complete_and_decodes(tree):
@@ -132,7 +173,10 @@ def test_summary_reports_each_vehicle_and_parameter(tree):
 def test_arviz_loo_reads_the_log_likelihood_group(tree, arrays):
     loo = arviz.loo(tree, pointwise=True)
     assert np.isfinite(loo.elpd)
-    assert loo.n_data_points == int(arrays.mask.sum())
+    # The usable steps with 16 usable steps before them (1.5 s at 0.1 s, plus one).
+    mask = np.asarray(arrays.mask) > 0
+    scored = sum(mask[n, j - 16 : j + 1].all() for n, j in np.argwhere(mask) if j >= 16)
+    assert loo.n_data_points == scored
     assert np.isfinite(loo.pareto_k.values).all()
 
 
@@ -203,10 +247,13 @@ def test_round_trip_through_netcdf(tree, tmp_path):
 def test_results_of_the_older_layout_are_converted_on_loading(tree, tmp_path, caplog):
     """Before: log_likelihood padded to (vehicle, step) with zeros, thinned draws, ``ess``."""
     pytest.importorskip("h5py", reason="h5netcdf needs h5py to read or write netCDF4 files")
-    mask = tree["observed_data"]["mask"].values > 0
+    scored = tree["log_likelihood"]["dx"]
+    rows = [
+        list(tree["observed_data"]["vehicle"].values).index(v) for v in scored["vehicle"].values
+    ]
     draws = np.arange(0, PARTICLES, 4)
     padded = np.zeros((1, len(draws), VEHICLES, STEPS))
-    padded[:, :, mask] = tree["log_likelihood"]["dx"].values[:, draws]
+    padded[:, :, rows, scored["step"].values] = scored.values[:, draws]
     old = tree.copy()
     old["log_likelihood"] = xr.DataTree(
         xr.Dataset(
@@ -228,6 +275,31 @@ def test_results_of_the_older_layout_are_converted_on_loading(tree, tmp_path, ca
     )
     assert "particle_ess" in loaded["sample_stats"] and "ess" not in loaded["sample_stats"]
     assert np.isfinite(arviz.loo(loaded).elpd)
+
+    # Flat on every usable step, as saved before only steps with a full history were kept.
+    mask = tree["observed_data"]["mask"].values > 0
+    vehicle, step = np.nonzero(mask)
+    every = padded[:, :, vehicle, step].astype(np.float32)
+    every[:, :, step < 16] = np.nan  # steps without a full history: left out when converted
+    flat = old.copy()
+    flat["log_likelihood"] = xr.DataTree(
+        xr.Dataset(
+            {"dx": (("chain", "draw", "obs"), every)},
+            coords={
+                "chain": [0],
+                "draw": draws,
+                "vehicle": ("obs", tree["observed_data"]["vehicle"].values[vehicle]),
+                "step": ("obs", step),
+            },
+        )
+    )
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        loaded = load_result(save_result(flat, tmp_path / "flat.nc"))
+    assert f"cut to the {scored.sizes['obs']} of its {len(step)} steps" in caplog.text
+    np.testing.assert_array_equal(
+        loaded["log_likelihood"]["dx"].values, tree["log_likelihood"]["dx"].values[:, draws]
+    )
 
     # A slim posterior-only file (the committed model cards) loads as it was written.
     slim = save_result(

@@ -470,7 +470,7 @@ def test_fit_with_the_pmmh_engine_gives_the_shared_layout(noisy_idm_data):
     posterior = tree["posterior"].to_dataset()
     assert posterior["sigma_obs"].shape == (PMMH_NUM_CHAINS, PMMH_NUM_DRAWS, PMMH_NUM_VEHICLES)
     log_lik = tree["log_likelihood"].to_dataset()["dx"].values
-    assert log_lik.shape == (PMMH_NUM_CHAINS, PMMH_NUM_DRAWS, int(arrays.mask.sum()))
+    assert log_lik.shape == (PMMH_NUM_CHAINS, PMMH_NUM_DRAWS, int(arrays.full_history_mask.sum()))
     assert np.all(np.isfinite(log_lik))
     stats = tree["sample_stats"].to_dataset()
     assert stats["acceptance_rate"].shape == (PMMH_NUM_CHAINS, PMMH_NUM_VEHICLES)

@@ -250,7 +250,7 @@ def test_lm_runs_through_fit(short_data):
         window="all",
     )
     assert tree["posterior"]["tau"].shape == (1, 30, 2)
-    assert tree["log_likelihood"]["dx"].shape == (1, 30, int(short_data.mask.sum()))
+    assert tree["log_likelihood"]["dx"].shape == (1, 30, int(short_data.full_history_mask.sum()))
     # Every draw's log-likelihood is the model's: finite on every real step here.
     assert np.isfinite(tree["log_likelihood"]["dx"].values).all()
     assert metadata(tree)["engine"] == "lm"

@@ -7,7 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bayesdrive.data.readers import HOLDOUT_LAYOUTS, read
+from bayesdrive.data.catalog import DATASETS, LAYOUTS
+from bayesdrive.data.readers import read
 from bayesdrive.data.readers.ngsim_chains import align_copies
 from bayesdrive.data.readers.openacc import enu_consistency
 from bayesdrive.data.trajectories import TRACK_COLUMNS, summary
@@ -236,8 +237,27 @@ def test_interaction_fixture(data_dir):
 # --- held-out folders: they load, nothing valid is rejected ------------------------------------
 
 
-@pytest.mark.parametrize("name", sorted(HOLDOUT_LAYOUTS))
+@pytest.mark.parametrize("name", sorted(LAYOUTS))
 def test_holdout_folders_load(holdout_dir, name):
     traj = read(holdout_dir / name)
     assert len(traj.tracks) > 0 and len(traj.scene_ids) > 0
-    assert traj.format == HOLDOUT_LAYOUTS[name]["format"]
+    assert traj.format == LAYOUTS[name].reader
+
+
+# --- each data set's description against its data ---------------------------------------------
+
+
+@pytest.mark.parametrize("name", sorted(DATASETS))
+def test_documented_figures_match_the_data(request, data_dir, name):
+    """The figures a description quotes from its source's documentation are what its reader finds
+    (data sets for fitting only: nothing is measured on the held-out ones here)."""
+    documented = DATASETS[name].documented
+    assert documented, f"{name}: its description quotes no figure to check"
+    # The two larger folders are already read by this module's fixtures.
+    fixtures = {"ngsim_i80_chains": "chains", "openacc_vicolungo": "vicolungo"}
+    if name in fixtures:
+        traj = request.getfixturevalue(fixtures[name])
+    else:
+        traj = read(data_dir / name, format=DATASETS[name].format)
+    info = summary(traj)
+    assert {key: info[key] for key in documented} == pytest.approx(dict(documented))

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from bayesdrive.cli.main import app
+from bayesdrive.cli.main import COMMANDS, app, load_command
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.outputs import (
     MANIFEST,
@@ -252,6 +252,61 @@ def test_atomic_writes_respect_the_umask(tmp_path, umask):
     finally:
         os.umask(previous)
     assert (tmp_path / "x.json").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+JSON_COMMANDS = (
+    ["fit", "absent.csv", "--out", "r"],
+    ["diagnose", "result.nc"],
+    ["sbc", "--engine", "smc", "--seed", "1", "--out", "r"],
+    ["simulate", "paper_congested", "--seed", "1", "--out", "r"],
+    ["criticize", "absent.csv"],
+    ["evaluate", "absent.csv", "--model", "cv"],
+    ["data", "list"],
+    ["data", "info", "absent.csv"],
+    ["data", "verify", "ngsim_i80_chains"],
+    ["data", "fetch", "ngsim_i80_chains"],
+    ["validate", "sumo", "result.nc", "absent.csv", "--out", "r"],
+)
+
+
+def test_every_command_refuses_to_replace_a_json_file_without_force(tmp_path, monkeypatch):
+    """One rule for every command that takes --json, checked before any work (no data exists
+    here to read or fetch)."""
+    names = {name for command in json_commands() for name in command}
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "result.nc").write_bytes(b"")  # diagnose checks its inputs exist first
+    taken = tmp_path / "taken.json"
+    taken.write_text("mine\n")
+    assert {tuple(a for a in args if a in names) for args in JSON_COMMANDS} == json_commands()
+    for args in JSON_COMMANDS:
+        run = runner.invoke(app, [*args, "--json", str(taken)])
+        assert run.exit_code == 2, (args, run.output)
+        assert one_line(run.output) == f"error: --json {taken} exists; use --force to replace it"
+    assert taken.read_text() == "mine\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.nc", "taken.json"]
+
+
+@pytest.mark.realdata
+def test_force_replaces_a_json_file(data_dir, tmp_path):
+    taken = tmp_path / "taken.json"
+    taken.write_text("mine\n")
+    args = ["data", "info", str(data_dir / CHAIN), "--json", str(taken)]
+    assert runner.invoke(app, args).exit_code == 2 and taken.read_text() == "mine\n"
+    forced = runner.invoke(app, [*args, "--force"])
+    assert forced.exit_code == 0, forced.output
+    assert json.loads(taken.read_text())["source"].endswith(Path(CHAIN).name)
+
+
+def json_commands() -> set[tuple[str, ...]]:
+    """Every command (group, subcommand) that takes --json, as the CLI registers them."""
+    found = set()
+    for name in COMMANDS:
+        command = load_command(name)
+        subcommands = getattr(command, "commands", {name: command})
+        for sub, leaf in subcommands.items():
+            if any(p.name == "json_out" for p in leaf.params):
+                found.add((name,) if sub == name else (name, sub))
+    return found
 
 
 def test_simulate_refuses_a_complete_folder_without_force(tmp_path):

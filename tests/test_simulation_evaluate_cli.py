@@ -11,9 +11,11 @@ from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
 from bayesdrive.data import registry
+from bayesdrive.data.errors import DataError
 from bayesdrive.data.views import SPLIT_RULE, follower_arrays
 from bayesdrive.inference.output import build_tree, save_result
 from bayesdrive.simulation import evaluation
+from bayesdrive.simulation.scenarios import platoon_scenarios
 
 runner = CliRunner()
 
@@ -190,7 +192,7 @@ def test_a_partial_posterior_scores_the_fitted_vehicles_and_names_the_skipped(sc
 
 
 @pytest.mark.realdata
-def test_bad_requests_end_with_one_error_line(scene_dir, monkeypatch):
+def test_bad_requests_end_with_one_error_line(scene_dir):
     unknown = evaluate(scene_dir, "--model", "gail", *SMALL)
     assert unknown.exit_code == 2 and "unknown model 'gail'" in one_line(unknown.stderr)
     too_big = evaluate(scene_dir, "--model", "cv", "--vehicles-per-scenario", "9", "--horizon", "2")
@@ -198,12 +200,59 @@ def test_bad_requests_end_with_one_error_line(scene_dir, monkeypatch):
     assert "scenarios per size the data allows: 1:" in one_line(too_big.stderr)
     merge_only = evaluate(scene_dir, "--model", "cidm-c1", *SMALL)
     assert merge_only.exit_code == 2 and "no merge episodes" in one_line(merge_only.stderr)
-    # Data loaded as held out: nothing may be fitted on it (held-out files themselves are not
-    # read in tests, so the loader's verdict is stubbed on this fitting data).
+
+
+@pytest.mark.realdata
+def test_a_baseline_that_fits_follows_the_held_out_protocol_on_held_out_data(
+    scene_dir, monkeypatch, caplog
+):
+    """Fitted on the fitting windows with its documented settings, scored on the held-out
+    windows, with the note that nothing may be tuned on the data logged (the loader's held-out
+    verdict is stubbed on this fitting data: no score of a held-out set is asserted anywhere)."""
     real_load = evaluation.evaluation_data
     monkeypatch.setattr(evaluation, "evaluation_data", lambda *a: (real_load(*a)[0], True))
-    held_out = evaluate(scene_dir, "--model", "blackbox", *SMALL)
-    assert held_out.exit_code == 2 and "held out for evaluation only" in one_line(held_out.stderr)
+    with caplog.at_level("WARNING"):
+        held_out = evaluate(scene_dir, "--model", "idm-lm", *SMALL, "--json", "-")
+    assert held_out.exit_code == 0, held_out.output
+    notes = [r.getMessage() for r in caplog.records if "held out" in r.getMessage()]
+    assert len(notes) == 1 and "never choose or tune" in notes[0]
+    out = json.loads(held_out.stdout)
+    assert out["policy"] == "IDM fitted per vehicle by LM on its fitting window, sigma = 0"
+    assert out["scenarios"] > 0 and out["skipped"] is None
+    assert out["policy_details"]["fitted"] == ["v_des", "d_min", "tau", "a_max", "b_pref"]
+
+
+@pytest.mark.realdata
+def test_without_a_size_the_largest_the_data_allows_is_taken_and_said(scene_dir):
+    args = ["--model", "cv", "--horizon", "2", "--rollouts", "1", "--seed", "5"]
+    result = evaluate(scene_dir, *args, "--json", "-")
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    size = out["vehicles_per_scenario"]
+    traj = registry.load(scene_dir)
+    assert platoon_scenarios(traj, vehicles_per_scenario=size, horizon_s=2.0).scenarios
+    assert not platoon_scenarios(traj, vehicles_per_scenario=size + 1, horizon_s=2.0).scenarios
+    assert out["vehicles"] == size * out["scenarios"]
+    assert out["scenario_size"].startswith(f"{size} vehicle(s) per scenario, the largest size")
+    printed = one_line(evaluate(scene_dir, *args).stdout)
+    assert f"scenario size: {size} vehicle(s) per scenario, the largest size the data" in printed
+    given = evaluate(scene_dir, *args, "--vehicles-per-scenario", "1", "--json", "-")
+    assert json.loads(given.stdout)["scenario_size"] is None  # said only when chosen
+
+
+@pytest.mark.realdata
+def test_every_held_out_set_has_a_scenario_size_or_says_why_not(holdout_dir):
+    """What `bayesdrive evaluate NAME` chooses with no extra flag, on every held-out set (read
+    through the readers, as evaluation reads them; nothing is scored here)."""
+    for name in registry.HOLDOUT:
+        traj, held_out = evaluation.evaluation_data(name, str(holdout_dir))
+        assert held_out, name
+        if not traj.tracks["leader_id"].notna().any():
+            with pytest.raises(DataError, match="no vehicle has a recorded leader"):
+                evaluation.largest_scenario_size(traj, 5.0)
+            continue
+        size, _ = evaluation.largest_scenario_size(traj, 5.0)
+        assert evaluation.evaluation_scenarios(traj, 5.0, size).scenarios, name
 
 
 def test_an_error_message_is_printed_as_written(monkeypatch):

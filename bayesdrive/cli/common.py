@@ -40,13 +40,17 @@ def emit_json(result: Any, out: str | None) -> bool:
     return False
 
 
-def check_json_out(out: str | None) -> None:
-    """Refuse, before any work, a --json OUT that names a folder or lies under a file."""
+def check_json_out(out: str | None, force: bool) -> None:
+    """Refuse, before any work, a --json OUT that names a folder or lies under a file, or an
+    existing file without ``force``: as a complete results folder, it is replaced only on
+    request."""
     if out is None or out == "-":
         return
     path = Path(out)
     if path.is_dir():
         raise fail(f"--json {out} is a folder, not a file")
+    if path.exists() and not force:
+        raise fail(f"--json {out} exists; use --force to replace it")
     ancestor = path.parent
     while not ancestor.exists():
         ancestor = ancestor.parent
@@ -58,6 +62,7 @@ def check_json_out(out: str | None) -> None:
 # it is (a cluster run resumes on another cluster, e.g. a scheduler restarted on a new port).
 NOT_IDENTITY = ("out", "force", "json_out", "cluster")
 FORCE_HELP = "Replace a complete result in OUT (or discard a partial one of other settings)."
+JSON_FORCE_HELP = "Replace an existing --json file."
 _scope: ContextVar[tuple[ExitStack, dict[str, Any]]] = ContextVar("results_scope")
 
 

@@ -114,7 +114,7 @@ def criticize_command(
     from bayesdrive.drivers.registry import get_model
     from bayesdrive.inference.likelihood import check_model
 
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     check_cluster_options(cluster, chunk_size)
     results = None if out is None else results_folder(out, "criticize", force=force)
     try:

@@ -16,6 +16,7 @@ from rich.table import Table
 
 from bayesdrive.cli.common import (
     COLUMNS_HELP,
+    JSON_FORCE_HELP,
     UNITS_HELP,
     check_json_out,
     column_map_options,
@@ -79,10 +80,12 @@ def list_datasets(
         None, "--holdout-dir", help="Folder holding the held-out data sets."
     ),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
 ) -> None:
     """The known data sets: format, role, whether present (and verified), licence."""
     from bayesdrive.data import registry
 
+    check_json_out(json_out, force)
     rows = []
     for dataset in (*registry.DATASETS.values(), *registry.HOLDOUT.values()):
         explicit = holdout_dir if dataset.role == "holdout" else data_dir
@@ -147,14 +150,16 @@ def info(
         None, "--headway", help="What the CSV's gap column measures: front (to front) or bumper."
     ),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
 ) -> None:
     """Figures of a data set: scenes, vehicles, time, speeds, gaps, flags and notes."""
     from bayesdrive.data import registry
     from bayesdrive.data.trajectories import summary
 
+    check_json_out(json_out, force)
     try:
         format, options = column_map_options(format, columns, units, headway)
-        if path_or_name in registry.HOLDOUT and not Path(path_or_name).exists():
+        if registry.is_holdout_name(path_or_name):
             traj = registry.load_holdout(
                 path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options
             )
@@ -186,10 +191,12 @@ def verify(
     name: str = typer.Argument(..., help="A data set name."),
     data_dir: str | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
 ) -> None:
     """Check every file of a data set against its pinned size and sha256 (exit 1 if any differ)."""
     from bayesdrive.data import registry
 
+    check_json_out(json_out, force)
     try:
         dataset = registry.get(name)
         root = _root(dataset, data_dir)
@@ -224,13 +231,14 @@ def fetch(
         help="Base URL of a mirror serving <URL>/<name>/<file> (default: the pinned origin).",
     ),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
 ) -> None:
     """Download a data set, checking every sha256 before anything lands in the data folder."""
     from bayesdrive.data import registry
     from bayesdrive.data.fetch import fetch as fetch_dataset
     from bayesdrive.data.fetch import files_to_fetch
 
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     exit_cleanly_on_sigterm()
     try:
         dataset = registry.get(name)

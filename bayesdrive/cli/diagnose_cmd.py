@@ -174,7 +174,7 @@ def diagnose(
     missing = [str(p) for p in results if not p.is_file()]
     if missing:
         raise fail(f"no such result file(s): {', '.join(missing)}")
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     results_dir = None if out is None else results_folder(out, "diagnose", force=force)
     trees = []
     for path in results:

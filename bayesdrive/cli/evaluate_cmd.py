@@ -15,6 +15,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from bayesdrive.cli.common import (
+    JSON_FORCE_HELP,
     check_cluster_options,
     check_json_out,
     console,
@@ -92,6 +93,8 @@ def _print(result: dict[str, Any]) -> None:
                 f"{', '.join(skipped['vehicles'])}"
             )
         )
+    if result["scenario_size"]:
+        console.print(escape(f"scenario size: {result['scenario_size']}"))
     console.print(escape(f"scenarios: {scenes['selection_rule']}"))
     console.print(escape(f"split: {result['split_rule']}"))
     console.print(f"seed {result['seed']}")
@@ -110,17 +113,18 @@ def evaluate(
     horizon: float = typer.Option(5.0, "--horizon", help="Simulated horizon (s)."),
     rollouts: int = typer.Option(100, "--rollouts", min=1, help="Rollouts per scenario."),
     seed: int = typer.Option(0, "--seed", help="Seed of every random draw (recorded)."),
-    vehicles_per_scenario: int = typer.Option(
-        4,
+    vehicles_per_scenario: int | None = typer.Option(
+        None,
         "--vehicles-per-scenario",
         min=1,
-        help="Simulated vehicles per platoon scenario, behind one replayed head (4: an OpenACC "
-        "platoon behind its leader).",
+        help="Simulated vehicles per platoon scenario, behind one replayed head (default: the "
+        "largest size the data allows, and the output says so).",
     ),
     data_dir: str | None = typer.Option(
         None, "--data-dir", help="Folder holding the data sets (held-out ones for a held-out name)."
     ),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
     cluster: str | None = typer.Option(
         None,
         "--cluster",
@@ -143,7 +147,7 @@ def evaluate(
     from bayesdrive.inference import distributed
     from bayesdrive.simulation import evaluation
 
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     check_cluster_options(cluster, chunk_size)
     with _progress() as bar:
         tasks: dict[str, Any] = {}

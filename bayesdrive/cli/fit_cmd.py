@@ -15,7 +15,6 @@ written, warns naming each vehicle and parameter, and exits with code 3.
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +41,6 @@ from bayesdrive.cli.names import CAUSES, ENGINES, FIT_CHUNK_SIZE, MODELS
 
 __all__ = ["fit"]
 
-log = logging.getLogger(__name__)
 
 CLUSTER_HELP = (
     "Fit chunks of vehicles on Dask: local[:N] starts N single-threaded process workers (default: "
@@ -112,23 +110,6 @@ def _print(result: dict[str, Any], out: Path, written: list[str]) -> None:
     else:
         console.print(escape(f"convergence checks: {', '.join(checked['checks'])}"))
     console.print(escape(f"wrote {', '.join(written)} to {out}"))
-
-
-HELD_OUT_NOTE = (
-    "%s is held out for evaluation only: fit it with fixed, documented settings to measure the "
-    "toolkit; never choose or tune a default, prior, threshold, seed or model on it"
-)
-
-
-def _load(data: str, format: str | None, data_dir: str | None, options: dict) -> Any:
-    """The trajectories to fit; a held-out name (not an existing path) is read from the held-out
-    folder, with :data:`HELD_OUT_NOTE` logged."""
-    from bayesdrive.data import registry
-
-    if data in registry.HOLDOUT and not Path(data).exists():
-        log.warning(HELD_OUT_NOTE, data)
-        return registry.load_holdout(data, format=format, holdout_dir=data_dir, **options)
-    return registry.load(data, format=format, data_dir=data_dir, **options)
 
 
 @results_command
@@ -202,6 +183,7 @@ def fit(
     # Imported here so that `bayesdrive fit --help` does not import JAX.
     import jax
 
+    from bayesdrive.data import registry
     from bayesdrive.data.errors import DataError
     from bayesdrive.drivers.registry import get_model
     from bayesdrive.inference import distributed
@@ -248,7 +230,7 @@ def fit(
         )
         if value is not None
     }
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     # A cluster run keeps its finished chunks when interrupted, for the next run to reuse.
     results = results_folder(out, "fit", force=force, resumable=cluster is not None)
     try:
@@ -259,7 +241,7 @@ def fit(
             None if params is None else param_names(driver, [p.strip() for p in params.split(",")])
         )
         format, reader_options = column_map_options(format, columns, units)
-        traj = _load(data, format, data_dir, reader_options)
+        traj = registry.load_any(data, format=format, data_dir=data_dir, **reader_options)
         fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
         with _progress() as bar:
             where = "" if cluster is None else f" on {cluster}"

@@ -154,7 +154,7 @@ def sbc(
         raise fail(str(error)) from error
     names = None if params is None else [p.strip() for p in params.split(",") if p.strip()]
     options: dict[str, Any] = {} if particles is None else {"num_particles": particles}
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     results = None if out is None else results_folder(out, "sbc", force=force)
     with Progress(
         TextColumn("{task.description}"),

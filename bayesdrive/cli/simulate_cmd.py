@@ -76,7 +76,7 @@ def simulate(
         median_sweep,
     )
 
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     key_params, key_scenes, key_sweep = jax.random.split(jax.random.key(seed), 3)
     preset_path = _preset_path(source)
     if preset_path is not None:

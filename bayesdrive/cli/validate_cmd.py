@@ -80,7 +80,7 @@ def sumo(
         raise fail(f"--window {window!r}: choose heldout, fit or all")
     if not result.exists():
         raise fail(f"{result}: no such result file")
-    check_json_out(json_out)
+    check_json_out(json_out, force)
     folder = results_folder(out, "validate sumo", force=force)
     # The libraries load here, not at import: `--help` answers without them.
     import jax

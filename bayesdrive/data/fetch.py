@@ -27,9 +27,10 @@ from pathlib import Path
 from typing import NamedTuple
 from urllib.parse import quote
 
+from bayesdrive.data.catalog import DataFile, DataSet, get
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.outputs import staging_path
-from bayesdrive.data.registry import DataFile, DataSet, check_files, get
+from bayesdrive.data.registry import check_files
 
 __all__ = ["FetchResult", "fetch", "file_url", "files_to_fetch"]
 

@@ -28,6 +28,7 @@ __all__ = [
     "MergeArrays",
     "ScoredWindows",
     "follower_arrays",
+    "full_history_mask",
     "history_steps",
     "leader_follower_pairs",
     "pooled_series",
@@ -54,6 +55,17 @@ def history_steps(dt: float) -> int:
     :data:`HISTORY_SECONDS`, and one step more, so that a model remembering its previous step
     (autocorrelated noise) can wrap one that reads the whole history (a reaction delay)."""
     return math.ceil(HISTORY_SECONDS / dt - 1e-9) + 1
+
+
+def full_history_mask(mask: np.ndarray, history: int) -> np.ndarray:
+    """The usable steps of ``mask`` (N, T) with ``history`` usable steps before them (bool): the
+    steps every model scores, with or without memory, so comparisons are like for like."""
+    usable = np.asarray(mask) > 0
+    kept = usable.copy()
+    for k in range(1, history + 1):
+        kept[:, k:] &= usable[:, :-k]
+        kept[:, :k] = False
+    return kept
 
 
 Window = Literal["fit", "heldout", "all"]
@@ -140,6 +152,11 @@ class FollowerArrays(NamedTuple):
     def history(self) -> int:
         """Steps of history a model may read behind each step (:func:`history_steps`)."""
         return history_steps(self.dt)
+
+    @property
+    def full_history_mask(self) -> np.ndarray:
+        """:func:`full_history_mask` of these series."""
+        return full_history_mask(self.mask, self.history)
 
     def subset(self, rows) -> FollowerArrays:
         """The same series restricted to some vehicle rows (an index array or slice)."""
@@ -382,12 +399,8 @@ def scored_series(traj: Trajectories, *, vehicle_ids: list[str] | None = None) -
                 out[row, :width] = arrays.mask[row_of[vid], :width]
         return out
 
-    usable = every.mask > 0
-    full_history = usable.copy()
-    for k in range(1, every.history + 1):
-        full_history[:, k:] &= usable[:, :-k]
-        full_history[:, :k] = False
-    lost = int(usable.sum() - full_history.sum())
+    full_history = every.full_history_mask
+    lost = int((every.mask > 0).sum() - full_history.sum())
     if lost:
         log.info(
             "%d step(s) without a full %.1f s history left out of scoring (all models alike)",

@@ -44,7 +44,7 @@ from bayesdrive.drivers.execution_noise import execution_noise_model
 __all__ = ["DELTA", "IDM", "MIN_GAP", "IDMParams", "equilibrium_gap", "idm_acceleration"]
 
 # An integer, so powers of it compile to multiplications: a float exponent is exp(4 log x),
-# which made the likelihood about 6x slower.
+# which made the likelihood several times slower.
 DELTA = 4
 # The interaction term diverges at zero gap; the simulator counts a collision long before.
 MIN_GAP = 0.1

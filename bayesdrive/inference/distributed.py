@@ -1,7 +1,7 @@
 """``fit`` on a Dask cluster: chunks of vehicles as tasks, each chunk's result saved as it finishes.
 
-The criticism's fits (:func:`~bayesdrive.inference.tempering.fit_model`) run in chunks the same
-way (:func:`fit_model_on_cluster`), each vehicle from its own key, so a criticism on a cluster
+The criticism's fits (:func:`~bayesdrive.inference.heldout_evidence.fit_model`) run in chunks the
+same way (:func:`fit_model_on_cluster`), each vehicle from its own key, so a criticism on a cluster
 reports what the plain run reports; its chunks are not saved (a criticism is one result).
 
 Vehicles are split into chunks of ``chunk_size`` in the data's order, never by the number of
@@ -46,9 +46,16 @@ from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.convergence import check_convergence, log_problems
-from bayesdrive.inference.fit import first_vehicles, fit
-from bayesdrive.inference.output import load_result, metadata, save_result, set_metadata
-from bayesdrive.inference.tempering import FitConfig, FitResult, fit_model, join_fits
+from bayesdrive.inference.fit import MCMC_OPTIONS, first_vehicles, fit
+from bayesdrive.inference.heldout_evidence import FitResult, fit_model, join_fits
+from bayesdrive.inference.output import (
+    load_result,
+    metadata,
+    psis_loo_check,
+    save_result,
+    set_metadata,
+)
+from bayesdrive.inference.smc_core import TemperingConfig
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
@@ -358,6 +365,8 @@ def fit_on_cluster(
         compile_time_s=sum(p["compile_time_s"] for p in parts),
         wall_time_s=sum(p["wall_time_s"] for p in parts),
         created_at=datetime.now(UTC).isoformat(timespec="seconds"),
+        # Checked on the whole: each chunk's verdict saw its own vehicles only.
+        psis_loo=psis_loo_check(tree, markov_chains=engine in MCMC_OPTIONS),
     )
     report = check_convergence(tree)
     log_problems(report)
@@ -379,12 +388,13 @@ def fit_model_on_cluster(
     series: FollowerArrays,
     extended: ExtendedModel,
     *,
-    config: FitConfig,
+    config: TemperingConfig,
     start: FitResult | None = None,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> FitResult:
-    """:func:`~bayesdrive.inference.tempering.fit_model` (one vehicle at a time) of ``series`` in
-    chunks of ``chunk_size`` vehicles on the Dask ``client``: the same result, bit for bit."""
+    """:func:`~bayesdrive.inference.heldout_evidence.fit_model` (one vehicle at a time) of
+    ``series`` in chunks of ``chunk_size`` vehicles on the Dask ``client``: the same result, bit
+    for bit."""
     rows = chunk_rows(len(series.vehicle_ids), chunk_size)
     parts: dict[int, FitResult] = {}
     run_tasks(

@@ -197,6 +197,7 @@ def fit(
         specs=model.specs,
         prior=result.prior,
         inference_library=INFERENCE_LIBRARY[engine],
+        markov_chains=engine in MCMC_OPTIONS,
         metadata={
             "engine": engine,
             "model": model.name,
@@ -306,6 +307,7 @@ def summary(tree: xr.DataTree) -> dict[str, Any]:
         "compile_time_s",
         "engine_options",
         "convergence",
+        "psis_loo",
         "code",
         "created_at",
     )

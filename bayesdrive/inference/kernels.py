@@ -1,7 +1,6 @@
-r"""The sampler core: pure kernels that the tempered samplers are assembled from.
-
-``smc`` (the default engine) and the held-out continuation of the criticism
-(:mod:`bayesdrive.inference.tempering`) are both built from these pieces, so there is one
+r"""The sampler core's kernels: the pure pieces that the SMC core
+(:mod:`bayesdrive.inference.smc_core`) assembles into ``smc`` (the default engine) and the held-out
+continuation of the criticism (:mod:`bayesdrive.inference.heldout_evidence`), so there is one
 temperature search, one random-walk move and one set of stopping rules:
 
 * :func:`next_temperature`: the largest temperature whose reweighting keeps a target effective
@@ -38,6 +37,7 @@ from bayesdrive.inference.weights import effective_sample_size
 __all__ = [
     "Box",
     "Independent",
+    "Move",
     "WalkInfo",
     "WalkState",
     "alternating",

@@ -5,7 +5,8 @@ the true states are hidden, so the likelihood of a parameter vector is an integr
 :func:`state_filter_loglik` estimates it with a bootstrap particle filter over states (Gordon et al.
 1993): particles move by the model's ``transition_sample``, are weighted by its
 ``observation_logpdf`` and resampled systematically when the effective sample size falls below half
-the particles. The estimate of the likelihood (not of its log) is unbiased, which is what particle
+the particles (the SMC core's step, :func:`bayesdrive.inference.smc_core.step`, with the
+observation density as its potential; the transition is the filter's proposal). The estimate of the likelihood (not of its log) is unbiased, which is what particle
 marginal Metropolis-Hastings needs (Andrieu, Doucet & Holenstein 2010): :func:`pmmh` runs a
 random-walk Metropolis chain over the static parameters in which the exact likelihood is replaced
 by that estimate, and still targets the exact posterior.
@@ -31,7 +32,7 @@ signature, returning an :class:`~bayesdrive.inference.output.EngineResult`). Eac
 chains and scoring filters draw from the vehicle's own key, the seed with its id folded in
 (:mod:`bayesdrive.inference.vehicles`), so a vehicle's draws do not depend on the others.
 Chains and vehicles are flattened into lanes of one ``vmap`` level: nested ``vmap`` of the threefry RNG multiplies XLA
-compile time (about 2x per level on CPU). **Starting values matter**: far from the posterior the
+compile time on CPU. **Starting values matter**: far from the posterior the
 filter degenerates, its estimate's variance explodes and PMMH chains stick; warm-up from prior
 draws can take thousands of iterations (``benchmarks/bench_latent.py`` measures it). Choose
 ``num_state_particles`` so that the estimate's sd at the posterior is about 1-1.7 nats (Doucet et
@@ -48,14 +49,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jax.scipy.special import logsumexp
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.measurement_noise import shift_ego
 from bayesdrive.inference.likelihood import StepInputs, step_inputs
 from bayesdrive.inference.output import EngineResult
-from bayesdrive.inference.resampling import systematic
+from bayesdrive.inference.smc_core import SMCState
+from bayesdrive.inference.smc_core import step as smc_step
 from bayesdrive.inference.vehicles import (
     log_likelihood_draws,
     map_vehicles,
@@ -63,7 +64,6 @@ from bayesdrive.inference.vehicles import (
     prepare,
     static_key,
 )
-from bayesdrive.inference.weights import effective_sample_size
 
 __all__ = [
     "ADAPTATION_DECAY",
@@ -225,28 +225,31 @@ def state_filter_loglik(
         moved = jax.vmap(move)(jax.random.split(move_key, n), states)
         # The next reading sits at 0 on its own axis; its speed is no observation (NaN says so).
         reading = EgoState(x=zero, v=jnp.full_like(zero, jnp.nan))
-        obs_logp = jax.vmap(lambda s: model.observation_logpdf(params, s, reading))(moved)
 
-        weighted = log_weights + obs_logp
-        increment = logsumexp(weighted)  # log_weights are normalised
-        weighted = weighted - increment
-        ess = effective_sample_size(weighted)
-        resample = ess < RESAMPLE_BELOW * n
-        ancestors = jnp.where(resample, systematic(resample_key, weighted, n), jnp.arange(n))
-        moved = jax.tree.map(lambda a: a[ancestors], moved)
-        weighted = jnp.where(resample, uniform, weighted)
+        def potential(particles: EgoState) -> Array:
+            return jax.vmap(lambda s: model.observation_logpdf(params, s, reading))(particles)
+
+        # The SMC core's step, the transition above being the filter's proposal: reweight by the
+        # reading, resample below half the particles' ESS; nothing moves after resampling.
+        filtered, info = smc_step(
+            resample_key,
+            SMCState(moved, log_weights),
+            potential,
+            lambda _, particles: (particles, None),
+            resample_below=RESAMPLE_BELOW,
+        )
 
         used = obs.mask > 0
-        increment = jnp.where(used, increment, 0.0)
+        increment = jnp.where(used, info.log_increment, 0.0)
         carry = (
-            _where(used, moved, states),
-            jnp.where(used, weighted, log_weights),
+            _where(used, filtered.particles, states),
+            jnp.where(used, filtered.log_weights, log_weights),
             loglik + increment,
             obs.mask,
         )
         return carry, FilterInfo(
-            ess=jnp.where(used, ess, float(n)),
-            resampled=used & resample,
+            ess=jnp.where(used, info.ess, float(n)),
+            resampled=used & info.resampled,
             log_increments=increment,
         )
 

@@ -12,9 +12,13 @@ Groups (dims in brackets):
   ``log_evidence`` [vehicle], ``acceptance`` [vehicle, step].
 * ``log_likelihood``: variable ``dx`` [chain, draw, obs] (float32), the log-density of each real
   observed step (named after the observed position increment it scores) under every posterior
-  draw. ``obs`` runs over the unmasked (vehicle, step) pairs only and carries the non-dimension
+  draw. ``obs`` runs over the usable (vehicle, step) pairs with a full history of usable steps
+  before them (:attr:`~bayesdrive.data.views.FollowerArrays.full_history_mask`): a model that
+  reads its past scores no step without one, so every model of the same data holds the same
+  observations and ``arviz.compare`` compares like for like. It carries the non-dimension
   coordinates ``vehicle``, ``step`` and ``t`` (s), so ``arviz.loo``, ``arviz.compare`` and
-  ArviZ's comparison plots work on a result as it is.
+  ArviZ's comparison plots work on a result as it is. Root metadata ``psis_loo``
+  (:func:`psis_loo_check`) says whether PSIS-LOO can be trusted on it, and what to use if not.
 * ``observed_data``: the :class:`~bayesdrive.data.views.FollowerArrays` the engine saw [vehicle, step].
 
 ``posterior``, ``prior`` and ``sample_stats`` carry ArviZ's ``inference_library`` and
@@ -46,17 +50,19 @@ import xarray as xr
 
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.data.provenance import code_provenance
-from bayesdrive.data.views import SPLIT_RULE, FollowerArrays
+from bayesdrive.data.views import SPLIT_RULE, FollowerArrays, full_history_mask, history_steps
 from bayesdrive.drivers.base import ParamSpec
 
 __all__ = [
     "OBSERVED_VARIABLE",
+    "PSIS_ALTERNATIVE",
     "REQUIRED_METADATA",
     "RUN_DEPENDENT_ATTRS",
     "EngineResult",
     "build_tree",
     "load_result",
     "metadata",
+    "psis_loo_check",
     "save_result",
     "set_metadata",
     "thinned_draws",
@@ -81,6 +87,14 @@ RUN_DEPENDENT_ATTRS = ("created_at", "wall_time_s", "compile_time_s")
 _VERSIONED = ("bayesdrive", "jax", "numpyro", "arviz", "xarray")
 # Groups that describe draws, so ArviZ's provenance attributes belong on them.
 _DRAW_GROUPS = ("posterior", "prior", "sample_stats")
+# What to compare models by where PSIS-LOO cannot be trusted (the README says the same).
+PSIS_ALTERNATIVE = (
+    "compare the models by their held-out predictive density instead (bayesdrive criticize "
+    "scores each extension on the held-out window), or refit with nuts, or with smc and more "
+    "particles where its draws hold copies"
+)
+# Vehicle ids named in a problem line before the rest are counted.
+_NAMED_VEHICLES = 10
 
 
 class EngineResult(NamedTuple):
@@ -132,8 +146,9 @@ def _draws_dataset(
 
 
 def _observations(log_likelihood: np.ndarray, arrays: FollowerArrays) -> xr.Dataset:
-    """The padded (chain, draw, vehicle, step) scores at the unmasked steps only: (chain, draw, obs)."""
-    vehicle, step = np.nonzero(np.asarray(arrays.mask) > 0)
+    """The padded (chain, draw, vehicle, step) scores at the usable steps with a full history
+    only: (chain, draw, obs)."""
+    vehicle, step = np.nonzero(arrays.full_history_mask)
     values = np.asarray(log_likelihood)[:, :, vehicle, step].astype(np.float32)
     return xr.Dataset(
         {OBSERVED_VARIABLE: (("chain", "draw", "obs"), values)},
@@ -146,6 +161,64 @@ def _observations(log_likelihood: np.ndarray, arrays: FollowerArrays) -> xr.Data
             "t": ("obs", np.asarray(arrays.t)[vehicle, step], {"units": "s"}),
         },
     )
+
+
+def _named(vehicles: Sequence[str]) -> str:
+    shown = ", ".join(vehicles[:_NAMED_VEHICLES])
+    rest = len(vehicles) - _NAMED_VEHICLES
+    return shown + (f" and {rest} more" if rest > 0 else "")
+
+
+def psis_loo_check(tree: xr.DataTree, *, markov_chains: bool) -> dict[str, Any]:
+    """Whether ``arviz.loo`` can be trusted on ``tree``: ``reliable``, the ``problems`` found (one
+    line each) and, where there are any, what to use ``instead`` (:data:`PSIS_ALTERNATIVE`).
+
+    Two problems are looked for. Copies among the draws of a vehicle, where the draws are not
+    ``markov_chains`` (resampled particles, Laplace draws clipped to the prior box, resampled
+    two-stage draws): PSIS takes every draw as an independent one, so copies make its Pareto k
+    and elpd unreliable (repeats in a Markov chain are rejections, which ArviZ's relative
+    efficiency accounts for). And observations scored the same under every draw: PSIS cannot fit
+    their tail, and ``arviz.loo`` raises.
+    """
+    problems = []
+    if not markov_chains:
+        posterior = tree["posterior"].to_dataset()
+        draws = np.stack(
+            [
+                posterior[n].transpose("chain", "draw", "vehicle").values
+                for n in posterior.data_vars
+            ],
+            axis=-1,
+        )
+        draws = draws.reshape(-1, *draws.shape[2:])  # (draw, vehicle, param)
+        distinct = [len(np.unique(draws[:, i], axis=0)) for i in range(draws.shape[1])]
+        copied = [i for i, n in enumerate(distinct) if n < draws.shape[0]]
+        if copied:
+            fewest = min(copied, key=lambda i: distinct[i])
+            vehicles = [str(posterior["vehicle"].values[i]) for i in copied]
+            problems.append(
+                f"{len(copied)} vehicle(s) hold copies among their {draws.shape[0]} draws "
+                f"(fewest distinct: {distinct[fewest]}, vehicle {vehicles[copied.index(fewest)]}; "
+                f"vehicles {_named(vehicles)}): PSIS takes every draw as independent, so its "
+                "Pareto k and elpd are unreliable"
+            )
+    if "log_likelihood" in tree.children:
+        scores = tree["log_likelihood"][OBSERVED_VARIABLE]
+        values = scores.transpose("chain", "draw", "obs").values
+        constant = np.all(values == values[:1, :1], axis=(0, 1))
+        if constant.any():
+            vehicles = list(dict.fromkeys(str(v) for v in scores["vehicle"].values[constant]))
+            problems.append(
+                f"{int(constant.sum())} observation(s) score the same under every draw "
+                f"(vehicles {_named(vehicles)}): PSIS cannot fit their tail and arviz.loo raises"
+            )
+    if problems:
+        log.warning("PSIS-LOO cannot be trusted on this result: %s", "; ".join(problems))
+    return {
+        "reliable": not problems,
+        "problems": problems,
+        **({"instead": PSIS_ALTERNATIVE} if problems else {}),
+    }
 
 
 def _version(name: str) -> str:
@@ -165,11 +238,13 @@ def build_tree(
     specs: Sequence[ParamSpec] = (),
     prior: Mapping[str, np.ndarray] | None = None,
     inference_library: str = "bayesdrive",
+    markov_chains: bool = False,
 ) -> xr.DataTree:
     """Assemble the result tree; ``metadata`` needs :data:`REQUIRED_METADATA` (versions, creation
-    time, the split rule and the chain and draw counts are added here). ``specs`` give the
-    posterior's units and long names; ``inference_library`` names the package that drew the
-    samples (a distribution name, for its version)."""
+    time, the split rule, the chain and draw counts and ``psis_loo`` are added here). ``specs``
+    give the posterior's units and long names; ``inference_library`` names the package that drew
+    the samples (a distribution name, for its version); ``markov_chains``: whether the draws are
+    Markov chains, whose repeats are rejections, not copies (:func:`psis_loo_check`)."""
     missing = [k for k in REQUIRED_METADATA if k not in metadata]
     if missing:
         raise ValueError(f"result metadata lacks {missing}")
@@ -225,7 +300,9 @@ def build_tree(
         "created_at": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     tree = xr.DataTree.from_dict(groups)
-    tree.attrs = _encode_attrs(attrs)
+    tree.attrs = _encode_attrs(
+        {**attrs, "psis_loo": psis_loo_check(tree, markov_chains=markov_chains)}
+    )
     return tree
 
 
@@ -271,24 +348,41 @@ def load_result(path: str | Path) -> xr.DataTree:
 
 
 def _upgrade(tree: xr.DataTree, path: Path) -> xr.DataTree:
-    """Older results: log-likelihood padded to (vehicle, step) and thinned, filters' ``ess``.
-    Slim files without a log-likelihood (the posterior-only model cards) are returned as read."""
+    """Older results: log-likelihood padded to (vehicle, step) and thinned, or flat on every usable
+    step (steps without a full history included), filters' ``ess``. Slim files without a
+    log-likelihood (the posterior-only model cards) are returned as read."""
     if "log_likelihood" not in tree.children:
         return tree
     log_lik = tree["log_likelihood"].to_dataset()
-    if "obs" in log_lik.dims:
-        return tree
-    if "step" not in log_lik.dims or "observed_data" not in tree.children:
+    known = "obs" in log_lik.dims or "step" in log_lik.dims
+    if not known or "observed_data" not in tree.children:
+        if "obs" in log_lik.dims:
+            return tree
         raise ValueError(
             f"{path}: unknown log_likelihood layout {dict(log_lik.sizes)} (expected dims chain, "
             "draw, obs, or the older chain, draw, vehicle, step beside observed_data)"
         )
-    mask = tree["observed_data"]["mask"].values > 0
-    vehicle, step = np.nonzero(mask)
     observed = tree["observed_data"].to_dataset()
-    flat = log_lik[OBSERVED_VARIABLE].values[:, :, vehicle, step].astype(np.float32)
+    scored = full_history_mask(observed["mask"].values, history_steps(observed.attrs["dt"]))
+    notes = []
+    if "obs" in log_lik.dims:
+        row_of = {str(v): i for i, v in enumerate(observed["vehicle"].values)}
+        rows = np.array([row_of[str(v)] for v in log_lik["vehicle"].values], dtype=int)
+        kept = scored[rows, log_lik["step"].values]
+        if kept.all():
+            return tree
+        flat = log_lik[OBSERVED_VARIABLE].transpose("chain", "draw", "obs").values[:, :, kept]
+        vehicle, step = rows[kept], log_lik["step"].values[kept]
+        notes.append(
+            f"log_likelihood cut to the {int(kept.sum())} of its {len(kept)} steps that have a "
+            "full history (the steps every model scores)"
+        )
+    else:
+        vehicle, step = np.nonzero(scored)
+        flat = log_lik[OBSERVED_VARIABLE].values[:, :, vehicle, step]
+        notes.append(f"log_likelihood flattened to the {len(vehicle)} steps with a full history")
     upgraded = xr.Dataset(
-        {OBSERVED_VARIABLE: (("chain", "draw", "obs"), flat)},
+        {OBSERVED_VARIABLE: (("chain", "draw", "obs"), flat.astype(np.float32))},
         coords={
             "chain": log_lik["chain"].values,
             "draw": log_lik["draw"].values,
@@ -298,7 +392,6 @@ def _upgrade(tree: xr.DataTree, path: Path) -> xr.DataTree:
             "t": ("obs", observed["t"].values[vehicle, step], {"units": "s"}),
         },
     )
-    notes = [f"log_likelihood flattened to the {len(vehicle)} unmasked steps"]
     if log_lik.sizes["draw"] != tree["posterior"].sizes["draw"]:
         notes.append(
             f"it scores {log_lik.sizes['draw']} of the posterior's "

@@ -24,7 +24,9 @@ mean weight) is what the paper's filter would report, but it is not a valid evid
 is an artificial parameter random walk, so the filter targets no fixed-parameter posterior. Use
 ``smc`` for inference; this engine exists to reproduce the paper honestly.
 
-Vectorised over vehicles (``vmap``) and particles, with a ``lax.scan`` over steps; vehicles are
+Each step is the SMC core's step (:func:`bayesdrive.inference.smc_core.step`): the one-step
+density as the potential, resampling at every step, the dither as the move. Vectorised over
+vehicles (``vmap``) and particles, with a ``lax.scan`` over steps; vehicles are
 sorted by series length into chunks and steps where a whole chunk has no data are skipped. Every
 random draw of a vehicle (its prior draws, its filter, its start in the next epoch) comes from its
 own key, the seed with its id folded in (:mod:`bayesdrive.inference.vehicles`), and a vehicle's
@@ -49,7 +51,9 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.inference.likelihood import StepInputs, particles_loglik
 from bayesdrive.inference.output import EngineResult
-from bayesdrive.inference.resampling import count_distinct_sorted, systematic
+from bayesdrive.inference.resampling import count_distinct_sorted
+from bayesdrive.inference.smc_core import SMCState
+from bayesdrive.inference.smc_core import step as smc_step
 from bayesdrive.inference.vehicles import (
     log_likelihood_draws,
     map_vehicles,
@@ -57,11 +61,7 @@ from bayesdrive.inference.vehicles import (
     prepare,
     static_key,
 )
-from bayesdrive.inference.weights import (
-    convergence_curve,
-    effective_sample_size,
-    log_mean_weight,
-)
+from bayesdrive.inference.weights import convergence_curve
 
 __all__ = ["MAX_DITHERED", "Grid", "dither_steps", "make_grid", "run"]
 
@@ -112,7 +112,7 @@ def dither_steps(key: Array, shape: tuple[int, int]) -> Array:
     """Independent uniform steps in {-1, 0, +1} for (N, d) grid indices.
 
     One random 32-bit word per particle gives its d steps as base-3 digits: random bits are the
-    costly part on a CPU, and d draws per particle made dithering 70x slower than this. The digits
+    costly part on a CPU, and d draws per particle made dithering far slower than this. The digits
     are uniform up to 3^d / 2^32 (under 2e-7 for six parameters).
     """
     num, dims = shape
@@ -152,19 +152,25 @@ def _pf_chunk(
     last = jnp.asarray(grid.size - 1)
     num_particles = start.shape[1]
 
+    def dither(key, index):
+        return jnp.clip(index + dither_steps(key, index.shape), 0, last), None
+
     def vehicle_step(index, inputs, key):
-        key_resample, key_dither = jax.random.split(key)
-        log_weight = particles_loglik(model, names, fixed, first + index * step_size, inputs)
+        """The SMC core's step: reweight by the step's density, resample every time, dither."""
+
+        def potential(index):
+            return particles_loglik(model, names, fixed, first + index * step_size, inputs)
+
+        state = SMCState(index, jnp.zeros(num_particles, first.dtype))
+        moved, info = smc_step(key, state, potential, dither, resample_below=float("inf"))
         live = inputs.mask > 0
-        parents = systematic(key_resample, log_weight)
-        dithered = jnp.clip(index[parents] + dither_steps(key_dither, index.shape), 0, last)
-        index = jnp.where(live, dithered, index)
+        index = jnp.where(live, moved.particles, index)
         # A step without data reports what the chunk's idle step does, bit for bit, so a
         # vehicle's output does not depend on its chunk mates.
         out = (
-            jnp.where(live, effective_sample_size(log_weight), float(num_particles)),
-            jnp.where(live, log_mean_weight(log_weight), 0.0),
-            jnp.where(live, count_distinct_sorted(parents), jnp.nan),
+            jnp.where(live, info.ess, float(num_particles)),
+            jnp.where(live, info.log_increment, 0.0),
+            jnp.where(live, count_distinct_sorted(info.ancestors), jnp.nan),
             jnp.mean(first + index * step_size, axis=0),
         )
         return index, out

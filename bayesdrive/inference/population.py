@@ -59,7 +59,7 @@ from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.nuts import INIT_RADIUS, NUTSConfig, sample_nuts
-from bayesdrive.inference.output import EngineResult, metadata, set_metadata
+from bayesdrive.inference.output import EngineResult, metadata, psis_loo_check, set_metadata
 from bayesdrive.inference.vehicles import prepare
 
 __all__ = [
@@ -443,5 +443,7 @@ def two_stage(
         two_stage_options={**config._asdict(), "draws_per_vehicle": int(num_draws)},
         compile_time_s=compile_time,
         wall_time_s=run_time,
+        # The per-vehicle draws are resampled now: copies, whatever the engine that drew them.
+        psis_loo=psis_loo_check(out, markov_chains=False),
     )
     return out

@@ -31,7 +31,7 @@ def systematic(key: Array, log_weights: Array, num: int | None = None) -> Array:
 
     Computed without a search, in O(N): particle i owns the positions below its cumulative weight,
     ceil(num * cdf_i - u) of them, so the ancestor of position j is the number of particles that
-    own at most j positions (a histogram and a cumulative sum). On a CPU this is ~10x faster than
+    own at most j positions (a histogram and a cumulative sum). On a CPU this is much faster than
     a binary search per position, with the same result.
     """
     n = log_weights.shape[0] if num is None else num

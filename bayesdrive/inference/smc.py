@@ -3,11 +3,13 @@ r"""``smc``, the default engine: exact sequential inference for static parameter
 Per vehicle: adaptive tempering on the whole series, closing moves, and, on request, a
 sequential pass for per-step diagnostics. All exact up to Monte Carlo error.
 
-**Tempering** (Del Moral, Doucet & Jasra 2006): prior draws, targets
-:math:`p(\theta)\, p(y_{1:T} \mid \theta)^\lambda` with each next :math:`\lambda` found by bisection
-so that the reweighting keeps an ESS of ``ess_threshold * N``, then resampling and
-``temper_moves`` moves per stage, up to :math:`\lambda = 1`. Its log-evidence (``log_evidence``,
-the product of the stages' mean incremental weights) is unbiased. Why tempering rather than the
+**Tempering** (Del Moral, Doucet & Jasra 2006), the SMC core's adaptive tempering
+(:mod:`bayesdrive.inference.smc_core`, shared with the criticism's held-out continuation): prior
+draws, targets :math:`p(\theta)\, p(y_{1:T} \mid \theta)^\lambda` with each next :math:`\lambda`
+found by bisection so that the reweighting keeps an ESS of ``ess_threshold * N``, then resampling
+and ``temper_moves`` moves per stage (with ``unmoved_tolerance`` > 0, more until every particle
+has likely moved), up to :math:`\lambda = 1`. Its log-evidence (``log_evidence``, the product of
+the stages' mean incremental weights) is unbiased. Why tempering rather than the
 particles of a pass along the data: on real NGSIM followers the posterior along the data can
 switch modes. Vehicle 107 (``benchmarks/bench_agreement.py``) is unimodal near v_des 8 at
 t = 100, bimodal at t = 150 and in the other mode (v_des 30, d_min 1.7, 22 nats higher) at the
@@ -15,11 +17,11 @@ end; after t = 100 a pass along the data held 0-5 of 4000 particles in the far m
 four seeds, and no local move crosses back. Along :math:`\lambda` the final mode is favoured
 from the start, so tempering finds it in every seed tried.
 
-**Moves** are the sampler core's (:mod:`bayesdrive.inference.kernels`, shared with the
-criticism's held-out continuation), on u = logit((theta - lower) / (upper - lower)) where the
-prior has finite bounds (theta itself elsewhere), the target on u carrying the Jacobian, so
-parameters piled against a prior bound move freely. By default a move is a random walk with the
-cloud's covariance of u times :math:`s^2`, :math:`s` starting at :math:`2.38/\sqrt d` (Roberts,
+**Moves** are the sampler core's (:mod:`bayesdrive.inference.kernels`), on
+u = logit((theta - lower) / (upper - lower)) where the prior has finite bounds (theta itself
+elsewhere), the target on u carrying the Jacobian, so parameters piled against a prior bound move
+freely. By default a move is a random walk with the covariance of u of the reweighted cloud
+(before resampling) times :math:`s^2`, :math:`s` starting at :math:`2.38/\sqrt d` (Roberts,
 Gelman & Gilks 1997) and adapted towards an acceptance rate of ``target_acceptance`` (log s moves
 by acceptance - target after every move).
 
@@ -28,27 +30,27 @@ from a multivariate Student-t (``independent_df`` degrees of freedom) with the c
 covariance of u, which forgets the start whenever it is accepted. With ``temper_moves=10,
 final_moves=5, max_final_moves=1000, num_moves=3`` it agrees with the NUTS reference as the
 random walk does (``benchmarks/bench_smc_moves.py``; fewer moves a stage left a tempering-path
-bias that closing moves do not remove: on vehicle 140, 3 paired moves a stage put the v_des mean
-at 17.7 against 14.6). The random walk stays the default: it was faster per move than the
-likelihood once the likelihood got cheap (integer powers, the stop term only on series with a
-stop), so the paired moves' fewer closing moves no longer pay (``reports/agreement/smc_moves.md``).
+bias that closing moves do not remove). The random walk stays the default: with a cheap
+likelihood its moves cost less than the paired ones, so the paired moves' fewer closing moves do
+not pay (``reports/agreement/smc_moves.md``).
 
 **Closing moves.** After the last stage, moves under the full posterior run in blocks of
 ``final_moves`` until every parameter's draws correlate with their values at the start of this
 closing phase by at most ``decorrelation`` (or the noise level 3.5 / sqrt(N) of that correlation,
 if larger; at most ``max_final_moves``): the correlation across particles is the kernel's
-autocorrelation at that lag, measured on the target. A fixed count was not enough: on NGSIM
-vehicle 140 80 random-walk moves left the tempering path's excess mass in the long v_des tail
-(mean 15.5 against 14.6 from 400 000 NUTS draws), 240 removed it (14.64).
+autocorrelation at that lag, measured on the target. A fixed count was not enough: on a long
+posterior tail the tempering path's excess mass outlived a fixed number of closing moves
+(``reports/agreement/reference.md`` holds the long NUTS references this was judged against).
 
 **Sequential pass** (``sequential=True``, off by default; it changes no draw): resample-move SMC
 along the data, also known as IBIS (Chopin 2002, Biometrika 89:539), from its own prior draws.
-At step t every particle is reweighted by the exact one-step density of the observed transition,
-so the weighted set targets :math:`p(\theta \mid y_{1:t})`; when the ESS falls below
-``ess_threshold * N`` it is resampled (systematic) and rejuvenated by ``num_moves`` moves that
-score steps 1..t, in blocks of :data:`SCORE_BLOCK` steps. It gives the per-step diagnostics
-(ESS, distinct particles, the learning curve) and ``sequential_log_evidence``; one far below
-``log_evidence`` flags a mode switch like vehicle 107's.
+At step t the SMC core's step (:func:`~bayesdrive.inference.smc_core.step`) reweights every
+particle by the exact one-step density of the observed transition, so the weighted set targets
+:math:`p(\theta \mid y_{1:t})`; when the ESS falls below ``ess_threshold * N`` it is resampled
+(systematic) and rejuvenated by ``num_moves`` moves that score steps 1..t, in blocks of
+:data:`SCORE_BLOCK` steps. It gives the per-step diagnostics (ESS, distinct particles, the learning
+curve) and ``sequential_log_evidence``; one far below ``log_evidence`` flags a mode switch like
+vehicle 107's.
 
 **Replicates.** Draws of one SMC run are correlated through resampling in a way no
 autocorrelation along the draw order measures. ``replicates`` independent runs (replicate r of a
@@ -79,55 +81,43 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.kernels import (
-    Box,
-    Independent,
-    WalkState,
-    alternating,
-    fixed_moves,
-    independent_step,
-    moves_until_decorrelated,
-    next_temperature,
-    to_free,
-    walk_step,
-)
+from bayesdrive.inference.kernels import Box, WalkState, moves_until_decorrelated
 from bayesdrive.inference.likelihood import StepInputs, particles_loglik, series_loglik
 from bayesdrive.inference.output import EngineResult
-from bayesdrive.inference.resampling import count_distinct_sorted, systematic
+from bayesdrive.inference.resampling import count_distinct_sorted
+from bayesdrive.inference.smc_core import (
+    SMCState,
+    TemperingConfig,
+    adaptive_tempering,
+    check_finished,
+    cloud_move,
+    fit_cloud,
+    stage_moves,
+)
+from bayesdrive.inference.smc_core import step as smc_step
 from bayesdrive.inference.vehicles import (
     log_likelihood_draws,
     posterior_draws,
     prepare,
     static_key,
 )
-from bayesdrive.inference.weights import (
-    convergence_curve,
-    effective_sample_size,
-    log_mean_weight,
-    weighted_mean_cov,
-)
+from bayesdrive.inference.weights import convergence_curve, weighted_mean_cov
 
 __all__ = ["SCORE_BLOCK", "SMCConfig", "run"]
 
 # Steps per block when a move re-scores the series seen so far (the data's length bucket).
 SCORE_BLOCK = 64
-# Bisection steps of the temperature search (2^-40: far below any temperature increment used).
-BISECTION_STEPS = 40
 
 
 class SMCConfig(NamedTuple):
-    """Settings of the resample-move sampler (see the module docstring)."""
+    """Settings of the engine (module docstring): the tempering's (the core's one settings
+    type), then the sequential pass's moves per rejuvenation and the closing moves'."""
 
-    num_particles: int
-    ess_threshold: float = 0.5
+    tempering: TemperingConfig
     num_moves: int = 5
-    temper_moves: int = 20
     final_moves: int = 80
     max_final_moves: int = 2000
     decorrelation: float = 0.1
-    target_acceptance: float = 0.234
-    independent: bool = False
-    independent_df: int = 5
     sequential: bool = False
 
 
@@ -149,14 +139,6 @@ def _lengths_taken(mask: np.ndarray) -> tuple[int, ...]:
     return tuple(sorted({int(n) for n in lengths[np.searchsorted(lengths, last, side="right")]}))
 
 
-class _Particles(NamedTuple):
-    theta: Array  # (N, d)
-    log_weight: Array  # (N,) unnormalised
-    log_lik: Array  # (N,) log-likelihood of the steps seen so far
-    log_prior: Array  # (N,)
-    log_scale: Array  # () log of the random-walk scale s
-
-
 class _SequentialPass(NamedTuple):
     log_evidence: Array  # ()
     ess: Array  # (T,) before any resampling at that step
@@ -171,7 +153,8 @@ class _VehicleOutput(NamedTuple):
     theta: Array  # (N, d) equally weighted posterior draws, from the tempering stage
     log_evidence: Array  # () of the tempering stage
     temper_stages: Array  # ()
-    temper_acceptance: Array  # () mean over the tempering stages
+    temper_acceptance: Array  # () mean over the tempering moves
+    final_temperature: Array  # () 1 unless tempering stopped at max_stages
     final_acceptance: Array  # () of the closing moves
     final_moves: Array  # () closing moves run until the draws decorrelated
     final_correlation: Array  # () largest |corr| between closing draws and their start
@@ -192,11 +175,11 @@ def _smc_vehicle(
 ) -> _VehicleOutput:
     """Tempering, closing moves and (with ``config.sequential``) the sequential pass for one
     vehicle's (T,) series."""
-    n = config.num_particles
+    tempering = config.tempering
+    n = tempering.num_particles
     num_steps = series.mask.shape[0]
     step_index = jnp.arange(num_steps)
     key_init, key_steps, key_final = jax.random.split(key, 3)
-    theta = prior.sample(key_init, (n,))
     log_prior_of = jax.vmap(prior.logpdf)
     # Moves act on u = logit((theta - lower) / (upper - lower)) where the prior has finite bounds
     # (theta itself elsewhere): parameters piled against a bound move as freely as any other, and
@@ -205,9 +188,6 @@ def _smc_vehicle(
         jnp.broadcast_to(getattr(prior, "lower", -jnp.inf), width.shape),
         jnp.broadcast_to(getattr(prior, "upper", jnp.inf), width.shape),
     )
-
-    # A floor on the proposal covariance keeps moves alive when resampling leaves one survivor.
-    jitter = jnp.diag(jnp.full(width.shape, 1e-6, width.dtype))
 
     # The sequential pass's moves score steps 0..t in blocks, so their cost grows with t instead
     # of the padded length. Tempering and closing moves score the whole series in one call on the
@@ -253,104 +233,65 @@ def _smc_vehicle(
     else:
         log_lik_whole = functools.partial(log_lik_first, num_steps)
 
-    def walker(cloud: tuple[Array, Array], log_lik: Callable[[Array], Array], power=1.0):
-        """The kernels' move targeting p(theta) exp(log_lik(theta))^power: a random walk with the
-        cloud's covariance, paired with an independent move from a Student-t fitted to the cloud
-        (``cloud``: its mean and the Cholesky factor of its covariance, free scale)."""
+    def tempered(log_lik: Callable[[Array], Array]) -> Callable[[Array], tuple[Array, Array]]:
+        """The core's (anchor, tempered) split of a target: nothing anchored."""
 
         def loglik(theta: Array) -> tuple[Array, Array]:
             return jnp.zeros(theta.shape[0], theta.dtype), log_lik(theta)
 
-        target = dict(loglik=loglik, prior_logpdf=log_prior_of, power=power, box=box)
-        mean, chol = cloud
-        walk = functools.partial(
-            walk_step, chol=chol, target_acceptance=config.target_acceptance, **target
-        )
-        if not config.independent:
-            return walk
-        proposal = Independent.of(mean, chol, config.independent_df)
-        return alternating(functools.partial(independent_step, proposal=proposal, **target), walk)
+        return loglik
 
-    def as_walk(state: _Particles) -> WalkState:
-        zero = jnp.zeros_like(state.log_lik)
-        return WalkState(state.theta, state.log_prior, zero, state.log_lik, state.log_scale)
+    def prior_cloud(key: Array, log_lik: Callable[[Array], Array]) -> WalkState:
+        theta = prior.sample(key, (n,))
+        zero = jnp.zeros(n, theta.dtype)
+        log_scale = jnp.log(2.38 / jnp.sqrt(theta.shape[-1])).astype(theta.dtype)
+        return WalkState(theta, log_prior_of(theta), zero, log_lik(theta), log_scale)
 
-    def from_walk(walk: WalkState, log_weight: Array) -> _Particles:
-        return _Particles(walk.theta, log_weight, walk.tempered, walk.log_prior, walk.log_scale)
-
-    def moves(key: Array, state: _Particles, cloud, log_lik, count, power=1.0):
-        """``count`` MH moves targeting p(theta) exp(log_lik(theta))^power; mean acceptance."""
-        walk, rate = fixed_moves(key, as_walk(state), walker(cloud, log_lik, power), count)
-        return from_walk(walk, state.log_weight), rate
-
-    def fit_cloud(state: _Particles) -> tuple[Array, Array]:
-        mean, cov = weighted_mean_cov(to_free(state.theta, box), state.log_weight)
-        return mean, jnp.linalg.cholesky(cov + jitter)
-
-    def resample_move(key: Array, state: _Particles, log_lik, num_moves: int, power: Array = 1.0):
-        """Systematic resampling, then MH moves targeting p(theta) exp(log_lik(theta))^power."""
-        key_resample, key_moves = jax.random.split(key)
-        cloud = fit_cloud(state)
-        parents = systematic(key_resample, state.log_weight)
-        resampled = _Particles(
-            state.theta[parents],
-            jnp.zeros(n, state.theta.dtype),
-            state.log_lik[parents],
-            state.log_prior[parents],
-            state.log_scale,
-        )
-        moved, rate = moves(key_moves, resampled, cloud, log_lik, num_moves, power)
-        return moved, rate, count_distinct_sorted(parents).astype(state.theta.dtype)
-
-    def decorrelate(key: Array, state: _Particles):
-        """Moves under the full posterior until the draws decorrelate from their start (module
-        docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess mass
-        in the long v_des tail. Below about 3.5 / sqrt(N) the largest of d sample correlations
-        is noise, not mixing."""
-        walk, acceptance, done, corr = moves_until_decorrelated(
-            key,
-            as_walk(state),
-            walker(fit_cloud(state), log_lik_whole),
-            box=box,
-            block=config.final_moves,
-            max_moves=config.max_final_moves,
-            threshold=jnp.maximum(config.decorrelation, 3.5 / jnp.sqrt(n)),
-        )
-        return from_walk(walk, state.log_weight), acceptance, done, corr
-
-    def step(carry, xs):
+    def sequential_step(carry, xs):
+        """Reweight by step t's density; below the ESS threshold resample and move with the
+        proposal fitted to the reweighted cloud, the moves scoring steps 0..t."""
         state, log_evidence = carry
         inputs, t, key = xs
-        increment = particles_loglik(model, names, fixed, state.theta, inputs)
-        log_weight = state.log_weight + increment
-        # log sum_i W_i p(y_t | theta_i): exactly 0 on masked steps, where increment == 0.
-        log_evidence += jax.nn.logsumexp(log_weight) - jax.nn.logsumexp(state.log_weight)
-        state = state._replace(log_weight=log_weight, log_lik=state.log_lik + increment)
-        ess = effective_sample_size(log_weight)
-        mean, _ = weighted_mean_cov(state.theta, log_weight)
-        rejuvenate = (inputs.mask > 0) & (ess < config.ess_threshold * n)
-        nan = jnp.full((), jnp.nan, state.theta.dtype)
-        state, acceptance, unique = jax.lax.cond(
-            rejuvenate,
-            lambda: resample_move(
-                key, state, functools.partial(log_lik_up_to, last_step=t), config.num_moves
-            ),
-            lambda: (state, nan, nan),
+        increment = particles_loglik(model, names, fixed, state.particles.theta, inputs)
+        # The cloud's cached log-likelihood covers step t before the moves score it.
+        seen = state.particles._replace(tempered=state.particles.tempered + increment)
+        log_weights = state.log_weights + increment
+        mean, _ = weighted_mean_cov(seen.theta, log_weights)
+        move = cloud_move(
+            fit_cloud(seen.theta, log_weights, box),
+            loglik=tempered(functools.partial(log_lik_up_to, last_step=t)),
+            prior_logpdf=log_prior_of,
+            power=1.0,
+            box=box,
+            config=tempering,
         )
-        return (state, log_evidence), (ess, rejuvenate, acceptance, unique, mean)
+        kernel = stage_moves(
+            move, num_moves=config.num_moves, unmoved_tolerance=0.0, max_moves=config.num_moves
+        )
+        state, info = smc_step(
+            key,
+            SMCState(seen, state.log_weights),
+            lambda _: increment,
+            kernel,
+            resample_below=tempering.ess_threshold,
+        )
+        nan = jnp.full((), jnp.nan, mean.dtype)
+        acceptance = jnp.where(
+            info.resampled, info.move.acceptance_sum / jnp.maximum(info.move.count, 1.0), nan
+        )
+        unique = jnp.where(
+            info.resampled, count_distinct_sorted(info.ancestors).astype(mean.dtype), nan
+        )
+        # log sum_i W_i p(y_t | theta_i): exactly 0 on masked steps, where increment == 0.
+        log_evidence += info.log_increment
+        return (state, log_evidence), (info.ess, info.resampled, acceptance, unique, mean)
 
-    start = _Particles(
-        theta=theta,
-        log_weight=jnp.zeros(n, theta.dtype),
-        log_lik=jnp.zeros(n, theta.dtype),
-        log_prior=log_prior_of(theta),
-        log_scale=jnp.log(2.38 / jnp.sqrt(theta.shape[-1])).astype(theta.dtype),
-    )
     sequential = None
     if config.sequential:
+        start = prior_cloud(key_init, lambda theta: jnp.zeros(n, theta.dtype))
         (_, log_evidence), (ess, resampled, acceptance, unique, means) = jax.lax.scan(
-            step,
-            (start, jnp.zeros((), theta.dtype)),
+            sequential_step,
+            (SMCState(start, jnp.zeros(n, start.theta.dtype)), jnp.zeros((), start.theta.dtype)),
             (series, step_index, jax.random.split(key_steps, num_steps)),
         )
         sequential = _SequentialPass(
@@ -363,43 +304,43 @@ def _smc_vehicle(
             convergence=convergence_curve(means, width),
         )
 
-    def temper(carry):
-        """One tempering stage: the next power by bisection, reweight, resample and move."""
-        state, power, log_z, key, stages, accepted = carry
-        key, key_move = jax.random.split(key)
-        new_power = next_temperature(state.log_lik, power, config.ess_threshold, BISECTION_STEPS)
-        increment = (new_power - power) * state.log_lik
-        state, rate, _ = resample_move(
-            key_move,
-            state._replace(log_weight=increment),
-            log_lik_whole,
-            config.temper_moves,
-            new_power,
-        )
-        return (
-            state,
-            new_power,
-            log_z + log_mean_weight(increment),
-            key,
-            stages + 1,
-            accepted + rate,
-        )
-
     key_prior, key_temper, key_closing = jax.random.split(key_final, 3)
-    theta = prior.sample(key_prior, (n,))
-    zero = jnp.zeros((), theta.dtype)
-    fresh = start._replace(theta=theta, log_lik=log_lik_whole(theta), log_prior=log_prior_of(theta))
-    tempered, _, tempered_log_evidence, _, stages, accepted = jax.lax.while_loop(
-        lambda carry: carry[1] < 1.0,
-        temper,
-        (fresh, zero, zero, key_temper, jnp.zeros((), jnp.int32), zero),
+    whole = tempered(log_lik_whole)
+    run = adaptive_tempering(
+        key_temper,
+        prior_cloud(key_prior, log_lik_whole),
+        loglik=whole,
+        prior_logpdf=log_prior_of,
+        box=box,
+        config=tempering,
     )
-    final, final_acceptance, final_moves, final_correlation = decorrelate(key_closing, tempered)
+    # Closing moves under the full posterior until the draws decorrelate from their start (module
+    # docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess mass in
+    # the long v_des tail. Below about 3.5 / sqrt(N) the largest of d sample correlations is
+    # noise, not mixing.
+    closing = cloud_move(
+        fit_cloud(run.particles.theta, run.log_weights, box),
+        loglik=whole,
+        prior_logpdf=log_prior_of,
+        power=1.0,
+        box=box,
+        config=tempering,
+    )
+    final, final_acceptance, final_moves, final_correlation = moves_until_decorrelated(
+        key_closing,
+        run.particles,
+        closing,
+        box=box,
+        block=config.final_moves,
+        max_moves=config.max_final_moves,
+        threshold=jnp.maximum(config.decorrelation, 3.5 / jnp.sqrt(n)),
+    )
     return _VehicleOutput(
         theta=final.theta,
-        log_evidence=tempered_log_evidence,
-        temper_stages=stages,
-        temper_acceptance=accepted / stages,
+        log_evidence=run.log_evidence,
+        temper_stages=run.stages,
+        temper_acceptance=run.acceptance_sum / run.moves,
+        final_temperature=run.temperature,
         final_acceptance=final_acceptance,
         final_moves=final_moves,
         final_correlation=final_correlation,
@@ -420,6 +361,9 @@ def run(
     ess_threshold: float = 0.5,
     num_moves: int = 5,
     temper_moves: int = 20,
+    unmoved_tolerance: float = 0.0,
+    max_moves: int = 64,
+    max_stages: int = 200,
     final_moves: int = 80,
     max_final_moves: int = 2000,
     decorrelation: float = 0.1,
@@ -438,6 +382,10 @@ def run(
     parameters (default: the model's uniform prior box); if it has ``lower`` and ``upper`` the
     moves work on their logit scale. ``replicates`` independent runs of ``num_particles`` each
     become the posterior's chains. The log-likelihood group scores every final particle.
+    A tempering stage runs ``temper_moves`` moves, and with ``unmoved_tolerance`` > 0 more, up to
+    ``max_moves``, until every particle has likely moved (:mod:`~bayesdrive.inference.smc_core`);
+    a vehicle whose tempering has not reached the posterior after ``max_stages`` stages is an
+    error.
     """
     if not 0.0 < ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold must be in (0, 1], got {ess_threshold}")
@@ -446,6 +394,11 @@ def run(
     if max_final_moves < final_moves:
         raise ValueError(
             f"max_final_moves ({max_final_moves}) must be at least final_moves ({final_moves})"
+        )
+    if not 0.0 <= unmoved_tolerance < 1.0 or max_moves < temper_moves or max_stages < 1:
+        raise ValueError(
+            "need 0 <= unmoved_tolerance < 1, max_moves >= temper_moves and max_stages >= 1, got "
+            f"{unmoved_tolerance}, {max_moves} (temper_moves {temper_moves}), {max_stages}"
         )
     if independent_df < 1 or int(independent_df) != independent_df:
         raise ValueError(f"independent_df must be a whole number >= 1, got {independent_df}")
@@ -456,16 +409,21 @@ def run(
         )
     problem = prepare("smc", arrays, model=model, params=params, fixed=fixed, prior=prior)
     config = SMCConfig(
-        num_particles=num_particles,
-        ess_threshold=ess_threshold,
+        tempering=TemperingConfig(
+            num_particles=num_particles,
+            num_moves=temper_moves,
+            ess_threshold=ess_threshold,
+            unmoved_tolerance=unmoved_tolerance,
+            max_moves=max_moves,
+            max_stages=max_stages,
+            target_acceptance=target_acceptance,
+            independent=independent,
+            independent_df=int(independent_df),
+        ),
         num_moves=num_moves,
-        temper_moves=temper_moves,
         final_moves=final_moves,
         max_final_moves=max_final_moves,
         decorrelation=decorrelation,
-        target_acceptance=target_acceptance,
-        independent=independent,
-        independent_df=int(independent_df),
         sequential=sequential,
     )
     score_lengths = _lengths_taken(np.asarray(problem.series.mask)) if vehicle_batch <= 1 else ()
@@ -488,6 +446,11 @@ def run(
         progress=progress,
         cache_key=problem.cache_key("smc", config, static_key(problem.prior), score_lengths),
     )
+    check_finished(out.final_temperature, problem.vehicle_ids, "smc", max_stages)
+    # The options under their engine names: a stage's moves are smc's temper_moves.
+    engine_options = config._asdict()
+    stage_options = engine_options.pop("tempering")._asdict()
+    stage_options["temper_moves"] = stage_options.pop("num_moves")
     theta = np.moveaxis(out.theta, 0, 1)  # (vehicle, replicate, particle, d)
     log_lik = problem.score(theta.reshape(problem.num_vehicles, -1, theta.shape[-1]))
     per_replicate = ("chain", "vehicle")
@@ -523,7 +486,8 @@ def run(
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
-            **config._asdict(),
+            **stage_options,
+            **engine_options,
             "replicates": replicates,
             "resampler": "systematic",
             "vehicle_chunk": vehicle_chunk,

@@ -191,9 +191,10 @@ def log_likelihood_draws(values: np.ndarray) -> np.ndarray:
 
 
 # Compiled chunk runners by cache key, so repeated fits of one shape (tests, seed studies) compile
-# once per process; small, because each entry holds an executable.
+# once per process; bounded, because each entry holds an executable, yet large enough for every
+# program of a criticism (one per extension and start kind) to stay.
 _COMPILED: dict[Any, Any] = {}
-_COMPILED_MAX = 8
+_COMPILED_MAX = 64
 
 
 def clear_compiled() -> None:

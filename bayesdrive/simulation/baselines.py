@@ -63,6 +63,7 @@ __all__ = [
     "IDM_DEFAULT_PARAMS",
     "IDM_NLS_PARAMS",
     "MERGE_ONLY",
+    "PER_VEHICLE_FITS",
     "ConstantAccelerationParams",
     "Policy",
     "baseline_policy",
@@ -275,6 +276,8 @@ _FIXED = {
 BASELINES = ("idm-default", "idm-nls", "idm-lm", "cv", "ca", "blackbox", "cidm-c1", "idm-nomerge")
 MERGE_ONLY = frozenset({"cidm-c1", "idm-nomerge"})
 CAR_FOLLOWING_ONLY = frozenset({"idm-lm", "blackbox"})
+# Baselines fitted per simulated vehicle: a vehicle without a usable fitting step has no fit.
+PER_VEHICLE_FITS = frozenset({"idm-lm"})
 
 
 def baseline_policy(

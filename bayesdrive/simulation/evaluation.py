@@ -7,7 +7,11 @@ other data platoon scenes (see :mod:`bayesdrive.simulation.scenarios`). The mode
 name, or the driver model of a fitted posterior (a result tree or its netCDF file); a posterior
 fitted on another split, window or data source is refused. A posterior fitted on some vehicles
 only (``fit --vehicles N``) scores the scenarios whose simulated vehicles it has draws for; the
-others are skipped, and the result names them (``skipped``).
+others are skipped, and the result names them (``skipped``). Platoon scenarios take the largest
+size the data allow unless a size is given, and the result says so (``scenario_size``).
+Baselines that fit (``idm-lm``, ``blackbox``) follow the held-out protocol of
+:mod:`bayesdrive.experiments.holdout` on any data, held-out sets included: fitted on the fitting
+windows with their documented settings, scored on the held-out windows.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from jax import Array
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
+from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.distributed import chunk_rows, run_tasks
 from bayesdrive.inference.output import load_result, metadata
@@ -32,6 +37,7 @@ from bayesdrive.simulation.baselines import (
     BASELINES,
     CAR_FOLLOWING_ONLY,
     MERGE_ONLY,
+    PER_VEHICLE_FITS,
     Policy,
     baseline_policy,
 )
@@ -52,7 +58,13 @@ from bayesdrive.simulation.scenarios import (
     scenario_capacity,
 )
 
-__all__ = ["check_posterior_split", "evaluate", "evaluation_data", "evaluation_scenarios"]
+__all__ = [
+    "check_posterior_split",
+    "evaluate",
+    "evaluation_data",
+    "evaluation_scenarios",
+    "largest_scenario_size",
+]
 
 log = logging.getLogger(__name__)
 
@@ -70,9 +82,40 @@ def evaluation_data(
     """The trajectories, and whether they are a held-out data set."""
     if isinstance(data, Trajectories):
         return data, False
-    if data in registry.HOLDOUT and not Path(data).exists():
+    if registry.is_holdout_name(data):
         return registry.load_holdout(str(data), holdout_dir=data_dir), True
     return registry.load(data, data_dir=data_dir), False
+
+
+def _sizes_allowed(traj: Trajectories, horizon: float) -> tuple[int | None, str]:
+    """The largest platoon scenario size the held-out windows allow (None: none), and the
+    scenario count of every size, as one line."""
+    allowed = scenario_capacity(traj, horizon_s=horizon)
+    sizes = (
+        ", ".join(f"{r['vehicles_per_scenario']}: {r['scenarios']}" for r in allowed)
+        or "none at any size"
+    )
+    return (allowed[-1]["vehicles_per_scenario"] if allowed else None), sizes
+
+
+def largest_scenario_size(traj: Trajectories, horizon: float) -> tuple[int, str]:
+    """The largest platoon scenario size of ``horizon`` s the held-out windows of ``traj`` allow,
+    and the line that says it was chosen so; a :class:`DataError` if they allow none."""
+    size, sizes = _sizes_allowed(traj, horizon)
+    if size is None and not traj.tracks["leader_id"].notna().any():
+        raise DataError(
+            f"{traj.source}: no vehicle has a recorded leader, so there is no platoon scenario "
+            "(a follower behind its replayed leader) to evaluate"
+        )
+    if size is None:
+        raise DataError(
+            f"{traj.source}: no platoon scenario of {horizon} s lies in the held-out windows at "
+            "any size"
+        )
+    return size, (
+        f"{size} vehicle(s) per scenario, the largest size the data allows (scenarios per size: "
+        f"{sizes}); --vehicles-per-scenario picks another"
+    )
 
 
 def evaluation_scenarios(
@@ -88,11 +131,7 @@ def evaluation_scenarios(
     if found.scenarios:
         return found
     if found.kind == "platoon":
-        allowed = scenario_capacity(traj, horizon_s=horizon)
-        sizes = (
-            ", ".join(f"{r['vehicles_per_scenario']}: {r['scenarios']}" for r in allowed)
-            or "none at any size"
-        )
+        _, sizes = _sizes_allowed(traj, horizon)
         raise DataError(
             f"{traj.source}: no {vehicles_per_scenario}-vehicle platoon scenario of {horizon} s "
             f"lies in the held-out windows; scenarios per size the data allows: {sizes}"
@@ -148,36 +187,37 @@ def check_posterior_split(
 
 
 def _fitted_scenarios(
-    where: str, tree: xr.DataTree, scenarios: ScenarioSet
+    where: str, fitted: set[str], scenarios: ScenarioSet, *, lacking: str
 ) -> tuple[ScenarioSet, dict[str, Any] | None]:
-    """The scenarios whose every simulated vehicle has posterior draws, and what was skipped."""
-    fitted = {str(v) for v in tree["posterior"]["vehicle"].values}
-    kept = [s for s in scenarios.scenarios if set(s.simulated_ids) <= fitted]
+    """The scenarios whose every simulated vehicle is among the ``fitted`` ids, and what was
+    skipped; ``lacking`` says what the others lack."""
+    kept = scenarios.within(fitted)
     unfitted = [v for v in scenarios.simulated_ids if v not in fitted]
     if not unfitted:
         return scenarios, None
-    if not kept:
+    if not kept.scenarios:
         raise DataError(
-            f"{where}: the posterior has draws for {len(fitted)} vehicle(s), and every one of the "
-            f"{len(scenarios.scenarios)} scenario(s) simulates a vehicle it lacks "
+            f"{where}: {len(fitted)} vehicle(s) are fitted, and every one of the "
+            f"{len(scenarios.scenarios)} scenario(s) simulates a vehicle without {lacking} "
             f"({len(unfitted)} such vehicle(s), e.g. {unfitted[:5]}); fit those vehicles, or "
             "evaluate one vehicle per scenario (--vehicles-per-scenario 1)"
         )
     skipped = {
-        "scenarios": len(scenarios.scenarios) - len(kept),
+        "scenarios": len(scenarios.scenarios) - len(kept.scenarios),
         "vehicles": unfitted,
-        "reason": "simulated vehicles without posterior draws (not fitted)",
+        "reason": f"simulated vehicles without {lacking} (not fitted)",
     }
     log.warning(
-        "%s: the posterior lacks %d simulated vehicle(s); scoring the %d of %d scenario(s) whose "
-        "vehicles it has, skipping %s",
+        "%s: %d simulated vehicle(s) without %s; scoring the %d of %d scenario(s) without them, "
+        "skipping %s",
         where,
         len(unfitted),
-        len(kept),
+        lacking,
+        len(kept.scenarios),
         len(scenarios.scenarios),
         unfitted,
     )
-    return scenarios._replace(scenarios=kept), skipped
+    return kept, skipped
 
 
 def _posterior_policy(
@@ -201,7 +241,8 @@ def _posterior_policy(
             f"{model.scene} scenes, not {scenarios.kind} scenes"
         )
     check_posterior_split(meta, traj, scenarios, data_dir)
-    scenarios, skipped = _fitted_scenarios(where, tree, scenarios)
+    fitted = {str(v) for v in tree["posterior"]["vehicle"].values}
+    scenarios, skipped = _fitted_scenarios(where, fitted, scenarios, lacking="posterior draws")
     policy = posterior_policy(model_name, model, tree, meta)
     details = {
         **policy.details,
@@ -220,7 +261,13 @@ def _baseline(
     scenarios: ScenarioSet,
     heldout_data: bool,
     progress: Progress,
-) -> Policy:
+) -> tuple[Policy, ScenarioSet, dict[str, Any] | None]:
+    """The baseline's policy, the scenarios it can score and what it skipped. Baselines that fit
+    follow the held-out protocol (:mod:`bayesdrive.experiments.holdout`) on any data: fitted on
+    the fitting windows with their documented settings (nothing here can change them, so nothing
+    is tuned on a held-out set), scored on the held-out windows; a follower without a usable
+    fitting step has no per-vehicle fit, and its scenarios are skipped."""
+    skipped = None
     if name in MERGE_ONLY and scenarios.kind != "merge":
         raise DataError(f"{name} simulates merges; {traj.source} has no merge episodes")
     if name in CAR_FOLLOWING_ONLY and scenarios.kind == "merge":
@@ -229,17 +276,23 @@ def _baseline(
             "by episode, so held-out cooperating drivers have none"
         )
     if name in CAR_FOLLOWING_ONLY and heldout_data:
-        raise DataError(
-            f"{name} fits on the data it evaluates; {traj.source} is held out for evaluation "
-            "only: nothing may be fitted on it"
+        log.warning(registry.HELD_OUT_NOTE, traj.source)
+    if name in PER_VEHICLE_FITS:
+        arrays = follower_arrays(traj, window="fit", vehicle_ids=scenarios.simulated_ids)
+        scenarios, skipped = _fitted_scenarios(
+            f"{traj.source}: {name}",
+            set(arrays.vehicle_ids),
+            scenarios,
+            lacking="a usable step in their fitting window",
         )
-    return baseline_policy(
+    policy = baseline_policy(
         name,
         key,
         traj,
         scenarios.simulated_ids,
         progress=lambda done, total: progress("fit", done, total),
     )
+    return policy, scenarios, skipped
 
 
 def _scenario_chunk(
@@ -297,7 +350,7 @@ def evaluate(
     posterior: str | Path | xr.DataTree | None = None,
     horizon_s: float = 5.0,
     num_rollouts: int = 100,
-    vehicles_per_scenario: int = 4,
+    vehicles_per_scenario: int | None = None,
     seed: int | None = None,
     data_dir: str | None = None,
     progress: Progress | None = None,
@@ -311,7 +364,9 @@ def evaluate(
     a key for the policy (what a baseline fits or draws) and one for the rollouts; ``seed`` is
     recorded beside the key's data. Returns the JSON-ready result: the metrics of
     :func:`~bayesdrive.simulation.metrics.summarize`, the scenario set and the rules that chose
-    it, and ``skipped`` (scenarios left out for want of posterior draws; None if none were).
+    it, and ``skipped`` (scenarios left out for want of posterior draws or of a per-vehicle fit;
+    None if none were). Platoon scenarios simulate ``vehicles_per_scenario`` vehicles each (None:
+    the largest size the data allows, and ``scenario_size`` says so; None when given).
     With a Dask ``client`` the scenarios are rolled out in chunks of ``chunk_size`` on its workers
     (the policy is built here, then sent once to each); each scenario keeps its own key, so the
     result is bit-identical to the run without.
@@ -319,12 +374,17 @@ def evaluate(
     say = progress or (lambda stage, done, total: None)
     key_policy, key_rollouts = jax.random.split(key)
     traj, heldout_data = evaluation_data(data, data_dir)
-    scenarios = evaluation_scenarios(traj, horizon_s, vehicles_per_scenario)
-    skipped = None
+    size, size_note = vehicles_per_scenario, None
+    if size is None and traj.format != MERGE_FORMAT:
+        size, size_note = largest_scenario_size(traj, horizon_s)
+    # Merge scenes have one simulated driver each, whatever the size asked.
+    scenarios = evaluation_scenarios(traj, horizon_s, size or 1)
     if posterior is not None:
         policy, scenarios, skipped = _posterior_policy(posterior, model, traj, scenarios, data_dir)
     elif model in BASELINES:
-        policy = _baseline(model, key_policy, traj, scenarios, heldout_data, say)
+        policy, scenarios, skipped = _baseline(
+            model, key_policy, traj, scenarios, heldout_data, say
+        )
     else:
         raise DataError(
             f"unknown model {model!r}: use a baseline ({', '.join(BASELINES)}) or give the "
@@ -360,6 +420,7 @@ def evaluate(
         "key_data": jax.random.key_data(key).ravel().tolist(),
         "horizon_s": horizon_s,
         "vehicles_per_scenario": scenarios.vehicles_per_scenario,
+        "scenario_size": size_note,
         "split_rule": scenarios.split_rule,
         "scenario_set": scenarios.summary(),
         "skipped": skipped,

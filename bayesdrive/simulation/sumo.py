@@ -79,10 +79,10 @@ not fitted (the types leave SUMO's default). Parameters a model has beyond the I
 C-IDM's cooperation ``c``) have no SUMO counterpart: they are kept as ``<param>`` entries and
 logged. Every file records its source result, the seed of any draws and the code that wrote it.
 
-Measured on an NGSIM follower behind its recorded leader (``tests/test_sumo_export.py``, 25 s at
-a 0.1 s step): with the ballistic update and stepping 0.1 s, SUMO's follower stays within 4e-5 m
-and 1.3e-5 m/s of bayesdrive's deterministic rollout; SUMO's default Euler update moves it by
-0.36 m, and stepping 0.025 s (four sub-steps holding the leader's speed) by 0.07 m.
+SUMO is run with the ballistic update at bayesdrive's 0.1 s step: that is what reproduces
+bayesdrive's deterministic rollout (``tests/test_sumo_export.py`` holds the tolerance;
+``reports/sumo/README.md`` the round trip); SUMO's default Euler update, or sub-steps holding the
+leader's speed, do not.
 """
 
 from __future__ import annotations

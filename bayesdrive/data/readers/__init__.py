@@ -15,9 +15,10 @@ merge_episodes NGSIM on-ramp merge episodes (ego-centric), :mod:`.merge_episodes
 columns        any table through a column map (incl. the held-out folders), :mod:`.columns`
 ============== ====================================================================
 
-The data-set registry's format names for the held-out folders are in :data:`FORMATS` too:
-``openacc_extract`` (OpenACC reader) and ``ngsim_pairs``, ``ngsim_parquet``, ``ngsim_matrices``,
-``ngsim_vehicles`` (the column-map reader with the matching :data:`HOLDOUT_LAYOUTS` entry).
+:data:`FORMATS` also holds the format of every data set whose description
+(:mod:`bayesdrive.data.catalog`) gives it a :class:`~bayesdrive.data.catalog.Layout` under a
+format name of its own (``openacc_extract``, ``ngsim_pairs``, ...): the layout's reader with the
+layout's options. A folder named after such a data set is read through its layout.
 """
 
 from __future__ import annotations
@@ -29,9 +30,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from bayesdrive.data.catalog import DATASETS, HOLDOUT, LAYOUTS, Layout
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import open_text, require_regular_file
-from bayesdrive.data.readers.columns import HOLDOUT_LAYOUTS, read_columns
+from bayesdrive.data.readers.columns import read_columns
 from bayesdrive.data.readers.highd import read_highd
 from bayesdrive.data.readers.interaction import read_interaction
 from bayesdrive.data.readers.merge_episodes import read_merge_episodes
@@ -41,9 +43,9 @@ from bayesdrive.data.readers.openacc import MAX_METADATA_ROWS as OPENACC_METADAT
 from bayesdrive.data.readers.openacc import read_openacc
 from bayesdrive.data.trajectories import Trajectories
 
-__all__ = ["FORMATS", "HOLDOUT_LAYOUTS", "detect_format", "read"]
+__all__ = ["FORMATS", "detect_format", "read"]
 
-FORMATS: dict[str, Callable[..., Trajectories]] = {
+_READERS: dict[str, Callable[..., Trajectories]] = {
     "ngsim_raw": read_ngsim_raw,
     "ngsim_chains": read_ngsim_chains,
     "openacc": read_openacc,
@@ -51,12 +53,23 @@ FORMATS: dict[str, Callable[..., Trajectories]] = {
     "interaction": read_interaction,
     "merge_episodes": read_merge_episodes,
     "columns": read_columns,
-    # Named layouts of the held-out folders (the format names the data-set registry uses).
-    "openacc_extract": read_openacc,
-    "ngsim_pairs": functools.partial(read_columns, layout="ngsim_i80_pairs_a"),
-    "ngsim_parquet": functools.partial(read_columns, layout="ngsim_i80_pairs_b"),
-    "ngsim_matrices": functools.partial(read_columns, layout="ngsim_i80_pairs_raw_c"),
-    "ngsim_vehicles": functools.partial(read_columns, layout="ngsim_us101_vehicles"),
+}
+
+
+def _layout_reader(name: str, layout: Layout) -> Callable[..., Trajectories]:
+    """The reader behind a data set's own format name: its layout's reader, with the layout."""
+    if layout.reader == "columns":
+        return functools.partial(read_columns, layout=name)
+    return _READERS[layout.reader]
+
+
+FORMATS: dict[str, Callable[..., Trajectories]] = {
+    **_READERS,
+    **{
+        d.format: _layout_reader(d.name, d.layout)
+        for d in (*DATASETS.values(), *HOLDOUT.values())
+        if d.layout is not None and d.format not in _READERS
+    },
 }
 # Lines read to recognise a CSV: OpenACC puts metadata rows before its header, as many as its
 # reader accepts.
@@ -129,11 +142,9 @@ def detect_format(path: str | Path) -> tuple[str, dict[str, Any]]:
 
 
 def _detect_folder(path: Path) -> tuple[str, dict[str, Any]]:
-    if path.name in HOLDOUT_LAYOUTS:
-        layout = HOLDOUT_LAYOUTS[path.name]
-        if layout["format"] == "columns":
-            return "columns", {"layout": path.name}
-        return layout["format"], {}
+    if path.name in LAYOUTS:
+        reader = LAYOUTS[path.name].reader
+        return reader, {"layout": path.name} if reader == "columns" else {}
     names = {f.name for f in path.iterdir()}
     if any(n.endswith("_tracks.csv") for n in names) and any(
         n.endswith("_tracksMeta.csv") for n in names
@@ -154,7 +165,7 @@ def _detect_folder(path: Path) -> tuple[str, dict[str, Any]]:
         f"{path}: cannot tell the format of this folder (files: "
         f"{', '.join(sorted(names)[:10])}{' ...' if len(names) > 10 else ''}; first lines: "
         f"{seen}). Known formats: {', '.join(FORMATS)}; known held-out layouts: "
-        f"{', '.join(HOLDOUT_LAYOUTS)}; pass format=..."
+        f"{', '.join(LAYOUTS)}; pass format=..."
     )
 
 

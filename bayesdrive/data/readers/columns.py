@@ -30,8 +30,8 @@ value gets the median of its own measured lengths, else ``length`` (4.5 m, noted
 ``column * time_factor`` (``0.1`` for 10 Hz frame numbers, ``0.001`` for ms); ``dt=None`` infers
 the sampling interval from the median step (noted).
 
-:data:`HOLDOUT_LAYOUTS` names the column maps of the held-out folders (format descriptions taken
-from their PROVENANCE files, not tuned numbers); ``read_columns(folder, layout=name)`` uses one.
+A data set whose folder is read through a column map names it in its description
+(:data:`bayesdrive.data.catalog.LAYOUTS`); ``read_columns(folder, layout=name)`` uses it.
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from bayesdrive.data.catalog import LAYOUTS, Layout
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     DEFAULT_LENGTH_M,
@@ -66,9 +67,9 @@ from bayesdrive.data.readers._common import (
     time_steps,
 )
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.units import FOOT_M, to_metres_factor
+from bayesdrive.data.units import to_metres_factor
 
-__all__ = ["HOLDOUT_LAYOUTS", "MODES", "UNITS", "read_columns", "read_dataframe"]
+__all__ = ["MODES", "UNITS", "read_columns", "read_dataframe"]
 
 log = logging.getLogger(__name__)
 
@@ -99,111 +100,6 @@ WIDE_KEYS = {
 }
 # Copies of one sample from different pair files must agree to float precision (same source).
 COPY_TOLERANCE = 1e-6
-
-HOLDOUT_LAYOUTS: dict[str, dict[str, Any]] = {
-    "ngsim_i80_pairs_a": {
-        "format": "columns",
-        "mode": "pairs",
-        "description": (
-            "per-pair CSVs in train/ and test/, FEET; x is the front (spacing = x_leader - "
-            "x_follower - leader_length, a bumper gap); ids from the file name "
-            "(..._<period>_f<follower>_l<leader>_<n>); no follower length"
-        ),
-        "patterns": ("train/*.csv", "test/*.csv"),
-        "units": "ft",
-        "headway": "bumper",
-        "dt": 0.1,
-        "columns": {
-            "t": "t",
-            "x_follower": "x_follower",
-            "v_follower": "v_follower",
-            "a_follower": "a_follower",
-            "x_leader": "x_leader",
-            "v_leader": "v_leader",
-            "a_leader": "a_leader",
-            "length_leader": "leader_length",
-            "gap": "spacing",
-        },
-        "id_pattern": r"(?P<scope>\d{4}[ap]m-\d{4}[ap]m)_f(?P<follower>\d+)_l(?P<leader>\d+)_\d+$",
-    },
-    "ngsim_i80_pairs_b": {
-        "format": "columns",
-        "mode": "pairs",
-        "description": (
-            "one parquet of pairs, metres, 10 Hz frame_id (absolute NGSIM frames), ids in "
-            "vehicle_id/preceding, one scene per pair_id. space_headway (raw NGSIM, front to "
-            "front) is NOT used: it disagrees with the reconstructed positions by up to 8.5 m, so "
-            "the gap is computed from local_y, preceding_local_y and preceding_length"
-        ),
-        "patterns": ("df.parquet",),
-        "units": "m",
-        "dt": 0.1,
-        "time_factor": 0.1,
-        "columns": {
-            "t": "frame_id",
-            "follower_id": "vehicle_id",
-            "leader_id": "preceding",
-            "x_follower": "local_y",
-            "v_follower": "v_vel",
-            "a_follower": "v_acc",
-            "length_follower": "v_length",
-            "x_leader": "preceding_local_y",
-            "v_leader": "preceding_vel",
-            "a_leader": "preceding_acc",
-            "length_leader": "preceding_length",
-            "lane_id": "lane_id",
-            "scene_id": "pair_id",
-        },
-    },
-    "ngsim_i80_pairs_raw_c": {
-        "format": "columns",
-        "mode": "wide",
-        "description": (
-            "wide matrices (one column per pair, 350 rows at 10 Hz), FEET, positions of the "
-            "front (NGSIM Local_Y); the top-level files hold all 150 pairs (Trajectory/ and "
-            "Testing/ are subsets of them); no ids, lanes or lengths"
-        ),
-        "units": "ft",
-        "dt": 0.1,
-        "files": {
-            "x_leader": "Leading Position.csv",
-            "v_leader": "Leading Speed.csv",
-            "a_leader": "Leading Acc.csv",
-            "x_follower": "Following Position.csv",
-            "v_follower": "Following Speed.csv",
-            "a_follower": "Following Acc.csv",
-        },
-    },
-    "ngsim_us101_vehicles": {
-        "format": "columns",
-        "mode": "vehicles",
-        "description": (
-            "one CSV per vehicle; the '(m)' columns were made with 0.3084 m/ft instead of 0.3048, "
-            "so the factor to true metres is 0.3048/0.3084; t = Frame_ID * 0.1 s; no lengths, "
-            "no lane or leader ids"
-        ),
-        "patterns": ("vehicles/*.csv",),
-        "units": FOOT_M / 0.3084,
-        "dt": 0.1,
-        "time_factor": 0.1,
-        "columns": {
-            "vehicle_id": "Vehicle_ID",
-            "t": "Frame_ID",
-            "x": "local_y(m)",
-            "v": "v_Vel(m)",
-            "a": "v_Acc(m)",
-        },
-    },
-    "openacc_casale": {"format": "openacc", "description": "OpenACC platoon files (2 cars)"},
-    "openacc_zalazone": {
-        "format": "openacc",
-        "description": "OpenACC platoon files in subfolders; some cars and IVS columns missing",
-    },
-    "acc_platoon_fhwa": {
-        "format": "openacc",
-        "description": "OpenACC-like columns (Time, Speed1..5, IVS1..4), no metadata rows",
-    },
-}
 
 _DEFAULTS: dict[str, Any] = {
     "columns": None,
@@ -240,8 +136,9 @@ def read_columns(
 ) -> Trajectories:
     """Read a table (file or folder) through a column map; see the module docstring.
 
-    ``layout`` names an entry of :data:`HOLDOUT_LAYOUTS` (or is such a dict); explicit arguments
-    override it.
+    ``layout`` names a data set with a layout (:data:`bayesdrive.data.catalog.LAYOUTS`), or is a
+    :class:`~bayesdrive.data.catalog.Layout` or a dict of these options (with ``format`` naming
+    another reader to hand the path to); explicit arguments override it.
     """
     given = {
         "columns": columns,
@@ -258,19 +155,18 @@ def read_columns(
         "no_leader": no_leader,
     }
     preset: dict[str, Any] = {}
-    if layout is not None:
-        if isinstance(layout, str):
-            if layout not in HOLDOUT_LAYOUTS:
-                raise DataError(
-                    f"unknown layout {layout!r}; known: {', '.join(sorted(HOLDOUT_LAYOUTS))}"
-                )
-            preset = dict(HOLDOUT_LAYOUTS[layout])
-        else:
-            preset = dict(layout)
-        if preset.get("format", FORMAT) != FORMAT:
-            from bayesdrive.data.readers import FORMATS  # the registry imports this module
+    if isinstance(layout, str):
+        if layout not in LAYOUTS:
+            raise DataError(f"unknown layout {layout!r}; known: {', '.join(sorted(LAYOUTS))}")
+        layout = LAYOUTS[layout]
+    if isinstance(layout, Layout):
+        preset = {"format": layout.reader, **layout.reader_options()}
+    elif layout is not None:
+        preset = dict(layout)
+    if preset.get("format", FORMAT) != FORMAT:
+        from bayesdrive.data.readers import FORMATS  # that module imports this one
 
-            return FORMATS[preset["format"]](path)
+        return FORMATS[preset["format"]](path)
     options = {**_DEFAULTS}
     options.update({k: v for k, v in preset.items() if k in _DEFAULTS})
     options.update({k: v for k, v in given.items() if v is not None})
