@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import nuts, pf, smc
+from bayesdrive.inference import fit, nuts, pf, smc
 from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.synthetic import simulate_following
 from bayesdrive.inference.vehicles import vehicle_hash, vehicle_keys
@@ -108,3 +108,14 @@ def test_vehicle_keys_follow_the_id_not_the_position():
     assert replicated[0, 0].tobytes() != replicated[1, 0].tobytes()
     # The hash is sha256's first 8 bytes of the UTF-8 id (stable across processes and versions).
     assert vehicle_hash("a") == (0xCA978112, 0xCA1BBDCA)
+
+
+@pytest.mark.parametrize("engine", sorted(fit.ENGINES))
+def test_every_engine_refuses_a_misspelt_or_missing_shared_input(engine, arrays):
+    """The shared inputs travel as ``**inputs``: a misspelt one is a TypeError, as a misspelt
+    keyword argument would be, not silently ignored; so is a missing model."""
+    run = fit.ENGINES[engine]
+    with pytest.raises(TypeError, match=r"unexpected keyword argument\(s\) \['num_particle'\]"):
+        run(jax.random.key(0), arrays, model=IDM, num_particle=10)
+    with pytest.raises(TypeError, match="missing the keyword argument 'model'"):
+        run(jax.random.key(0), arrays, num_particles=10)

@@ -12,17 +12,35 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 
-from bayesdrive.data.atomic import write_text_atomic
+from bayesdrive.data.atomic import existing_ancestor, write_text_atomic
 from bayesdrive.data.outputs import OutputError, ResultsFolder, open_results
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 console = Console(stderr=False)
 err_console = Console(stderr=True)
+
+
+def progress_bar() -> Progress:
+    """A counting progress bar (done of total, time so far), on standard error: standard output
+    may carry the JSON."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err_console,
+        transient=True,
+    )
 
 
 def emit_json(result: Any, out: str | None) -> bool:
@@ -51,9 +69,7 @@ def check_json_out(out: str | None, force: bool) -> None:
         raise fail(f"--json {out} is a folder, not a file")
     if path.exists() and not force:
         raise fail(f"--json {out} exists; use --force to replace it")
-    ancestor = path.parent
-    while not ancestor.exists():
-        ancestor = ancestor.parent
+    ancestor = existing_ancestor(path)
     if not ancestor.is_dir():
         raise fail(f"cannot write --json {out}: {ancestor} is a file, not a folder")
 

@@ -11,7 +11,6 @@ from typing import Any
 
 import typer
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from bayesdrive.cli.common import (
@@ -20,26 +19,14 @@ from bayesdrive.cli.common import (
     check_json_out,
     console,
     emit_json,
-    err_console,
     fail,
+    progress_bar,
 )
 from bayesdrive.cli.names import BASELINES, SCENARIO_CHUNK_SIZE
 
 __all__ = ["evaluate"]
 
 JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
-
-
-def _progress() -> Progress:
-    # On stderr: stdout may carry the JSON.
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err_console,
-        transient=True,
-    )
 
 
 def _mean_sd(summary: dict[str, Any]) -> str:
@@ -149,7 +136,7 @@ def evaluate(
 
     check_json_out(json_out, force)
     check_cluster_options(cluster, chunk_size)
-    with _progress() as bar:
+    with progress_bar() as bar:
         tasks: dict[str, Any] = {}
 
         def progress(stage: str, done: int, total: int | None) -> None:

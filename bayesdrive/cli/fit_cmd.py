@@ -20,7 +20,6 @@ from typing import Any
 
 import typer
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from bayesdrive.cli.common import (
@@ -34,6 +33,7 @@ from bayesdrive.cli.common import (
     emit_json,
     err_console,
     fail,
+    progress_bar,
     results_command,
     results_folder,
 )
@@ -51,18 +51,6 @@ JSON_HELP = "Write summary.json's content to OUT too ('-' for standard output, t
 # Vehicles listed in the printed table; summary.json has all of them.
 SHOWN_VEHICLES = 10
 NOT_CONVERGED = 3
-
-
-def _progress() -> Progress:
-    # On stderr: stdout may carry the JSON.
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err_console,
-        transient=True,
-    )
 
 
 def _size(result: dict[str, Any]) -> str:
@@ -243,7 +231,7 @@ def fit(
         format, reader_options = column_map_options(format, columns, units)
         traj = registry.load_any(data, format=format, data_dir=data_dir, **reader_options)
         fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
-        with _progress() as bar:
+        with progress_bar() as bar:
             where = "" if cluster is None else f" on {cluster}"
             task = bar.add_task(f"{engine}{where}: compiling, then fitting vehicles", total=None)
             settings = {

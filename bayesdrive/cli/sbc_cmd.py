@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from bayesdrive.cli.common import (
@@ -24,8 +23,8 @@ from bayesdrive.cli.common import (
     check_json_out,
     console,
     emit_json,
-    err_console,
     fail,
+    progress_bar,
     results_command,
     results_folder,
 )
@@ -156,14 +155,7 @@ def sbc(
     options: dict[str, Any] = {} if particles is None else {"num_particles": particles}
     check_json_out(json_out, force)
     results = None if out is None else results_folder(out, "sbc", force=force)
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err_console,
-        transient=True,
-    ) as bar:
+    with progress_bar() as bar:
         task = bar.add_task(f"SBC {engine}: fitting replications", total=replications)
         try:
             outcome = run_sbc(

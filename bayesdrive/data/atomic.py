@@ -7,7 +7,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["file_mode", "write_atomic", "write_text_atomic"]
+__all__ = ["existing_ancestor", "file_mode", "write_atomic", "write_text_atomic"]
 
 
 def file_mode() -> int:
@@ -37,3 +37,12 @@ def write_atomic(path: Path, write: Callable[[Path], None]) -> None:
 
 def write_text_atomic(path: Path, text: str) -> None:
     write_atomic(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+
+def existing_ancestor(path: Path) -> Path:
+    """The nearest existing path above ``path``: where writing it would start (folders below it
+    are created), so whether that is a writable folder says whether ``path`` can be written."""
+    ancestor = path.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    return ancestor

@@ -31,7 +31,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from bayesdrive.data.atomic import write_text_atomic
+from bayesdrive.data.atomic import existing_ancestor, write_text_atomic
 
 __all__ = [
     "MANIFEST",
@@ -107,9 +107,7 @@ def _check_place(target: Path) -> None:
         raise OutputError(f"--out {target} is a link; give the folder itself")
     if target.exists() and not target.is_dir():
         raise OutputError(f"--out {target} is a file, not a folder")
-    ancestor = target.parent
-    while not ancestor.exists():
-        ancestor = ancestor.parent
+    ancestor = existing_ancestor(target)
     if not ancestor.is_dir():
         raise OutputError(f"cannot write --out {target}: {ancestor} is a file, not a folder")
     if not os.access(ancestor, os.W_OK | os.X_OK):

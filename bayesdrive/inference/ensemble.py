@@ -36,8 +36,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Unpack
 
 import emcee
 import jax
@@ -47,9 +47,8 @@ import scipy.optimize
 from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.drivers.base import DriverModel
 from bayesdrive.inference.likelihood import series_loglik
-from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
 
 __all__ = [
@@ -77,15 +76,10 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    num_particles: int = 2000,
-    prior: Any = None,
-    progress: Callable[[int, int], None] | None = None,
     num_steps: int = 4000,
     num_burn: int | None = None,
     num_walkers: int | None = None,
+    **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """emcee for every vehicle of ``arrays`` (module docstring).
 
@@ -97,10 +91,9 @@ def run(
     ``kept_draws`` (before the common truncation), ``autocorr_reliable``, ``acceptance_fraction``
     (mean over walkers) and the numpy ``seed`` of its ensemble.
     """
-    problem = prepare(
-        "emcee", arrays, model=model, params=params, fixed=fixed, prior=prior, whole_series=True
-    )
+    problem = prepare("emcee", arrays, inputs, num_particles=2000, whole_series=True)
     names, box, prior, fixed_values = problem.names, problem.box, problem.prior, problem.fixed
+    model, num_particles, progress = problem.model, problem.num_particles, problem.progress
     dim = len(names)
     walkers = num_walkers_for(dim) if num_walkers is None else num_walkers
     burn = num_steps // 2 if num_burn is None else num_burn

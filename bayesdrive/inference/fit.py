@@ -46,21 +46,10 @@ __all__ = [
 
 
 class Engine(Protocol):
-    """An inference engine: every vehicle of ``arrays``, parameters ``params`` (None: all)."""
+    """An inference engine: every vehicle of ``arrays``; its keyword arguments are every engine's
+    :class:`~bayesdrive.inference.vehicles.EngineInputs` and its own options."""
 
-    def __call__(
-        self,
-        key: Array,
-        arrays: FollowerArrays,
-        *,
-        model: DriverModel,
-        params: Sequence[str] | None,
-        fixed: Mapping[str, float] | None,
-        num_particles: int,
-        prior: Any,
-        progress: Callable[[int, int], None] | None,
-        **options: Any,
-    ) -> EngineResult: ...
+    def __call__(self, key: Array, arrays: FollowerArrays, **options: Any) -> EngineResult: ...
 
 
 ENGINES: dict[str, Engine] = {

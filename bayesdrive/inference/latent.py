@@ -41,9 +41,9 @@ al. 2015); the variance grows like kappa T / N.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from functools import partial
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Unpack
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +54,7 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.measurement_noise import shift_ego
 from bayesdrive.inference.likelihood import StepInputs, step_inputs
-from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.smc_core import SMCState
 from bayesdrive.inference.smc_core import step as smc_step
 from bayesdrive.inference.vehicles import (
@@ -483,18 +483,13 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    num_particles: int = 1000,
-    prior: Any = None,
-    progress: Callable[[int, int], None] | None = None,
     num_state_particles: int = 128,
     num_chains: int = 4,
     num_warmup: int = 1000,
     proposal_scale: float | Sequence[float] = 0.01,
     init: str | Array = "prior",
     vehicle_chunk: int = 16,
+    **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """The ``pmmh`` engine of :func:`bayesdrive.inference.fit.fit`: :func:`pmmh` on ``arrays``.
 
@@ -511,14 +506,13 @@ def run(
     estimate each draw carries) and ``filter_ess`` [vehicle, step] (the state filter's effective
     sample size, averaged over the draws).
     """
-    if prior is not None:
+    if inputs.get("prior") is not None:
         raise ValueError("engine 'pmmh' samples under the model's uniform prior box; prior=None")
     if isinstance(init, str) and init not in ("prior", "defaults"):
         raise ValueError(f"init must be 'prior', 'defaults' or an array, got {init!r}")
-    problem = prepare(
-        "pmmh", arrays, model=model, params=params, fixed=fixed, prior=None, check=check_model
-    )
-    names, fixed_values = problem.names, problem.fixed
+    problem = prepare("pmmh", arrays, inputs, num_particles=1000, check=check_model)
+    model, names, fixed_values = problem.model, problem.names, problem.fixed
+    num_particles = problem.num_particles
     num_draws = -(-num_particles // max(num_chains, 1))
     observations, inputs = _readings(problem.series)
     chains_keys, score_keys = jnp.swapaxes(jax.vmap(jax.random.split)(problem.keys(key)), 0, 1)
@@ -536,7 +530,7 @@ def run(
         init=_starting_values(model, names, init),
         fixed=fixed_values,
         vehicle_chunk=vehicle_chunk,
-        progress=progress,
+        progress=problem.progress,
     )
 
     draws = np.moveaxis(result.samples, 2, 0)  # (vehicle, chain, draw, d)

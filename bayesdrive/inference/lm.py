@@ -57,8 +57,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Unpack
 
 import jax
 import jax.numpy as jnp
@@ -70,8 +69,8 @@ from scipy.special import expit
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.execution_noise import STOP_SPEED
-from bayesdrive.inference.likelihood import StepInputs
-from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.likelihood import StepInputs, check_model
+from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
 
 __all__ = ["ResidualSeries", "residual_series", "run"]
@@ -188,13 +187,8 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    num_particles: int = 1000,
-    prior: Any = None,
-    progress: Callable[[int, int], None] | None = None,
     max_nfev: int | None = None,
+    **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """Levenberg-Marquardt per vehicle of ``arrays`` and Laplace draws (module docstring).
 
@@ -213,19 +207,23 @@ def run(
     ``seed``, the numpy seed of the vehicle's draws (from the vehicle's key, which is used for the
     posterior draws only).
     """
-    noise = model.execution_noise_param
-    if noise is None:
-        raise ValueError(
-            f"lm needs Gaussian execution noise, but model {model.name!r} marks no execution-noise "
-            "sd parameter (ParamSpec.execution_noise)"
-        )
-    if prior is not None:
-        raise NotImplementedError(
-            "lm fits inside the model's uniform prior box only; a custom prior "
-            f"({type(prior).__name__}) needs a sampling engine (smc, nuts, emcee)"
-        )
-    problem = prepare("lm", arrays, model=model, params=params, fixed=fixed, prior=None)
-    names, fixed_values = problem.names, problem.fixed
+
+    def check(model: DriverModel) -> None:
+        if model.execution_noise_param is None:
+            raise ValueError(
+                f"lm needs Gaussian execution noise, but model {model.name!r} marks no "
+                "execution-noise sd parameter (ParamSpec.execution_noise)"
+            )
+        if inputs.get("prior") is not None:
+            raise NotImplementedError(
+                "lm fits inside the model's uniform prior box only; a custom prior "
+                f"({type(inputs['prior']).__name__}) needs a sampling engine (smc, nuts, emcee)"
+            )
+        check_model(model, "lm")
+
+    problem = prepare("lm", arrays, inputs, num_particles=1000, check=check)
+    model, names, fixed_values = problem.model, problem.names, problem.fixed
+    noise, num_particles = model.execution_noise_param, problem.num_particles
     fitted = tuple(n for n in names if n != noise)
     if not fitted:
         raise ValueError(f"lm fits parameters other than {noise!r}; got only {list(names)}")
@@ -277,8 +275,8 @@ def run(
             return np.asarray(_jacobian(z, vehicle, fixed_values, *bounds, **static), np.float64)
 
         fits.append(_fit_vehicle(fun, jac, starts, max_nfev))
-        if progress is not None:
-            progress(index + 1, num_vehicles)
+        if problem.progress is not None:
+            problem.progress(index + 1, num_vehicles)
 
     dof = num_residuals - len(fitted)
     sum_squares = np.array([f.sum_squares for f in fits])

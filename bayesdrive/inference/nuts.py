@@ -40,8 +40,8 @@ diagonal one 31 with fewer draws: so the default stays diagonal.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple, Unpack
 
 import jax
 import jax.numpy as jnp
@@ -56,7 +56,7 @@ from numpyro.infer.util import potential_energy
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.inference.likelihood import StepInputs, series_loglik
-from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.vehicles import (
     log_likelihood_draws,
     posterior_draws,
@@ -223,12 +223,6 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    num_particles: int = 2000,
-    prior: Any = None,
-    progress: Callable[[int, int], None] | None = None,
     num_chains: int = 4,
     num_warmup: int = 500,
     target_accept_prob: float = 0.95,
@@ -236,6 +230,7 @@ def run(
     dense_mass: bool = False,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
+    **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
 
@@ -245,6 +240,8 @@ def run(
     ``tree_depth``, ``n_steps``, ``acceptance_rate``, ``energy`` and ``lp`` (the log density on the
     unconstrained scale), and the adapted ``step_size`` per vehicle and chain.
     """
+    problem = prepare("nuts", arrays, inputs, num_particles=2000, whole_series=True)
+    model, num_particles = problem.model, problem.num_particles
     num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
         raise ValueError(
@@ -253,9 +250,6 @@ def run(
         )
     if not 0.0 < target_accept_prob < 1.0:
         raise ValueError(f"target_accept_prob must be in (0, 1), got {target_accept_prob}")
-    problem = prepare(
-        "nuts", arrays, model=model, params=params, fixed=fixed, prior=prior, whole_series=True
-    )
     config = NUTSConfig(
         num_chains=num_chains,
         num_warmup=num_warmup,
@@ -278,7 +272,7 @@ def run(
         key,
         chunk=vehicle_chunk,
         batch=vehicle_batch,
-        progress=progress,
+        progress=problem.progress,
         cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
     )
     out = jax.tree.map(lambda a: a[0], out)  # the one replicate

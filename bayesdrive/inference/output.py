@@ -39,11 +39,11 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypedDict
 
 import numpy as np
 import xarray as xr
@@ -51,13 +51,14 @@ import xarray as xr
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.data.provenance import code_provenance
 from bayesdrive.data.views import SPLIT_RULE, FollowerArrays, full_history_mask, history_steps
-from bayesdrive.drivers.base import ParamSpec
+from bayesdrive.drivers.base import DriverModel, ParamSpec
 
 __all__ = [
     "OBSERVED_VARIABLE",
     "PSIS_ALTERNATIVE",
     "REQUIRED_METADATA",
     "RUN_DEPENDENT_ATTRS",
+    "EngineInputs",
     "EngineResult",
     "build_tree",
     "load_result",
@@ -95,6 +96,22 @@ PSIS_ALTERNATIVE = (
 )
 # Vehicle ids named in a problem line before the rest are counted.
 _NAMED_VEHICLES = 10
+
+
+class EngineInputs(TypedDict, total=False):
+    """The keyword arguments every engine takes (``fit`` passes them all): the driver ``model``
+    (required), the inferred ``params`` (None: all of the model's), ``fixed`` values of the others
+    (None: the model's defaults), ``num_particles`` (the run's size: particles, or posterior draws
+    in all; each engine has its own default), the ``prior`` (None: the model's uniform box; it
+    needs ``logpdf(theta)`` and, for the engines that draw from it, ``sample(key, shape)``) and
+    ``progress(done, total)``, called as vehicles finish."""
+
+    model: DriverModel
+    params: Sequence[str] | None
+    fixed: Mapping[str, float] | None
+    num_particles: int
+    prior: Any
+    progress: Callable[[int, int], None] | None
 
 
 class EngineResult(NamedTuple):

@@ -39,8 +39,8 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NamedTuple
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple, Unpack
 
 import jax
 import jax.numpy as jnp
@@ -50,7 +50,7 @@ from jax import Array
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.inference.likelihood import StepInputs, particles_loglik
-from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.resampling import count_distinct_sorted
 from bayesdrive.inference.smc_core import SMCState
 from bayesdrive.inference.smc_core import step as smc_step
@@ -212,15 +212,10 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    num_particles: int = 1000,
-    prior: Any = None,
-    progress: Callable[[int, int], None] | None = None,
     epochs: int = 1,
     grid_steps: Mapping[str, float] | None = None,
     vehicle_chunk: int = 64,
+    **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """The paper's filter (module docstring) over every vehicle of ``arrays``.
 
@@ -231,10 +226,10 @@ def run(
     (default the model's uniform box) gives epoch 0's particles, snapped to the grid; those draws,
     before snapping, are the result's ``prior`` group.
     """
+    problem = prepare("pf", arrays, inputs, num_particles=1000)
+    model, names, num_particles = problem.model, problem.names, problem.num_particles
     if num_particles < 2 or epochs < 1:
         raise ValueError(f"need num_particles >= 2 and epochs >= 1, got {num_particles}, {epochs}")
-    problem = prepare("pf", arrays, model=model, params=params, fixed=fixed, prior=prior)
-    names = problem.names
     if len(names) > MAX_DITHERED:
         raise ValueError(f"pf dithers at most {MAX_DITHERED} parameters, got {len(names)}")
     grid = make_grid(model, names, grid_steps)
@@ -264,8 +259,8 @@ def run(
         return jax.tree.map(lambda a: a.reshape(-1, chunk, *a.shape[1:]), values)
 
     def vehicle_progress(done_chunks: int, _total_chunks: int) -> None:
-        if progress is not None:
-            progress(min(done_chunks * chunk, num_vehicles), num_vehicles)
+        if problem.progress is not None:
+            problem.progress(min(done_chunks * chunk, num_vehicles), num_vehicles)
 
     # Each vehicle's key gives its prior draws and, per epoch, its filter's and its redraw's keys.
     streams = jax.vmap(lambda k: jax.random.split(k, 1 + 2 * epochs))(problem.keys(key))

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, Unpack
 
 import jax
 import jax.numpy as jnp
@@ -55,11 +55,16 @@ from jax import Array
 from numpyro.infer.util import constrain_fn, potential_energy
 
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.nuts import INIT_RADIUS, NUTSConfig, sample_nuts
-from bayesdrive.inference.output import EngineResult, metadata, psis_loo_check, set_metadata
+from bayesdrive.inference.output import (
+    EngineInputs,
+    EngineResult,
+    metadata,
+    psis_loo_check,
+    set_metadata,
+)
 from bayesdrive.inference.vehicles import prepare
 
 __all__ = [
@@ -125,17 +130,12 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    num_particles: int = 2000,
-    prior: Any = None,
-    progress: Callable[[int, int], None] | None = None,
     num_chains: int = 4,
     num_warmup: int = 500,
     target_accept_prob: float = 0.95,
     max_tree_depth: int = 10,
     centred: bool = False,
+    **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """Fit the hierarchical population model (module docstring) jointly to all vehicles.
 
@@ -144,19 +144,11 @@ def run(
     through the population, which replaces the uniform prior box (so ``prior`` must be None).
     ``progress`` is called once, when the run is done.
     """
-    if prior is not None:
+    if inputs.get("prior") is not None:
         raise ValueError("the hierarchical model has its own population prior; prior must be None")
-    num_samples = -(-num_particles // max(num_chains, 1))
-    problem = prepare(
-        "hierarchical",
-        arrays,
-        model=model,
-        params=params,
-        fixed=fixed,
-        prior=None,
-        whole_series=True,
-    )
-    names, box, fixed_values, series = problem.names, problem.box, problem.fixed, problem.series
+    problem = prepare("hierarchical", arrays, inputs, num_particles=2000, whole_series=True)
+    model, names, box, fixed_values = problem.model, problem.names, problem.box, problem.fixed
+    series, num_samples = problem.series, -(-problem.num_particles // max(num_chains, 1))
     num_vehicles = problem.num_vehicles
     if num_vehicles < 2:
         raise ValueError("a population model needs at least 2 vehicles")
@@ -233,8 +225,8 @@ def run(
         wall_time_s=run_time,
         options={**config._asdict(), "population_priors": POPULATION_PRIORS},
     )
-    if progress is not None:
-        progress(num_vehicles, num_vehicles)
+    if problem.progress is not None:
+        problem.progress(num_vehicles, num_vehicles)
     return result
 
 

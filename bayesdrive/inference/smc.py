@@ -71,8 +71,8 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple, Unpack
 
 import jax
 import jax.numpy as jnp
@@ -83,7 +83,7 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.inference.kernels import Box, WalkState, moves_until_decorrelated
 from bayesdrive.inference.likelihood import StepInputs, particles_loglik, series_loglik
-from bayesdrive.inference.output import EngineResult
+from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.resampling import count_distinct_sorted
 from bayesdrive.inference.smc_core import (
     SMCState,
@@ -352,12 +352,6 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None = None,
-    fixed: Mapping[str, float] | None = None,
-    num_particles: int = 1000,
-    prior: Any = None,
-    progress: Callable[[int, int], None] | None = None,
     ess_threshold: float = 0.5,
     num_moves: int = 5,
     temper_moves: int = 20,
@@ -374,6 +368,7 @@ def run(
     independent: bool = False,
     independent_df: int = 5,
     sequential: bool = False,
+    **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """Tempering and closing moves (and, with ``sequential``, the per-step pass along the data)
     for every vehicle of ``arrays`` (module docstring).
@@ -387,6 +382,8 @@ def run(
     a vehicle whose tempering has not reached the posterior after ``max_stages`` stages is an
     error.
     """
+    problem = prepare("smc", arrays, inputs, num_particles=1000)
+    model, num_particles = problem.model, problem.num_particles
     if not 0.0 < ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold must be in (0, 1], got {ess_threshold}")
     if not 0.0 < decorrelation < 1.0:
@@ -407,7 +404,6 @@ def run(
             "need num_particles >= 2 and num_moves, temper_moves, final_moves, replicates >= 1, "
             f"got {num_particles}, {num_moves}, {temper_moves}, {final_moves}, {replicates}"
         )
-    problem = prepare("smc", arrays, model=model, params=params, fixed=fixed, prior=prior)
     config = SMCConfig(
         tempering=TemperingConfig(
             num_particles=num_particles,
@@ -443,7 +439,7 @@ def run(
         replicates=replicates,
         chunk=vehicle_chunk,
         batch=vehicle_batch,
-        progress=progress,
+        progress=problem.progress,
         cache_key=problem.cache_key("smc", config, static_key(problem.prior), score_lengths),
     )
     check_finished(out.final_temperature, problem.vehicle_ids, "smc", max_stages)

@@ -1,9 +1,11 @@
 """What every engine does around its own per-vehicle kernel, written once.
 
-:func:`prepare` is every engine's preamble: refuse a model the engine cannot fit, check the
-inferred and fixed parameters, take the prior (the model's uniform box by default) and build every
-step's inputs through the model (:func:`~bayesdrive.inference.likelihood.step_inputs`). It
-returns a :class:`VehicleProblem`, which runs a kernel over all vehicles
+Every engine is ``run(key, arrays, *, <its own options>, **inputs)``, ``inputs`` the keyword
+arguments all engines share (:class:`~bayesdrive.inference.output.EngineInputs`, described there
+once). :func:`prepare` is every engine's preamble: take those inputs (with the engine's default
+size), refuse a model the engine cannot fit, check the inferred and fixed parameters, take the
+prior (the model's uniform box by default) and build every step's inputs through the model
+(:func:`~bayesdrive.inference.likelihood.step_inputs`). It returns a :class:`VehicleProblem`, which runs a kernel over all vehicles
 (:meth:`VehicleProblem.run`, through :func:`map_vehicles`) and scores draws; :func:`posterior_draws`
 and :func:`log_likelihood_draws` put per-vehicle outputs in the result's (chain, draw, vehicle)
 layout. An engine keeps only its kernel, its own options and its own sample stats.
@@ -22,7 +24,7 @@ from __future__ import annotations
 import hashlib
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
@@ -41,6 +43,7 @@ from bayesdrive.inference.likelihood import (
     score_draws,
     step_inputs,
 )
+from bayesdrive.inference.output import EngineInputs
 
 __all__ = [
     "VehicleProblem",
@@ -80,7 +83,8 @@ class VehicleProblem(NamedTuple):
     """One engine's view of a fit: the model, the inferred ``names`` (in order), the full
     parameter tuple ``fixed`` (defaults where not given), the model's uniform ``box`` over
     ``names``, the ``prior`` (the box unless one was given), every vehicle's ``series``
-    (vehicle, step) and the ``vehicle_ids``."""
+    (vehicle, step), the ``vehicle_ids``, the run's size ``num_particles`` and the ``progress``
+    callback (:class:`~bayesdrive.inference.output.EngineInputs`)."""
 
     model: DriverModel
     names: tuple[str, ...]
@@ -89,6 +93,8 @@ class VehicleProblem(NamedTuple):
     prior: Any
     series: StepInputs
     vehicle_ids: tuple[str, ...]
+    num_particles: int
+    progress: Callable[[int, int], None] | None
 
     @property
     def num_vehicles(self) -> int:
@@ -141,25 +147,39 @@ class VehicleProblem(NamedTuple):
         return score_draws(self.model, self.names, self.fixed, draws, self.series)
 
 
+def _engine_model(engine: str, inputs: EngineInputs) -> DriverModel:
+    """The ``model`` of an engine's ``inputs``; a TypeError, as for any keyword-only argument,
+    names an input missing or not in :class:`~bayesdrive.inference.output.EngineInputs`
+    (nothing passed is ignored)."""
+    unknown = sorted(set(inputs) - set(EngineInputs.__annotations__))
+    if unknown:
+        raise TypeError(f"engine {engine!r} got unexpected keyword argument(s) {unknown}")
+    if "model" not in inputs:
+        raise TypeError(f"engine {engine!r} is missing the keyword argument 'model'")
+    return inputs["model"]
+
+
 def prepare(
     engine: str,
     arrays: FollowerArrays,
+    inputs: EngineInputs,
     *,
-    model: DriverModel,
-    params: Sequence[str] | None,
-    fixed: Mapping[str, float] | None,
-    prior: Any,
+    num_particles: int,
     whole_series: bool = False,
     check: Callable[[DriverModel], None] | None = None,
 ) -> VehicleProblem:
-    """Every engine's preamble (module docstring). ``check`` refuses a model the engine cannot
-    fit (default: :func:`~bayesdrive.inference.likelihood.check_model` for ``engine``, which
-    scores whole series when ``whole_series``)."""
+    """Every engine's preamble (module docstring) on its ``inputs``
+    (:class:`~bayesdrive.inference.output.EngineInputs`), ``num_particles`` the engine's default
+    size. ``check`` refuses a model the engine cannot fit (default:
+    :func:`~bayesdrive.inference.likelihood.check_model` for ``engine``, which scores whole series
+    when ``whole_series``)."""
+    model = _engine_model(engine, inputs)
+    prior = inputs.get("prior")
     if check is None:
         check_model(model, engine, whole_series=whole_series)
     else:
         check(model)
-    names = param_names(model, params)
+    names = param_names(model, inputs.get("params"))
     vehicle_ids = tuple(str(v) for v in arrays.vehicle_ids)
     repeated = sorted(v for v, count in Counter(vehicle_ids).items() if count > 1)
     if repeated:
@@ -171,11 +191,13 @@ def prepare(
     return VehicleProblem(
         model=model,
         names=names,
-        fixed=fixed_params(model, fixed),
+        fixed=fixed_params(model, inputs.get("fixed")),
         box=box,
         prior=box if prior is None else prior,
         series=step_inputs(arrays, model),
         vehicle_ids=vehicle_ids,
+        num_particles=inputs.get("num_particles", num_particles),
+        progress=inputs.get("progress"),
     )
 
 

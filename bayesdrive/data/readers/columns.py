@@ -465,29 +465,26 @@ def _pairs(path, frame, columns, factor, dt, *, id_pattern, notes, **_) -> pd.Da
     t = time_steps(steps, dt)
     lanes = _lanes(frame, columns)
     common = {"t": t, "row": frame["_row"].to_numpy(), "file": str(path)}
-    follows = make_tracks(
-        vehicle_id=follower,
-        x=frame[columns["x_follower"]].to_numpy() * factor,
-        v=frame[columns["v_follower"]].to_numpy() * factor,
-        a=_optional(frame, columns, "a_follower", factor),
-        lane_id=lanes,
-        leader_id=leader,
-        gap=_optional(frame, columns, "gap", factor),
-        length=np.nan,
-        **common,
+
+    def role_tracks(role: str, vehicle_id: np.ndarray, **follows: Any) -> pd.DataFrame:
+        """The rows of one role (follower or leader), its length kept aside in ``_length``."""
+        tracks = make_tracks(
+            vehicle_id=vehicle_id,
+            x=frame[columns[f"x_{role}"]].to_numpy() * factor,
+            v=frame[columns[f"v_{role}"]].to_numpy() * factor,
+            a=_optional(frame, columns, f"a_{role}", factor),
+            lane_id=lanes,
+            length=np.nan,
+            **follows,
+            **common,
+        )
+        tracks["_length"] = _optional(frame, columns, f"length_{role}", factor)
+        return tracks
+
+    follows = role_tracks(
+        "follower", follower, leader_id=leader, gap=_optional(frame, columns, "gap", factor)
     )
-    follows["_length"] = _optional(frame, columns, "length_follower", factor)
-    leads = make_tracks(
-        vehicle_id=leader,
-        x=frame[columns["x_leader"]].to_numpy() * factor,
-        v=frame[columns["v_leader"]].to_numpy() * factor,
-        a=_optional(frame, columns, "a_leader", factor),
-        lane_id=lanes,
-        length=np.nan,
-        **common,
-    )
-    leads["_length"] = _optional(frame, columns, "length_leader", factor)
-    tracks = pd.concat([follows, leads], ignore_index=True)
+    tracks = pd.concat([follows, role_tracks("leader", leader)], ignore_index=True)
     tracks["_has_gap"] = "gap" in columns
     tracks["_scene"] = np.concatenate([np.broadcast_to(scene, len(frame))] * 2)
     tracks["_k"] = np.concatenate([steps, steps])

@@ -89,26 +89,8 @@ REQUIRED = [
     "Preceding",
     "Space_Headway",
 ]
-TXT_COLUMNS = [
-    "Vehicle_ID",
-    "Frame_ID",
-    "Total_Frames",
-    "Global_Time",
-    "Local_X",
-    "Local_Y",
-    "Global_X",
-    "Global_Y",
-    "v_Length",
-    "v_Width",
-    "v_Class",
-    "v_Vel",
-    "v_Acc",
-    "Lane_ID",
-    "Preceding",
-    "Following",
-    "Space_Headway",
-    "Time_Headway",
-]
+# The headerless text release: the published columns with the global coordinates after Local_Y.
+TXT_COLUMNS = [*COLUMNS[:6], "Global_X", "Global_Y", *COLUMNS[6:]]
 SCHEMA_NAMES = {
     "vehicle_id": "Vehicle_ID",
     "t": "Frame_ID",

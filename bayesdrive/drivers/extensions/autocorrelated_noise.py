@@ -47,7 +47,7 @@ from bayesdrive.drivers.extensions.compose import (
     base_params,
     check_white_noise,
     extended_specs,
-    params_type,
+    state_extension,
 )
 
 __all__ = [
@@ -158,18 +158,15 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
             previous_dx=series.dx[before],
         )
 
-    model = DriverModel(
-        name=f"{base.name}+{CAUSE}",
-        params_type=params_type("AutocorrelatedNoiseParams", specs),
-        specs=specs,
+    return state_extension(
+        base,
+        CAUSE,
+        specs,
         mean_acceleration=mean_acceleration,
         transition_sample=transition_sample,
         transition_logpdf=transition_logpdf,
-        observation_logpdf=base.observation_logpdf,
         initial_sample=initial_sample,
         inputs_at=inputs_at,
         lift=lift,
         reads_history=True,
-        scene=base.scene,
     )
-    return ExtendedModel(CAUSE, base, model, ("rho",))

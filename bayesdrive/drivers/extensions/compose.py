@@ -38,6 +38,8 @@ __all__ = [
     "extended_specs",
     "gaussian_extension",
     "params_type",
+    "params_type_name",
+    "state_extension",
 ]
 
 
@@ -108,6 +110,28 @@ def base_params(base: DriverModel, params: Any) -> Any:
     return base.params_type(*params[: len(base.specs)])
 
 
+def params_type_name(cause: str) -> str:
+    """An extension's parameter type name: its cause in title case, e.g. ``ReactionDelayParams``."""
+    return "".join(part.title() for part in cause.split("_")) + "Params"
+
+
+def state_extension(
+    base: DriverModel, cause: str, specs: tuple[ParamSpec, ...], **functions: Any
+) -> ExtendedModel:
+    """An extension with its own transition (and state): the model ``base+cause`` over ``specs``
+    (:func:`extended_specs`), observed as ``base`` is and in ``base``'s scene, its other
+    :class:`~bayesdrive.drivers.base.DriverModel` fields ``functions``."""
+    model = DriverModel(
+        name=f"{base.name}+{cause}",
+        params_type=params_type(params_type_name(cause), specs),
+        specs=specs,
+        observation_logpdf=base.observation_logpdf,
+        scene=base.scene,
+        **functions,
+    )
+    return ExtendedModel(cause, base, model, tuple(s.name for s in specs[len(base.specs) :]))
+
+
 def gaussian_extension(
     base: DriverModel,
     cause: str,
@@ -129,7 +153,6 @@ def gaussian_extension(
     (or the sd).
     """
     specs = extended_specs(base, new_specs)
-    type_name = "".join(part.title() for part in cause.split("_")) + "Params"
     if noise_sd is None:
         if base.noise_sd is None:
             raise ValueError(
@@ -142,7 +165,7 @@ def gaussian_extension(
 
     model = execution_noise_model(
         f"{base.name}+{cause}",
-        params_type(type_name, specs),
+        params_type(params_type_name(cause), specs),
         specs,
         mean_acceleration,
         noise_sd,

@@ -44,7 +44,7 @@ from bayesdrive.drivers.extensions.compose import (
     base_params,
     check_base,
     extended_specs,
-    params_type,
+    state_extension,
 )
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs, inputs_at
 
@@ -150,17 +150,15 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         )
         return logp
 
-    model = DriverModel(
-        name=f"{base.name}+{CAUSE}",
-        params_type=params_type("DriftingParametersParams", specs),
-        specs=specs,
+    return state_extension(
+        base,
+        CAUSE,
+        specs,
         mean_acceleration=mean_acceleration,
         transition_sample=transition_sample,
         transition_logpdf=transition_logpdf,
-        observation_logpdf=base.observation_logpdf,
         initial_sample=initial_sample,
         inputs_at=inputs_at,
         lift=lift,
         filter=ekf,
     )
-    return ExtendedModel(CAUSE, base, model, ("tau_drift",))
