@@ -5,7 +5,7 @@ equations), per mechanism and size, on null data, and with two mechanisms at onc
 Every replication simulates ``trafficgen.DETECTION_SCENARIO`` with the cell's mechanisms (per-driver
 sizes uniform on the size's range), writes an NGSIM raw CSV, reads it back through the real reader
 and runs ``criticize`` with ``DETECTION_CONFIG``, exactly as CI's hidden-effect tests
-(tests/test_criticism_hidden.py) do, the loop included (``max_rounds`` of the config). With one
+(tests/criticism/test_criticism_hidden.py) do, the loop included (``max_rounds`` of the config). With one
 mechanism a replication is right when the verdict (the first round's cause) is one of the
 mechanism's right verdicts (``trafficgen.right_verdicts``; null data: ``none``); with two, when
 the final model holds a right verdict of each (:func:`names_every_mechanism`). The row records the

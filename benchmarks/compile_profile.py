@@ -6,7 +6,7 @@ so every process, subprocesses and Dask workers included, logs its compile event
 that caused it; then joins them with pytest's ``--durations=0``. Writes ``<out>/summary.md``.
 
     PYTHONPATH=. python benchmarks/compile_profile.py --out compile-profile       # the suite, ~25 min
-    PYTHONPATH=. python benchmarks/compile_profile.py --out p --tests tests/test_lm.py
+    PYTHONPATH=. python benchmarks/compile_profile.py --out p --tests tests/inference/test_lm.py
     PYTHONPATH=. python benchmarks/compile_profile.py --out compile-profile --summary-only
 
 Compile events of subprocesses count toward the test that started them, so a test whose

@@ -31,18 +31,18 @@ BLOCK = re.compile(r"^```(\w*)\n(.*?)^```$", re.DOTALL | re.MULTILINE)
 # The first line of each block that is not run here -> what runs it instead.
 NOT_RUN = {
     "python3.12 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/bayesdrive reproduce "
-    "--out results": "the main job (full settings, far beyond a test's time); tests/test_reproduce.py runs its quick "
+    "--out results": "the main job (full settings, far beyond a test's time); tests/experiments/test_reproduce.py runs its quick "
     "form, `reproduce --quick`, and `report` on what it wrote",
     'python3.12 -m venv .venv && .venv/bin/pip install -e ".[test]" && .venv/bin/ruff check . && '
     '.venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --dist worksteal -m "not extended" '
     "--durations=20": "the test command: CI runs it (.ci/run reads it from the README)",
     "dask scheduler --port 8786                       # on one machine": "starts a Dask "
-    "cluster; tests/test_cluster.py runs `fit --cluster` on a local one, through its address",
+    "cluster; tests/inference/test_cluster.py runs `fit --cluster` on a local one, through its address",
 }
 # Lines of a run block that are not run here -> what runs them instead.
 LINES_NOT_RUN = {
-    "bayesdrive reproduce --quick --out results-quick": "tests/test_reproduce.py",
-    "bayesdrive report results-quick": "tests/test_reproduce.py (`report` on a quick run)",
+    "bayesdrive reproduce --quick --out results-quick": "tests/experiments/test_reproduce.py",
+    "bayesdrive report results-quick": "tests/experiments/test_reproduce.py (`report` on a quick run)",
 }
 
 

@@ -3,7 +3,7 @@
 A command's module is imported only when that command runs (or shows its own help), and imports
 JAX, pandas and ArviZ, which take seconds, only inside its command functions (the names its help
 lists come from :mod:`bayesdrive.cli.names`): every ``--help`` and ``--version`` answers at once. :data:`COMMANDS` names where each command lives and the one-line summary the
-top-level help lists (``tests/test_cli_startup.py`` checks that each equals the first line of
+top-level help lists (``tests/cli/test_cli_startup.py`` checks that each equals the first line of
 the command's own help).
 """
 
@@ -157,7 +157,7 @@ def compilation_cache() -> None:
     The folder is ``$BAYESDRIVE_COMPILATION_CACHE``, or ``$XDG_CACHE_HOME/bayesdrive/jax`` (else
     ``~/.cache/bayesdrive/jax``); ``BAYESDRIVE_COMPILATION_CACHE=off`` turns it off. A
     ``JAX_COMPILATION_CACHE_DIR`` already set is left as it is. A cached program is the compiled
-    one, so results are the same bits with or without it (``tests/test_determinism.py``). It must
+    one, so results are the same bits with or without it (``tests/inference/test_determinism.py``). It must
     run before JAX is imported, which reads these variables then."""
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
         return

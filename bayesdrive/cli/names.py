@@ -1,7 +1,7 @@
 """Names and defaults the commands' options show in their help, without the libraries behind them.
 
 The registries that define these import JAX, which takes seconds; ``--help`` must not. Each value
-here is checked against its source by ``tests/test_cli_startup.py``, so a new model, extension,
+here is checked against its source by ``tests/cli/test_cli_startup.py``, so a new model, extension,
 engine or baseline that is not added here fails a test rather than going missing from the help.
 """
 

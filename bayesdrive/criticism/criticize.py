@@ -89,7 +89,7 @@ SCREEN_P = 0.2
 # The detection study (reports/criticism/detection.md) showed the checks' and the gain test's power
 # with this many vehicles; fewer is untested ground.
 # The detection study's vehicle count (two platoons of four followers: DETECTION_SCENARIO of the
-# independent generator, which the library cannot import; tests/test_criticism_cli.py ties the two).
+# independent generator, which the library cannot import; tests/cli/test_criticism_cli.py ties the two).
 POWERED_VEHICLES = 8
 SMOOTHING = (
     "the trajectories were smoothed, which alone makes residuals autocorrelated and lags the "

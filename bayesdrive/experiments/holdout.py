@@ -18,7 +18,7 @@ with the documented defaults and scoring them on their later held-out windows is
    OpenACC Vicolungo for OpenACC and ACC sets), estimated in two stages
    (:func:`~bayesdrive.inference.population.two_stage`) from the highway experiment's
    per-vehicle smc posteriors of that set's fitting windows (validated against the joint fit in
-   ``tests/test_population.py``); every follower is treated as a driver with no data of its own:
+   ``tests/inference/test_population.py``); every follower is treated as a driver with no data of its own:
    each rollout draws its parameters from the population distribution of a new driver.
 4. **Pooled posterior** (``idm-smc-pooled-ngsim``, when given): the earlier generalisation row,
    every follower drawing from the pooled per-vehicle smc draws of the NGSIM I-80 chains,

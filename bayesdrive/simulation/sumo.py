@@ -80,7 +80,7 @@ C-IDM's cooperation ``c``) have no SUMO counterpart: they are kept as ``<param>`
 logged. Every file records its source result, the seed of any draws and the code that wrote it.
 
 SUMO is run with the ballistic update at bayesdrive's 0.1 s step: that is what reproduces
-bayesdrive's deterministic rollout (``tests/test_sumo_export.py`` holds the tolerance;
+bayesdrive's deterministic rollout (``tests/simulation/test_sumo_export.py`` holds the tolerance;
 ``reports/sumo/README.md`` the round trip); SUMO's default Euler update, or sub-steps holding the
 leader's speed, do not.
 """

@@ -5,7 +5,7 @@ sigma inferred with the other parameters at their (true) defaults, so the poster
 integral computed by quadrature (:func:`bayesdrive.inference.agreement.grid_posterior`). NUTS
 must match its mean within 4 Monte Carlo standard errors (ArviZ MCSE) and its sd within
 4 / sqrt(2 ESS) relative (the sampling sd of an sd estimate), both failing with probability
-about 1e-4 for a correct sampler. Other SBC-based checks of nuts live in tests/test_sbc.py.
+about 1e-4 for a correct sampler. Other SBC-based checks of nuts live in tests/inference/test_sbc.py.
 """
 
 import arviz

@@ -162,6 +162,6 @@ def test_generator_imports_nothing_from_bayesdrive():
         "platoons=1, followers=1, duration_s=2.0, cut_ins=0); "
         "sys.exit(any(m.split('.')[0] in ('bayesdrive', 'jax') for m in sys.modules))"
     )
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr

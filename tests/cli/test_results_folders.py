@@ -32,7 +32,7 @@ from bayesdrive.data.outputs import (
 from bayesdrive.inference import output
 from bayesdrive.inference.output import load_result, metadata
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CHAIN = "ngsim_i80_chains/124_136_140_146_162_164.csv"
 FIT_FILES = {"convergence.png", "ess.png", "manifest.json", "result.nc", "summary.json"}
 FIT_FILES |= {"unique_particles.png"}

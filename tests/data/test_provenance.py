@@ -11,7 +11,7 @@ import pytest
 from bayesdrive.data import provenance
 from bayesdrive.data.provenance import _provenance_of, code_provenance, describe_code
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 needs_git = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
 
 

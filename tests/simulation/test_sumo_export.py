@@ -43,7 +43,7 @@ from bayesdrive.simulation.sumo import (
     write_vtype_distribution,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "ngsim_i80_chains_idm_smc.nc"
 CHAIN = "115_124_136_140_146_162.csv"
 LENGTH_M = 4.5

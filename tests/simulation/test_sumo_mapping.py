@@ -20,7 +20,7 @@ from bayesdrive.simulation.sumo import (
     vtype_distribution,
 )
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
+MODEL = Path(__file__).resolve().parents[2] / "models" / "ngsim_i80_chains_idm_smc.nc"
 runner = CliRunner()
 
 

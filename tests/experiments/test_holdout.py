@@ -43,7 +43,7 @@ from bayesdrive.simulation.calibration import (
 from bayesdrive.simulation.follower_rollout import RolloutWindows
 from bayesdrive.simulation.posterior import population_policy
 
-MODEL = Path(__file__).resolve().parents[1] / "models" / "ngsim_i80_chains_idm_smc.nc"
+MODEL = Path(__file__).resolve().parents[2] / "models" / "ngsim_i80_chains_idm_smc.nc"
 # Two leader-follower pairs of 35 s: the smallest held-out case with leaders.
 HELD_OUT = "ngsim_i80_pairs_raw_c"
 

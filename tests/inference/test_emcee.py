@@ -1,6 +1,6 @@
 """The emcee engine: seeded reproducibility, exact answer in one dimension, the result layout.
 
-The exact check mirrors tests/test_nuts.py: sigma of one IDM vehicle (64 steps, sigma = 0.5,
+The exact check mirrors tests/inference/test_nuts.py: sigma of one IDM vehicle (64 steps, sigma = 0.5,
 seed 3) against quadrature. emcee's draws are thinned by the autocorrelation time, so they are
 treated as independent: the mean must lie within 4 sd / sqrt(draws) of the exact mean and the sd
 within 4 / sqrt(2 draws) relative (each fails with probability about 1e-4 for a correct sampler).

@@ -1,7 +1,7 @@
 """The video-noise model's Kalman filter against an exact oracle, and what it recovers from data
 made by the independent generator.
 
-Oracle: on LINEAR car-following (``tests/test_latent.py``: Gaussian execution and position noise,
+Oracle: on LINEAR car-following (``tests/inference/test_latent.py``: Gaussian execution and position noise,
 a rule linear in gap and speed) the extended Kalman filter is exact, so its log-likelihood must
 equal the numpy float64 Kalman filter on absolute positions of that file, started as the model
 says (speed sd ``INITIAL_SPEED_SD`` around the recorded one). Tolerance ``ORACLE_TOL`` nats covers

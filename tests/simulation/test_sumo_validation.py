@@ -28,7 +28,7 @@ from typer.testing import CliRunner
 from bayesdrive.cli.main import app
 from bayesdrive.simulation.sumo import sumo_home
 
-MODELS = Path(__file__).resolve().parents[1] / "models"
+MODELS = Path(__file__).resolve().parents[2] / "models"
 MODEL = MODELS / "ngsim_i80_chains_idm_smc.nc"
 runner = CliRunner()
 

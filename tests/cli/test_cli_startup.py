@@ -17,7 +17,7 @@ from bayesdrive import __version__
 from bayesdrive.cli.main import COMMANDS, app, load_command
 from benchmarks.bench_cli_startup import heavy_imports, heavy_imports_each, help_commands
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("args", [["--help"], ["--version"]])

@@ -15,7 +15,7 @@ from bayesdrive.cli.main import app
 from bayesdrive.data.registry import DATASETS, HOLDOUT
 
 runner = CliRunner()
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def one_line(text: str) -> str:
