@@ -48,6 +48,7 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.inference.convergence import AUTOCORR_RELIABLE_FACTOR, chain_problems
 from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
@@ -60,8 +61,6 @@ __all__ = [
     "run",
 ]
 
-# emcee's rule of thumb: an autocorrelation estimate needs a run of at least 50 tau.
-AUTOCORR_RELIABLE_FACTOR = 50
 # Prior draws per walker searched for the optimiser's starting point, and the start ball's radius
 # as a fraction of each prior interval.
 START_CANDIDATES = 32

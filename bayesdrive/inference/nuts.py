@@ -35,6 +35,18 @@ ESS 224 diagonal, 1213 dense, with half the leapfrog steps per draw. On vehicle 
 8000 draws; only more draws did. Over all 15 vehicles of ``benchmarks/bench_agreement.py`` the
 dense matrix met 727 divergences (467 on vehicle 11, whose posterior presses on prior bounds), the
 diagonal one 31 with fewer draws: so the default stays diagonal.
+
+**Extension.** After the run every vehicle's stored draws go through the checks that
+:func:`~bayesdrive.inference.fit.fit` runs afterwards (R-hat, bulk and tail ESS,
+:func:`~bayesdrive.inference.convergence.chain_problems`, same limits). A vehicle that fails runs
+again from fresh dispersed starts, with its key folded with the factor, with 2, then 4, ... up to
+``max_extension`` (:data:`MAX_EXTENSION`) times the warm-up and the draws, and keeps every
+factor-th draw, so every vehicle stores the same number. Why (``reports/convergence.md``): at
+250 draws a chain the six IDM parameters gave 0.2-0.35 effective draws per draw, so bulk and tail
+ESS fell short of 400 on nearly every vehicle; the ridge parameters ``v_des`` (unidentified in
+following without free driving: posterior spread to the upper bound) and ``d_min`` (piled on the
+lower bound) mix slowest. ``sample_stats.extension`` records each vehicle's factor; a vehicle
+still failing at the cap is left to fit's warnings, which then say what to try next.
 """
 
 from __future__ import annotations
@@ -55,6 +67,7 @@ from numpyro.infer.util import potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.inference.convergence import chain_problems
 from bayesdrive.inference.likelihood import StepInputs, series_loglik
 from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.vehicles import (
@@ -64,11 +77,14 @@ from bayesdrive.inference.vehicles import (
     static_key,
 )
 
-__all__ = ["INIT_RADIUS", "NUTSConfig", "NUTSDraws", "run", "sample_nuts"]
+__all__ = ["INIT_RADIUS", "MAX_EXTENSION", "NUTSConfig", "NUTSDraws", "run", "sample_nuts"]
 
 # Chains start uniformly in (-2, 2) on the unconstrained scale (NumPyro's init_to_uniform): the
 # middle 76% of each prior interval, so chains start dispersed as R-hat needs.
 INIT_RADIUS = 2.0
+# A vehicle that fails its checks runs again with 2, 4, ... up to this many times the warm-up and
+# draws (module docstring, "Extension").
+MAX_EXTENSION = 8
 
 
 class NUTSConfig(NamedTuple):
@@ -80,6 +96,8 @@ class NUTSConfig(NamedTuple):
     target_accept_prob: float = 0.95
     max_tree_depth: int = 10
     dense_mass: bool = False
+    # Keep every thin-th post-warm-up draw (an extended run stores as many draws as the first).
+    thin: int = 1
 
 
 class NUTSDraws(NamedTuple):
@@ -138,7 +156,9 @@ def sample_nuts(
         # One scan over warm-up and sampling (warm-up draws dropped afterwards): a second loop
         # would trace and compile the whole NUTS tree builder a second time.
         _, draws = jax.lax.scan(iterate, state, length=config.num_warmup + config.num_samples)
-        return jax.tree.map(lambda a: a[config.num_warmup :], draws)
+        # The last draw of every thin-long stretch: the final draw is always kept.
+        start = config.num_warmup + config.thin - 1
+        return jax.tree.map(lambda a: a[start :: config.thin], draws)
 
     num_chains = jax.tree.leaves(init_z)[0].shape[0]
     return jax.vmap(one_chain)(jax.random.split(key, num_chains), init_z)
@@ -236,6 +256,7 @@ def run(
     dense_mass: bool = False,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
+    max_extension: int = MAX_EXTENSION,
 ) -> EngineResult:
     """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
 
@@ -243,7 +264,9 @@ def run(
     num_chains`` (rounded up) per chain after ``num_warmup`` warm-up iterations. ``prior`` (default:
     the uniform box) needs ``logpdf(theta)`` and support inside the box. ``sample_stats`` holds per draw ``diverging``,
     ``tree_depth``, ``n_steps``, ``acceptance_rate``, ``energy`` and ``lp`` (the log density on the
-    unconstrained scale), and the adapted ``step_size`` per vehicle and chain.
+    unconstrained scale), the adapted ``step_size`` per vehicle and chain, and ``extension``, the
+    factor each vehicle's warm-up and draws were extended by (1: none; at most ``max_extension``,
+    a power of two or the cap itself).
     """
     num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
@@ -251,6 +274,8 @@ def run(
             "need num_chains >= 1, num_warmup >= 1 and at least 2 draws per chain, got "
             f"num_chains={num_chains}, num_warmup={num_warmup}, num_particles={num_particles}"
         )
+    if max_extension < 1:
+        raise ValueError(f"max_extension must be at least 1, got {max_extension}")
     if not 0.0 < target_accept_prob < 1.0:
         raise ValueError(f"target_accept_prob must be in (0, 1), got {target_accept_prob}")
     problem = prepare(
@@ -264,24 +289,30 @@ def run(
         max_tree_depth=max_tree_depth,
         dense_mass=dense_mass,
     )
-    per_vehicle = functools.partial(
-        _nuts_vehicle,
-        model=model,
-        names=problem.names,
-        fixed=problem.fixed,
-        box=problem.box,
-        prior=problem.given_prior,
-        config=config,
+    out, compile_time, run_time = _run_vehicles(
+        problem, key, config, vehicle_chunk, vehicle_batch, progress
     )
-    out, compile_time, run_time = problem.run(
-        per_vehicle,
-        key,
-        chunk=vehicle_chunk,
-        batch=vehicle_batch,
-        progress=progress,
-        cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
-    )
-    out = jax.tree.map(lambda a: a[0], out)  # the one replicate
+    # Extension: vehicles that fail the convergence checks run again, from their own keys folded
+    # with the factor, with factor x the warm-up and draws, thinned back to the stored count.
+    factors = np.ones(problem.num_vehicles, dtype=np.int64)
+    failing = _failing(problem, out.theta)
+    factor = 1
+    while failing.size and factor < max_extension:
+        factor = min(2 * factor, max_extension)
+        longer = config._replace(
+            num_warmup=factor * num_warmup, num_samples=factor * num_samples, thin=factor
+        )
+        subset = problem._replace(
+            series=jax.tree.map(lambda a, rows=failing: a[rows], problem.series),
+            vehicle_ids=tuple(problem.vehicle_ids[i] for i in failing),
+        )
+        extended, extra_compile, extra_run = _run_vehicles(
+            subset, jax.random.fold_in(key, factor), longer, vehicle_chunk, vehicle_batch, None
+        )
+        out = jax.tree.map(lambda a, b, rows=failing: _replace_rows(a, rows, b), out, extended)
+        factors[failing] = factor
+        compile_time, run_time = compile_time + extra_compile, run_time + extra_run
+        failing = failing[_failing(subset, extended.theta)]
 
     def chain_draw_vehicle(values: np.ndarray) -> np.ndarray:
         return np.moveaxis(values, 0, -1)  # (vehicle, chain, draw) -> (chain, draw, vehicle)
@@ -297,6 +328,7 @@ def run(
             "energy": (per_draw, chain_draw_vehicle(out.energy)),
             "lp": (per_draw, chain_draw_vehicle(out.lp)),
             "step_size": (("vehicle", "chain"), out.step_size),
+            "extension": (("vehicle",), factors),
         },
         log_likelihood=log_likelihood_draws(out.log_likelihood),
         compile_time_s=compile_time,
@@ -305,5 +337,53 @@ def run(
             **config._asdict(),
             "vehicle_chunk": vehicle_chunk,
             "vehicle_batch": vehicle_batch,
+            "max_extension": max_extension,
         },
     )
+
+
+def _run_vehicles(
+    problem: Any,
+    key: Array,
+    config: NUTSConfig,
+    chunk: int,
+    batch: int,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[_VehicleOutput, float, float]:
+    """One NUTS run of ``config`` on every vehicle of ``problem``: outputs (vehicle, ...)."""
+    per_vehicle = functools.partial(
+        _nuts_vehicle,
+        model=problem.model,
+        names=problem.names,
+        fixed=problem.fixed,
+        box=problem.box,
+        prior=problem.given_prior,
+        config=config,
+    )
+    out, compile_time, run_time = problem.run(
+        per_vehicle,
+        key,
+        chunk=chunk,
+        batch=batch,
+        progress=progress,
+        cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
+    )
+    return jax.tree.map(lambda a: a[0], out), compile_time, run_time  # the one replicate
+
+
+def _failing(problem: Any, theta: np.ndarray) -> np.ndarray:
+    """Indices of the vehicles whose draws (vehicle, chain, draw, d) fail a convergence check."""
+    return np.asarray(
+        [
+            i
+            for i, vehicle in enumerate(problem.vehicle_ids)
+            if chain_problems(vehicle, problem.names, theta[i])
+        ],
+        dtype=np.int64,
+    )
+
+
+def _replace_rows(values: np.ndarray, rows: np.ndarray, new: np.ndarray) -> np.ndarray:
+    values = np.array(values)
+    values[rows] = new
+    return values
