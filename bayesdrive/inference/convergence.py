@@ -176,8 +176,15 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
         flag("ess_bulk", "ess_bulk", ESS_MIN, above=False)
         flag("ess_tail", "ess_tail", ESS_MIN, above=False)
     if "autocorr_time" in table:
-        options = meta.get("engine_options") or {}
-        sampled = options["num_steps"] - options["num_burn"]
+        stats = tree["sample_stats"].to_dataset()
+        if "num_steps" in stats:  # per vehicle: the run may have extended itself
+            kept = stats["num_steps"] - stats["num_burn"]
+            sampled = table["vehicle"].map(
+                dict(zip(map(str, kept["vehicle"].values), kept.values, strict=True))
+            )
+        else:
+            options = meta.get("engine_options") or {}
+            sampled = options["num_steps"] - options["num_burn"]
         table["run_over_tau"] = sampled / table["autocorr_time"]
         flag("autocorr", "run_over_tau", AUTOCORR_RELIABLE_FACTOR, above=False)
     if replicated_smc:

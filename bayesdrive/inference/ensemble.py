@@ -30,6 +30,15 @@ recorded as ``autocorr_reliable``); the kept steps are thinned by ``ceil(max tau
 flattened into one chain (``chain = 1``). Vehicles with different tau have different numbers of
 thinned draws; all keep the same number (``num_particles``, or the smallest over vehicles if
 lower), taking their latest thinned draws.
+
+**Extension.** After ``num_steps`` each vehicle's run is checked as
+:func:`~bayesdrive.inference.fit.fit` will check it: kept steps at least 50 tau, bulk and tail ESS
+of the stored draws at least 400 (:mod:`bayesdrive.inference.convergence`). A vehicle that fails
+continues the same chains, doubling the run, with the burn-in the same fraction of it, up to
+``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``). Why (``reports/convergence.md``):
+with six IDM parameters the stretch move's tau was 60-85 steps, so 2000 kept steps were 24-33
+tau, short of 50 on every vehicle. ``sample_stats`` records each vehicle's ``num_steps`` and
+``num_burn``; fit's 50-tau check uses them.
 """
 
 from __future__ import annotations
@@ -55,6 +64,7 @@ from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws,
 
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",
+    "MAX_EXTENSION",
     "START_BALL",
     "START_CANDIDATES",
     "num_walkers_for",
@@ -65,6 +75,9 @@ __all__ = [
 # as a fraction of each prior interval.
 START_CANDIDATES = 32
 START_BALL = 1e-4
+# A vehicle that fails fit's checks continues its run, doubling it, up to this many times
+# num_steps (module docstring, "Extension").
+MAX_EXTENSION = 4
 
 
 def num_walkers_for(dim: int) -> int:
@@ -85,6 +98,7 @@ def run(
     num_steps: int = 4000,
     num_burn: int | None = None,
     num_walkers: int | None = None,
+    max_steps: int | None = None,
 ) -> EngineResult:
     """emcee for every vehicle of ``arrays`` (module docstring).
 
@@ -103,10 +117,12 @@ def run(
     dim = len(names)
     walkers = num_walkers_for(dim) if num_walkers is None else num_walkers
     burn = num_steps // 2 if num_burn is None else num_burn
-    if walkers < 2 * dim or not 0 <= burn < num_steps - 1:
+    max_steps = MAX_EXTENSION * num_steps if max_steps is None else max_steps
+    if walkers < 2 * dim or not 0 <= burn < num_steps - 1 or max_steps < num_steps:
         raise ValueError(
-            f"need num_walkers >= 2 * {dim} and 0 <= num_burn < num_steps - 1, got "
-            f"num_walkers={walkers}, num_burn={burn}, num_steps={num_steps}"
+            f"need num_walkers >= 2 * {dim}, 0 <= num_burn < num_steps - 1 and max_steps >= "
+            f"num_steps, got num_walkers={walkers}, num_burn={burn}, num_steps={num_steps}, "
+            f"max_steps={max_steps}"
         )
     lower, upper = np.asarray(box.lower, np.float64), np.asarray(box.upper, np.float64)
     width = upper - lower
@@ -148,7 +164,7 @@ def run(
     candidates, balls, seeds = jax.vmap(vehicle_start)(problem.keys(key))
     balls, seeds = np.asarray(balls), np.asarray(seeds).astype(np.int64)
 
-    chains, taus, thins, kept, acceptance = [], [], [], [], []
+    chains, taus, thins, kept, acceptance, run_steps = [], [], [], [], [], []
     run_time = 0.0
     for i in range(num_vehicles):
         vehicle = vehicle_series(i)
@@ -172,14 +188,27 @@ def run(
         sampler = emcee.EnsembleSampler(walkers, dim, log_prob, vectorize=True)
         state = emcee.State(start, random_state=np.random.RandomState(seeds[i]).get_state())
         sampler.run_mcmc(state, num_steps, progress=False)
-        # tol=0: the 50-tau check is recorded per vehicle (autocorr_reliable), not logged.
-        tau = sampler.get_autocorr_time(discard=burn, tol=0)
-        thin = max(1, math.ceil(float(np.max(tau))))
-        draws = sampler.get_chain(discard=burn, thin=thin, flat=True)
+        steps, vehicle_burn = num_steps, burn
+        while True:
+            # tol=0: the 50-tau check is recorded per vehicle (autocorr_reliable), not logged.
+            tau = sampler.get_autocorr_time(discard=vehicle_burn, tol=0)
+            thin = max(1, math.ceil(float(np.max(tau))))
+            draws = sampler.get_chain(discard=vehicle_burn, thin=thin, flat=True)
+            if steps >= max_steps or _converged(
+                problem.vehicle_ids[i], names, draws[-num_particles:], tau, steps - vehicle_burn
+            ):
+                break
+            # Extension: double the run, continuing the same chains; the burn-in stays the
+            # same fraction of it, so the first steps, furthest from stationarity, are dropped.
+            more = min(steps, max_steps - steps)
+            sampler.run_mcmc(None, more, progress=False)
+            vehicle_burn = (steps + more) * burn // num_steps
+            steps += more
         run_time += time.perf_counter() - started
         chains.append(draws)
         taus.append(tau)
         thins.append(thin)
+        run_steps.append((steps, vehicle_burn))
         kept.append(len(draws))
         acceptance.append(float(np.mean(sampler.acceptance_fraction)))
         if progress is not None:
@@ -191,6 +220,7 @@ def run(
     log_lik = problem.score(theta)  # (vehicle, draw, step)
     run_time += time.perf_counter() - started
     tau_array = np.asarray(taus)
+    steps_array, burn_array = np.asarray(run_steps).T
     return EngineResult(
         posterior=posterior_draws(names, theta[:, None]),
         sample_stats={
@@ -199,8 +229,10 @@ def run(
             "kept_draws": (("vehicle",), np.asarray(kept)),
             "autocorr_reliable": (
                 ("vehicle",),
-                (num_steps - burn) > AUTOCORR_RELIABLE_FACTOR * tau_array.max(axis=1),
+                (steps_array - burn_array) > AUTOCORR_RELIABLE_FACTOR * tau_array.max(axis=1),
             ),
+            "num_steps": (("vehicle",), steps_array),
+            "num_burn": (("vehicle",), burn_array),
             "acceptance_fraction": (("vehicle",), np.asarray(acceptance)),
             "seed": (("vehicle",), seeds),
         },
@@ -211,9 +243,20 @@ def run(
             "num_steps": num_steps,
             "num_burn": burn,
             "num_walkers": walkers,
+            "max_steps": max_steps,
             "move": "stretch (a = 2)",
         },
     )
+
+
+def _converged(
+    vehicle: str, names: tuple[str, ...], draws: np.ndarray, tau: np.ndarray, kept_steps: int
+) -> bool:
+    """Whether one vehicle's run passes fit's emcee checks: at least 50 tau after burn-in, and
+    bulk and tail ESS of the stored (thinned, flattened) draws."""
+    if kept_steps < AUTOCORR_RELIABLE_FACTOR * float(np.max(tau)):
+        return False
+    return not chain_problems(vehicle, names, draws[None], rhat=False)
 
 
 def _posterior_mode(
