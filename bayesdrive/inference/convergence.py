@@ -107,19 +107,19 @@ def chain_problems(
 
 def next_step(engine: str | None, options: dict[str, Any]) -> str | None:
     """What to try after a run that failed its checks, from the run's own (extended) settings."""
-    if engine == "nuts":
-        longest = options.get("max_extension", 1)
-        draws = options["num_samples"] * options["num_chains"] * longest
+    if engine == "nuts" and "num_samples" in options:
+        cap = options.get("max_extension", 1)
+        draws = options["num_samples"] * options["num_chains"]
         return (
-            f"the run already extended itself up to {longest}x its warm-up and draws; rerun with "
-            f"--draws {2 * draws} --warmup {2 * options['num_warmup'] * longest}, and look at "
-            "the pair plot for a ridge or a second mode if that fails too"
+            f"the run already extended itself up to {cap}x its warm-up and draws; rerun with "
+            f"--draws {2 * cap * draws} --warmup {2 * cap * options['num_warmup']}, and look for "
+            "a ridge or a second mode in the pair plot if that fails too"
         )
-    if engine == "emcee":
+    steps = options.get("max_steps", options.get("num_steps"))
+    if engine == "emcee" and steps is not None:
         return (
-            f"the run already extended itself to {options.get('max_steps', options['num_steps'])} "
-            f"steps; rerun with --steps {2 * options.get('max_steps', options['num_steps'])}, or "
-            "cross-check with --engine nuts"
+            f"the run already extended itself up to {steps} steps; rerun with --steps "
+            f"{2 * steps}, or cross-check with --engine nuts"
         )
     if engine in MARKOV_ENGINES:
         return "rerun with more --draws and a longer --warmup"

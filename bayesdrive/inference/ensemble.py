@@ -1,6 +1,6 @@
 r"""``emcee``: the affine-invariant ensemble sampler (Goodman & Weare 2010), a second cross-check.
 
-Per vehicle one ``emcee.EnsembleSampler`` with ``max(4 d, 32)`` walkers (stretch move) targets
+Per vehicle one ``emcee.EnsembleSampler`` with ``max(4 d, 32)`` walkers targets
 the same posterior as every engine: the model's uniform prior box times the masked sum of
 ``model.transition_logpdf`` (the shared :func:`~bayesdrive.inference.likelihood.series_loglik`).
 The log posterior is one jitted JAX function, vectorised over walkers (``vectorize=True``: one call
@@ -10,9 +10,16 @@ scores the whole ensemble) and compiled once for every vehicle, since all share 
 1000 steps to find a posterior 1/4000 of the prior width (a measured NGSIM-like case). So, as
 emcee's authors advise, walkers start in a tiny ball (``START_BALL`` of the prior width) around a
 posterior mode: the best of ``START_CANDIDATES`` prior draws per walker, polished by L-BFGS-B on
-the box with JAX gradients. Stretch moves expand such a ball within tens of steps, well inside the
+the box with JAX gradients. The moves expand such a ball within tens of steps, well inside the
 burn-in; the price is that a second, distant mode goes unseen (the particle engines and NUTS'
 dispersed chains are the check for that).
+
+**Moves.** ``move="de"`` (default): differential evolution (``DEMove``) on 80% of the steps and
+the DE snooker move on 20%, as emcee's documentation suggests for correlated targets;
+``move="stretch"``: Goodman and Weare's stretch move alone, emcee's default. On the six IDM
+parameters of trafficgen followers the stretch move's autocorrelation time was 60-120 steps, the
+DE mixture's 26-39 (``reports/convergence.md``), so the DE mixture reaches 50 tau in about a third
+of the steps.
 
 **Seeding.** Each vehicle's key (the seed with its id folded in,
 :mod:`bayesdrive.inference.vehicles`) gives its mode-search candidates, its start ball and a
@@ -37,7 +44,7 @@ of the stored draws at least 400 (:mod:`bayesdrive.inference.convergence`). A ve
 continues the same chains, doubling the run, with the burn-in the same fraction of it, up to
 ``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``). Why (``reports/convergence.md``):
 with six IDM parameters the stretch move's tau was 60-85 steps, so 2000 kept steps were 24-33
-tau, short of 50 on every vehicle. ``sample_stats`` records each vehicle's ``num_steps`` and
+tau, short of 50 on every vehicle (the DE mixture, now the default, mostly needs no extension). ``sample_stats`` records each vehicle's ``num_steps`` and
 ``num_burn``; fit's 50-tau check uses them.
 """
 
@@ -65,6 +72,7 @@ from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws,
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",
     "MAX_EXTENSION",
+    "MOVES",
     "START_BALL",
     "START_CANDIDATES",
     "num_walkers_for",
@@ -78,6 +86,11 @@ START_BALL = 1e-4
 # A vehicle that fails fit's checks continues its run, doubling it, up to this many times
 # num_steps (module docstring, "Extension").
 MAX_EXTENSION = 4
+# The ensemble moves with their weights (module docstring, "Moves").
+MOVES = {
+    "de": lambda: [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
+    "stretch": lambda: [(emcee.moves.StretchMove(), 1.0)],
+}
 
 
 def num_walkers_for(dim: int) -> int:
@@ -99,6 +112,7 @@ def run(
     num_burn: int | None = None,
     num_walkers: int | None = None,
     max_steps: int | None = None,
+    move: str = "de",
 ) -> EngineResult:
     """emcee for every vehicle of ``arrays`` (module docstring).
 
@@ -118,6 +132,8 @@ def run(
     walkers = num_walkers_for(dim) if num_walkers is None else num_walkers
     burn = num_steps // 2 if num_burn is None else num_burn
     max_steps = MAX_EXTENSION * num_steps if max_steps is None else max_steps
+    if move not in MOVES:
+        raise ValueError(f"unknown move {move!r}; choose one of {sorted(MOVES)}")
     if walkers < 2 * dim or not 0 <= burn < num_steps - 1 or max_steps < num_steps:
         raise ValueError(
             f"need num_walkers >= 2 * {dim}, 0 <= num_burn < num_steps - 1 and max_steps >= "
@@ -139,7 +155,7 @@ def run(
     def vehicle_series(i: int) -> Any:
         return jax.tree.map(lambda a: a[i], series)
 
-    # The stretch move scores half of the ensemble at a time, the initial state all of it:
+    # Every move scores half of the ensemble at a time, the initial state all of it:
     # compile both shapes up front, so the timed runs hold no compilation.
     started = time.perf_counter()
     log_posterior = jax.jit(log_posterior)
@@ -185,7 +201,7 @@ def run(
             lower + START_BALL * width,
             upper - START_BALL * width,
         )
-        sampler = emcee.EnsembleSampler(walkers, dim, log_prob, vectorize=True)
+        sampler = emcee.EnsembleSampler(walkers, dim, log_prob, moves=MOVES[move](), vectorize=True)
         state = emcee.State(start, random_state=np.random.RandomState(seeds[i]).get_state())
         sampler.run_mcmc(state, num_steps, progress=False)
         steps, vehicle_burn = num_steps, burn
@@ -244,7 +260,7 @@ def run(
             "num_burn": burn,
             "num_walkers": walkers,
             "max_steps": max_steps,
-            "move": "stretch (a = 2)",
+            "move": move,
         },
     )
 
