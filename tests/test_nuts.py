@@ -136,14 +136,18 @@ def two_vehicles(vehicle):
 
 
 def test_failing_vehicles_alone_are_extended_until_they_pass(vehicle, monkeypatch):
-    """'slow' passes only at 4x: it alone reruns at 2x and 4x; 'steady' keeps its first draws."""
+    """'slow' passes only from 4x: it alone reruns, at growing powers of two up to the cap of 8,
+    until it passes; 'steady' keeps its first draws."""
     run_vehicles, calls = fake_sampler({"steady": 1, "slow": 4}, vehicle.mask.shape[1])
     monkeypatch.setattr(nuts, "_run_vehicles", run_vehicles)
     result = nuts.run(
         jax.random.key(SEED), two_vehicles(vehicle), model=IDM, params=["sigma"], **OPTIONS
     )
-    assert calls == [(1, ("steady", "slow")), (2, ("slow",)), (4, ("slow",))]
-    np.testing.assert_array_equal(result.sample_stats["extension"][1], [1, 4])
+    assert calls[0] == (1, ("steady", "slow"))
+    factors = [factor for factor, vehicles in calls[1:] if vehicles == ("slow",)]
+    assert len(factors) == len(calls) - 1 and factors == sorted(set(factors))
+    assert 4 <= factors[-1] <= nuts.MAX_EXTENSION
+    np.testing.assert_array_equal(result.sample_stats["extension"][1], [1, factors[-1]])
     assert result.posterior["sigma"].shape == (4, 250, 2)  # thinned back to the stored count
     for i, name in enumerate(("steady", "slow")):
         draws = result.posterior["sigma"][:, :, i, None]
@@ -176,3 +180,9 @@ def test_extension_stops_at_the_cap_and_fit_warns_with_the_next_step(vehicle, mo
     warnings = [r.getMessage() for r in caplog.records if "not converged" in r.getMessage()]
     assert len(warnings) == 3
     assert all("vehicle slow, parameter sigma" in w and "next: " in w for w in warnings)
+
+
+def test_the_next_extension_covers_the_ess_shortfall():
+    assert nuts._next_factor(1, 1.1) == 2  # at least double
+    assert nuts._next_factor(1, 2.5) == 4  # 2.5 * 1.25 = 3.1 draws' worth: the next power of two
+    assert nuts._next_factor(2, 1.0) == 4

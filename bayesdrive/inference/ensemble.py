@@ -17,9 +17,8 @@ dispersed chains are the check for that).
 **Moves.** ``move="de"`` (default): differential evolution (``DEMove``) on 80% of the steps and
 the DE snooker move on 20%, as emcee's documentation suggests for correlated targets;
 ``move="stretch"``: Goodman and Weare's stretch move alone, emcee's default. On the six IDM
-parameters of trafficgen followers the stretch move's autocorrelation time was 60-120 steps, the
-DE mixture's 26-39 (``reports/convergence.md``), so the DE mixture reaches 50 tau in about a third
-of the steps.
+parameters of trafficgen followers the DE mixture's autocorrelation time was a third to a half of
+the stretch move's (``reports/convergence.md``), so it reaches 50 tau in fewer steps.
 
 **Seeding.** Each vehicle's key (the seed with its id folded in,
 :mod:`bayesdrive.inference.vehicles`) gives its mode-search candidates, its start ball and a
@@ -43,8 +42,8 @@ lower), taking their latest thinned draws.
 of the stored draws at least 400 (:mod:`bayesdrive.inference.convergence`). A vehicle that fails
 continues the same chains, doubling the run, with the burn-in the same fraction of it, up to
 ``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``). Why (``reports/convergence.md``):
-with six IDM parameters the stretch move's tau was 60-85 steps, so 2000 kept steps were 24-33
-tau, short of 50 on every vehicle (the DE mixture, now the default, mostly needs no extension). ``sample_stats`` records each vehicle's ``num_steps`` and
+with six IDM parameters the stretch move's 2000 kept steps were well short of 50 tau on every
+vehicle. ``sample_stats`` records each vehicle's ``num_steps`` and
 ``num_burn``; fit's 50-tau check uses them.
 """
 

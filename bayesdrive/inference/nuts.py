@@ -39,19 +39,21 @@ diagonal one 31 with fewer draws: so the default stays diagonal.
 **Extension.** After the run every vehicle's stored draws go through the checks that
 :func:`~bayesdrive.inference.fit.fit` runs afterwards (R-hat, bulk and tail ESS,
 :func:`~bayesdrive.inference.convergence.chain_problems`, same limits). A vehicle that fails runs
-again from fresh dispersed starts, with its key folded with the factor, with 2, then 4, ... up to
-``max_extension`` (:data:`MAX_EXTENSION`) times the warm-up and the draws, and keeps every
-factor-th draw, so every vehicle stores the same number. Why (``reports/convergence.md``): at
-250 draws a chain the six IDM parameters gave 0.2-0.35 effective draws per draw, so bulk and tail
-ESS fell short of 400 on nearly every vehicle; the ridge parameters ``v_des`` (unidentified in
-following without free driving: posterior spread to the upper bound) and ``d_min`` (piled on the
-lower bound) mix slowest. ``sample_stats.extension`` records each vehicle's factor; a vehicle
+again from fresh dispersed starts, with its key folded with the factor, with a power of two times
+the warm-up and the draws (the one that covers the worst ESS shortfall, at least double the last),
+up to ``max_extension`` (:data:`MAX_EXTENSION`) times, and keeps every factor-th draw, so every
+vehicle stores the same number. Why (``reports/convergence.md``): at the default 250 draws a chain
+the six IDM parameters' bulk and tail ESS fell short of 400 on nearly every vehicle, slowest for
+the ridge parameters ``v_des`` (unidentified in following without free driving: the posterior
+spreads to the upper bound) and ``d_min`` (piled on the lower bound); more draws, not a dense mass
+matrix, closed the gap. ``sample_stats.extension`` records each vehicle's factor; a vehicle
 still failing at the cap is left to fit's warnings, which then say what to try next.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -85,6 +87,8 @@ INIT_RADIUS = 2.0
 # A vehicle that fails its checks runs again with 2, 4, ... up to this many times the warm-up and
 # draws (module docstring, "Extension").
 MAX_EXTENSION = 8
+# An extension asks for this much more ESS than the shortfall it covers (see _next_factor).
+EXTENSION_MARGIN = 1.25
 
 
 class NUTSConfig(NamedTuple):
@@ -295,10 +299,10 @@ def run(
     # Extension: vehicles that fail the convergence checks run again, from their own keys folded
     # with the factor, with factor x the warm-up and draws, thinned back to the stored count.
     factors = np.ones(problem.num_vehicles, dtype=np.int64)
-    failing = _failing(problem, out.theta)
+    failing, shortfall = _failing(problem, out.theta)
     factor = 1
     while failing.size and factor < max_extension:
-        factor = min(2 * factor, max_extension)
+        factor = min(_next_factor(factor, shortfall), max_extension)
         longer = config._replace(
             num_warmup=factor * num_warmup, num_samples=factor * num_samples, thin=factor
         )
@@ -312,7 +316,8 @@ def run(
         out = jax.tree.map(lambda a, b, rows=failing: _replace_rows(a, rows, b), out, extended)
         factors[failing] = factor
         compile_time, run_time = compile_time + extra_compile, run_time + extra_run
-        failing = failing[_failing(subset, extended.theta)]
+        still, shortfall = _failing(subset, extended.theta)
+        failing = failing[still]
 
     def chain_draw_vehicle(values: np.ndarray) -> np.ndarray:
         return np.moveaxis(values, 0, -1)  # (vehicle, chain, draw) -> (chain, draw, vehicle)
@@ -371,16 +376,26 @@ def _run_vehicles(
     return jax.tree.map(lambda a: a[0], out), compile_time, run_time  # the one replicate
 
 
-def _failing(problem: Any, theta: np.ndarray) -> np.ndarray:
-    """Indices of the vehicles whose draws (vehicle, chain, draw, d) fail a convergence check."""
-    return np.asarray(
-        [
-            i
-            for i, vehicle in enumerate(problem.vehicle_ids)
-            if chain_problems(vehicle, problem.names, theta[i])
-        ],
-        dtype=np.int64,
-    )
+def _failing(problem: Any, theta: np.ndarray) -> tuple[np.ndarray, float]:
+    """Indices of the vehicles whose draws (vehicle, chain, draw, d) fail a convergence check, and
+    the worst shortfall among them: the largest ESS_MIN / ESS, at least 2 where R-hat fails."""
+    failing, shortfall = [], 1.0
+    for i, vehicle in enumerate(problem.vehicle_ids):
+        problems = chain_problems(vehicle, problem.names, theta[i])
+        if problems:
+            failing.append(i)
+        for p in problems:
+            short = 2.0 if p.check == "rhat" else p.limit / max(p.value, 1.0)
+            shortfall = max(shortfall, short)
+    return np.asarray(failing, dtype=np.int64), shortfall
+
+
+def _next_factor(factor: int, shortfall: float) -> int:
+    """The next extension: the power of two that covers the ESS shortfall with a quarter to spare
+    (ESS grows about with the draws until the stored draws are nearly independent), at least
+    double the last."""
+    wanted = factor * EXTENSION_MARGIN * shortfall
+    return max(2 * factor, 2 ** math.ceil(math.log2(wanted)))
 
 
 def _replace_rows(values: np.ndarray, rows: np.ndarray, new: np.ndarray) -> np.ndarray:
