@@ -58,6 +58,8 @@ RUNS = {
     "emcee-before": ("emcee", {"move": "stretch", "max_steps": 4000}),
 }
 PLATOON = 6
+# What follows this line in the report is written by hand (the reading of the tables) and kept.
+FINDINGS_MARKER = "<!-- findings: written by hand below, kept when the tables are regenerated -->"
 BOUND_MARGIN = 0.02
 
 
@@ -261,7 +263,10 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     from bayesdrive.data.atomic import write_text_atomic
 
-    write_text_atomic(args.out / "convergence.md", text)
+    target = args.out / "convergence.md"
+    if target.exists() and FINDINGS_MARKER in target.read_text():
+        text += "\n" + FINDINGS_MARKER + target.read_text().split(FINDINGS_MARKER, 1)[1]
+    write_text_atomic(target, text)
     print(text)
     return 0
 

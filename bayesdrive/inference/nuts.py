@@ -297,27 +297,36 @@ def run(
         problem, key, config, vehicle_chunk, vehicle_batch, progress
     )
     # Extension: vehicles that fail the convergence checks run again, from their own keys folded
-    # with the factor, with factor x the warm-up and draws, thinned back to the stored count.
+    # with the factor, with factor x the warm-up and draws, thinned back to the stored count. A
+    # vehicle's factors follow from its own draws alone, so its result does not depend on which
+    # vehicles it is fitted with.
     factors = np.ones(problem.num_vehicles, dtype=np.int64)
-    failing, shortfall = _failing(problem, out.theta)
-    factor = 1
-    while failing.size and factor < max_extension:
-        factor = min(_next_factor(factor, shortfall), max_extension)
-        longer = config._replace(
-            num_warmup=factor * num_warmup, num_samples=factor * num_samples, thin=factor
-        )
-        subset = problem._replace(
-            series=jax.tree.map(lambda a, rows=failing: a[rows], problem.series),
-            vehicle_ids=tuple(problem.vehicle_ids[i] for i in failing),
-        )
-        extended, extra_compile, extra_run = _run_vehicles(
-            subset, jax.random.fold_in(key, factor), longer, vehicle_chunk, vehicle_batch, None
-        )
-        out = jax.tree.map(lambda a, b, rows=failing: _replace_rows(a, rows, b), out, extended)
-        factors[failing] = factor
-        compile_time, run_time = compile_time + extra_compile, run_time + extra_run
-        still, shortfall = _failing(subset, extended.theta)
-        failing = failing[still]
+    shortfalls = _shortfalls(problem, out.theta)
+    while True:
+        next_factors = {
+            i: min(_next_factor(int(factors[i]), short), max_extension)
+            for i, short in enumerate(shortfalls)
+            if short is not None and factors[i] < max_extension
+        }
+        if not next_factors:
+            break
+        for factor in sorted(set(next_factors.values())):
+            rows = np.asarray([i for i, f in next_factors.items() if f == factor])
+            longer = config._replace(
+                num_warmup=factor * num_warmup, num_samples=factor * num_samples, thin=factor
+            )
+            subset = problem._replace(
+                series=jax.tree.map(lambda a, rows=rows: a[rows], problem.series),
+                vehicle_ids=tuple(problem.vehicle_ids[i] for i in rows),
+            )
+            extended, extra_compile, extra_run = _run_vehicles(
+                subset, jax.random.fold_in(key, factor), longer, vehicle_chunk, vehicle_batch, None
+            )
+            out = jax.tree.map(lambda a, b, rows=rows: _replace_rows(a, rows, b), out, extended)
+            factors[rows] = factor
+            compile_time, run_time = compile_time + extra_compile, run_time + extra_run
+            for i, short in zip(rows, _shortfalls(subset, extended.theta), strict=True):
+                shortfalls[i] = short
 
     def chain_draw_vehicle(values: np.ndarray) -> np.ndarray:
         return np.moveaxis(values, 0, -1)  # (vehicle, chain, draw) -> (chain, draw, vehicle)
@@ -376,18 +385,18 @@ def _run_vehicles(
     return jax.tree.map(lambda a: a[0], out), compile_time, run_time  # the one replicate
 
 
-def _failing(problem: Any, theta: np.ndarray) -> tuple[np.ndarray, float]:
-    """Indices of the vehicles whose draws (vehicle, chain, draw, d) fail a convergence check, and
-    the worst shortfall among them: the largest ESS_MIN / ESS, at least 2 where R-hat fails."""
-    failing, shortfall = [], 1.0
+def _shortfalls(problem: Any, theta: np.ndarray) -> list[float | None]:
+    """Per vehicle of draws (vehicle, chain, draw, d): None if they pass every convergence check,
+    else the worst shortfall, the largest ESS_MIN / ESS (at least 2 where R-hat fails)."""
+    shortfalls: list[float | None] = []
     for i, vehicle in enumerate(problem.vehicle_ids):
         problems = chain_problems(vehicle, problem.names, theta[i])
-        if problems:
-            failing.append(i)
-        for p in problems:
-            short = 2.0 if p.check == "rhat" else p.limit / max(p.value, 1.0)
-            shortfall = max(shortfall, short)
-    return np.asarray(failing, dtype=np.int64), shortfall
+        shortfalls.append(
+            max(2.0 if p.check == "rhat" else p.limit / max(p.value, 1.0) for p in problems)
+            if problems
+            else None
+        )
+    return shortfalls
 
 
 def _next_factor(factor: int, shortfall: float) -> int:
