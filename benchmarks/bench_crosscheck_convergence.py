@@ -201,12 +201,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", default=",".join(RUNS), help=f"among {', '.join(RUNS)}")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument(
+        "--keep", type=Path, default=None, help="folder to keep the data and results in"
+    )
     args = parser.parse_args(argv)
     data_sets, runs = args.data.split(","), args.runs.split(",")
     if "smc" not in runs:
         runs.insert(0, "smc")  # the reference of the agreement columns
     started = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as scratch:
+        tmp = str(args.keep or scratch)
+        Path(tmp).mkdir(parents=True, exist_ok=True)
         for data in data_sets:  # written once, before the jobs read them
             generate_data(data, args.seed, args.followers, args.duration, Path(tmp))
         jobs = [(data, run) for data in data_sets for run in runs]
