@@ -14,11 +14,13 @@ the box with JAX gradients. The moves expand such a ball within tens of steps, w
 burn-in; the price is that a second, distant mode goes unseen (the particle engines and NUTS'
 dispersed chains are the check for that).
 
-**Moves.** ``move="de"`` (default): differential evolution (``DEMove``) on 80% of the steps and
-the DE snooker move on 20%, as emcee's documentation suggests for correlated targets;
-``move="stretch"``: Goodman and Weare's stretch move alone, emcee's default. On the six IDM
-parameters of trafficgen followers the DE mixture's autocorrelation time was a third to a half of
-the stretch move's (``reports/convergence.md``), so it reaches 50 tau in fewer steps.
+**Moves.** ``move="stretch"`` (default): Goodman and Weare's stretch move, emcee's default.
+``move="de"``: differential evolution (``DEMove``) on 80% of the steps and the DE snooker move on
+20%. On trafficgen followers (``reports/convergence.md``) the DE mixture's autocorrelation time
+was a third to a half of the stretch move's, so it passed its checks in fewer steps, but its
+posterior sds came out narrower than smc's and nuts' (a_max, b_pref, sigma: tails it visits too
+rarely for its own autocorrelation estimate to tell): a cross-check must not be fast and wrong,
+so the stretch move stays the default and runs longer (``MAX_EXTENSION``).
 
 **Seeding.** Each vehicle's key (the seed with its id folded in,
 :mod:`bayesdrive.inference.vehicles`) gives its mode-search candidates, its start ball and a
@@ -84,7 +86,7 @@ START_CANDIDATES = 32
 START_BALL = 1e-4
 # A vehicle that fails fit's checks continues its run, doubling it, up to this many times
 # num_steps (module docstring, "Extension").
-MAX_EXTENSION = 4
+MAX_EXTENSION = 8
 # The ensemble moves with their weights (module docstring, "Moves").
 MOVES = {
     "de": lambda: [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
@@ -111,7 +113,7 @@ def run(
     num_burn: int | None = None,
     num_walkers: int | None = None,
     max_steps: int | None = None,
-    move: str = "de",
+    move: str = "stretch",
 ) -> EngineResult:
     """emcee for every vehicle of ``arrays`` (module docstring).
 
