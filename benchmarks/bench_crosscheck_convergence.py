@@ -14,8 +14,7 @@ Every data set is fitted by ``bayesdrive.inference.fit.fit`` at its defaults (al
 draws, seed ``--seed``) with smc, nuts and emcee, with the engines as they were before
 extension (``nuts-before``: ``max_extension=1``; ``emcee-before``: ``max_steps=4000``), the study
 of why they failed, and with emcee's differential-evolution moves (``emcee-de``). Per run: the
-convergence problems fit reports (exit 3
-when any), wall time, extension factors; per parameter: vehicles failing, median R-hat and ESS,
+convergence problems fit reports (exit 3 when any), wall time, extension factors; per parameter: vehicles failing, median R-hat and ESS,
 and how many posteriors press on a prior bound (1st or 99th percentile within 2% of the box's
 width of its edge); agreement of each engine with smc (``bayesdrive.inference.agreement``).
 

@@ -101,7 +101,7 @@ def test_a_short_run_extends_to_fifty_tau_and_a_capped_one_warns_with_the_next_s
     """300 steps (150 kept) are under 50 tau of sigma: the run continues its chains, doubling,
     up to 8x (2400), and passes fit's checks. Negative control: capped at 300 steps the same run
     must fail the 50-tau check, and the warning must say what to run next."""
-    options = {"model": IDM, "engine": "emcee", "params": ["sigma"], "draws": 500}
+    options = {"model": IDM, "engine": "emcee", "params": ["sigma"], "draws": 1000}
     extended = fit(jax.random.key(SEED), vehicle, num_steps=300, **options)
     steps = int(extended["sample_stats"]["num_steps"].values[0])
     assert 300 < steps <= ensemble.MAX_EXTENSION * 300
