@@ -110,6 +110,8 @@ def test_a_sticky_chain_fails_bulk_and_tail_ess():
 def test_the_next_step_names_the_options_to_raise():
     nuts_options = {"num_samples": 250, "num_chains": 4, "num_warmup": 500, "max_extension": 8}
     assert "--draws 16000 --warmup 8000" in next_step("nuts", nuts_options)
+    unextended = nuts_options | {"num_samples": 50, "max_extension": 1}  # 200 draws: no extension
+    assert "--draws 1600 --warmup 1000" in next_step("nuts", unextended)
     assert "--steps 32000" in next_step("emcee", {"num_steps": 4000, "max_steps": 16000})
     assert "--particles" in next_step("smc", {})
     assert next_step("lm", {}) is None

@@ -36,6 +36,7 @@ from bayesdrive.inference.output import metadata
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",
     "ESS_MIN",
+    "EXTENSION_MIN_DRAWS",
     "MARKOV_ENGINES",
     "RHAT_MAX",
     "ConvergenceProblem",
@@ -50,6 +51,9 @@ log = logging.getLogger(__name__)
 
 RHAT_MAX = 1.01
 ESS_MIN = 400.0
+# The engines extend a failing run only when they keep at least this many draws: fewer, nearly
+# independent, still fall short of ESS_MIN by chance too often for an extension to be worth it.
+EXTENSION_MIN_DRAWS = int(2 * ESS_MIN)
 # emcee's rule of thumb: an autocorrelation estimate needs a run of at least 50 tau.
 AUTOCORR_RELIABLE_FACTOR = 50
 MARKOV_ENGINES = ("nuts", "emcee", "hierarchical", "pmmh")
@@ -110,6 +114,12 @@ def next_step(engine: str | None, options: dict[str, Any]) -> str | None:
     if engine == "nuts" and "num_samples" in options:
         cap = options.get("max_extension", 1)
         draws = options["num_samples"] * options["num_chains"]
+        if cap == 1:
+            return (
+                f"rerun with --draws {max(2 * draws, 2 * EXTENSION_MIN_DRAWS)} --warmup "
+                f"{2 * options['num_warmup']} (from {EXTENSION_MIN_DRAWS} draws on, the run "
+                "also extends itself where it falls short)"
+            )
         return (
             f"the run already extended itself up to {cap}x its warm-up and draws; rerun with "
             f"--draws {2 * cap * draws} --warmup {2 * cap * options['num_warmup']}, and look for "

@@ -43,7 +43,8 @@ lower), taking their latest thinned draws.
 :func:`~bayesdrive.inference.fit.fit` will check it: kept steps at least 50 tau, bulk and tail ESS
 of the stored draws at least 400 (:mod:`bayesdrive.inference.convergence`). A vehicle that fails
 continues the same chains, doubling the run, with the burn-in the same fraction of it, up to
-``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``). Why (``reports/convergence.md``):
+``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``, or ``num_steps`` when fewer than
+:data:`~bayesdrive.inference.convergence.EXTENSION_MIN_DRAWS` draws are kept). Why (``reports/convergence.md``):
 with six IDM parameters the stretch move's 2000 kept steps were well short of 50 tau on every
 vehicle. ``sample_stats`` records each vehicle's ``num_steps`` and
 ``num_burn``; fit's 50-tau check uses them.
@@ -65,7 +66,11 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.convergence import AUTOCORR_RELIABLE_FACTOR, chain_problems
+from bayesdrive.inference.convergence import (
+    AUTOCORR_RELIABLE_FACTOR,
+    EXTENSION_MIN_DRAWS,
+    chain_problems,
+)
 from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
@@ -132,7 +137,8 @@ def run(
     dim = len(names)
     walkers = num_walkers_for(dim) if num_walkers is None else num_walkers
     burn = num_steps // 2 if num_burn is None else num_burn
-    max_steps = MAX_EXTENSION * num_steps if max_steps is None else max_steps
+    if max_steps is None:  # fewer draws than EXTENSION_MIN_DRAWS cannot show ESS 400
+        max_steps = MAX_EXTENSION * num_steps if num_particles >= EXTENSION_MIN_DRAWS else num_steps
     if move not in MOVES:
         raise ValueError(f"unknown move {move!r}; choose one of {sorted(MOVES)}")
     if walkers < 2 * dim or not 0 <= burn < num_steps - 1 or max_steps < num_steps:

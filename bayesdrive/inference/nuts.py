@@ -69,7 +69,7 @@ from numpyro.infer.util import potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.convergence import chain_problems
+from bayesdrive.inference.convergence import EXTENSION_MIN_DRAWS, chain_problems
 from bayesdrive.inference.likelihood import StepInputs, series_loglik
 from bayesdrive.inference.output import EngineResult
 from bayesdrive.inference.vehicles import (
@@ -260,7 +260,7 @@ def run(
     dense_mass: bool = False,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
-    max_extension: int = MAX_EXTENSION,
+    max_extension: int | None = None,
 ) -> EngineResult:
     """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
 
@@ -270,7 +270,9 @@ def run(
     ``tree_depth``, ``n_steps``, ``acceptance_rate``, ``energy`` and ``lp`` (the log density on the
     unconstrained scale), the adapted ``step_size`` per vehicle and chain, and ``extension``, the
     factor each vehicle's warm-up and draws were extended by (1: none; at most ``max_extension``,
-    a power of two or the cap itself).
+    a power of two or the cap itself). ``max_extension`` defaults to :data:`MAX_EXTENSION` from
+    :data:`~bayesdrive.inference.convergence.EXTENSION_MIN_DRAWS` draws on, else 1 (fewer
+    draws cannot show ESS 400, so extending them would only cost time).
     """
     num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
@@ -278,6 +280,9 @@ def run(
             "need num_chains >= 1, num_warmup >= 1 and at least 2 draws per chain, got "
             f"num_chains={num_chains}, num_warmup={num_warmup}, num_particles={num_particles}"
         )
+    if max_extension is None:
+        enough = num_chains * num_samples >= EXTENSION_MIN_DRAWS
+        max_extension = MAX_EXTENSION if enough else 1
     if max_extension < 1:
         raise ValueError(f"max_extension must be at least 1, got {max_extension}")
     if not 0.0 < target_accept_prob < 1.0:
