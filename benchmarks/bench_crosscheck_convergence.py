@@ -11,17 +11,19 @@ model fitted:
 * ``reaction_delay``: delayed perception (``perception_delay``), fitted by ``idm+reaction_delay``.
 
 Every data set is fitted by ``bayesdrive.inference.fit.fit`` at its defaults (all parameters, 1000
-draws, seed ``--seed``) with smc, nuts and emcee, with the engines as they were before
-extension (``nuts-before``: ``max_extension=1``; ``emcee-before``: ``max_steps=4000``), the study
-of why they failed, and with emcee's differential-evolution moves (``emcee-de``). Per run: the
-convergence problems fit reports (exit 3 when any), wall time, extension factors; per parameter: vehicles failing, median R-hat and ESS,
-and how many posteriors press on a prior bound (1st or 99th percentile within 2% of the box's
-width of its edge); agreement of each engine with smc (``bayesdrive.inference.agreement``).
+draws, seed ``--seed``) with smc, nuts and emcee; with the engines as they were before extension
+(``nuts-before``: ``max_extension=1``; ``emcee-before``: ``max_steps=4000``), the study of why they
+failed; with emcee's differential-evolution moves (``emcee-de``); and with nuts, unextended, given
+a dense mass matrix (``nuts-dense``) or 4000 draws after 1000 warm-up (``nuts-4x``). Per run: the
+convergence problems fit reports (exit 3 when any), wall time, extension factors; per parameter:
+vehicles failing, median R-hat and ESS, and how many posteriors press on a prior bound (1st or 99th
+percentile within 2% of the box's width of its edge); agreement of each engine with smc
+(``bayesdrive.inference.agreement``).
 
 Runs are independent jobs; ``--jobs N`` runs N at once (processes; each uses the cores JAX
-gives it). The full study (24 followers of 60 s, three data sets, six runs each)::
+gives it). The full study (24 followers of 60 s, three data sets, eight runs each)::
 
-    python benchmarks/bench_crosscheck_convergence.py --jobs 18 --out reports
+    python benchmarks/bench_crosscheck_convergence.py --jobs 16 --out reports
 """
 
 from __future__ import annotations
@@ -57,6 +59,9 @@ RUNS = {
     "nuts-before": ("nuts", {"max_extension": 1}),
     "emcee-before": ("emcee", {"max_steps": 4000}),
     "emcee-de": ("emcee", {"move": "de"}),
+    # The suspects of the study, one at a time, without extension: a dense mass matrix; 4x draws.
+    "nuts-dense": ("nuts", {"dense_mass": True, "max_extension": 1}),
+    "nuts-4x": ("nuts", {"draws": 4000, "warmup": 1000, "max_extension": 1}),
 }
 PLATOON = 6
 # What follows this line in the report is written by hand (the reading of the tables) and kept.
@@ -239,7 +244,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{args.duration:g} s per data set (seed {args.seed}); every run is `fit` at its "
             "defaults (1000 draws, all parameters, seed "
             f"{args.seed}); `nuts-before` and `emcee-before` are the engines without extension, "
-            "`emcee-de` emcee with its differential-evolution moves.",
+            "`emcee-de` emcee with its differential-evolution moves, `nuts-dense` and `nuts-4x` "
+            "nuts without extension with a dense mass matrix and with 4000 draws after 1000 "
+            "warm-up.",
             "",
             "## Runs",
             "",
