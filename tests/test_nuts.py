@@ -88,6 +88,7 @@ def test_pointwise_log_likelihood_scores_every_stored_draw(vehicle, result):
         ({"num_particles": 2, "num_chains": 2}, "2 draws per chain"),
         ({"target_accept_prob": 1.0}, "target_accept_prob"),
         ({"max_extension": 0}, "max_extension"),
+        ({"max_extension": 2, "first_extension": 4}, "first_extension"),
     ],
 )
 def test_bad_settings_are_refused(vehicle, options, message):
@@ -136,18 +137,15 @@ def two_vehicles(vehicle):
 
 
 def test_failing_vehicles_alone_are_extended_until_they_pass(vehicle, monkeypatch):
-    """'slow' passes only from 4x: it alone reruns, at growing powers of two up to the cap of 8,
-    until it passes; 'steady' keeps its first draws."""
-    run_vehicles, calls = fake_sampler({"steady": 1, "slow": 4}, vehicle.mask.shape[1])
+    """The first run has FIRST_EXTENSION (4) times the warm-up and draws; 'slow' passes only from
+    8x: it alone reruns, at 8x, the cap, and passes; 'steady' keeps its first draws."""
+    run_vehicles, calls = fake_sampler({"steady": 1, "slow": 8}, vehicle.mask.shape[1])
     monkeypatch.setattr(nuts, "_run_vehicles", run_vehicles)
     result = nuts.run(
         jax.random.key(SEED), two_vehicles(vehicle), model=IDM, params=["sigma"], **OPTIONS
     )
-    assert calls[0] == (1, ("steady", "slow"))
-    factors = [factor for factor, vehicles in calls[1:] if vehicles == ("slow",)]
-    assert len(factors) == len(calls) - 1 and factors == sorted(set(factors))
-    assert 4 <= factors[-1] <= nuts.MAX_EXTENSION
-    np.testing.assert_array_equal(result.sample_stats["extension"][1], [1, factors[-1]])
+    assert calls == [(nuts.FIRST_EXTENSION, ("steady", "slow")), (8, ("slow",))]
+    np.testing.assert_array_equal(result.sample_stats["extension"][1], [4, 8])
     assert result.posterior["sigma"].shape == (4, 250, 2)  # thinned back to the stored count
     for i, name in enumerate(("steady", "slow")):
         draws = result.posterior["sigma"][:, :, i, None]
@@ -155,8 +153,8 @@ def test_failing_vehicles_alone_are_extended_until_they_pass(vehicle, monkeypatc
 
 
 def test_extension_stops_at_the_cap_and_fit_warns_with_the_next_step(vehicle, monkeypatch, caplog):
-    """Negative control: 'slow' would need 16x; with the cap at 2x it stops there, still failing,
-    and every warning line names the vehicle, the parameter and what to run next."""
+    """Negative control: 'slow' would need 16x; started at 1x with the cap at 2x it stops there,
+    still failing, and every warning line names the vehicle, the parameter and what to run next."""
     run_vehicles, calls = fake_sampler({"steady": 1, "slow": 16}, vehicle.mask.shape[1])
     monkeypatch.setattr(nuts, "_run_vehicles", run_vehicles)
     with caplog.at_level(logging.WARNING, logger="bayesdrive.inference.convergence"):
@@ -170,6 +168,7 @@ def test_extension_stops_at_the_cap_and_fit_warns_with_the_next_step(vehicle, mo
             chains=OPTIONS["num_chains"],
             warmup=OPTIONS["num_warmup"],
             max_extension=2,
+            first_extension=1,
         )
     assert calls == [(1, ("steady", "slow")), (2, ("slow",))]
     np.testing.assert_array_equal(tree["sample_stats"]["extension"].values, [1, 2])

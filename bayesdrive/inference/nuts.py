@@ -46,7 +46,9 @@ vehicle stores the same number. Why (``reports/convergence.md``): at the default
 the six IDM parameters' bulk and tail ESS fell short of 400 on nearly every vehicle, slowest for
 the ridge parameters ``v_des`` (unidentified in following without free driving: the posterior
 spreads to the upper bound) and ``d_min`` (piled on the lower bound); more draws, not a dense mass
-matrix, closed the gap. ``sample_stats.extension`` records each vehicle's factor; a vehicle
+matrix, closed the gap; and since the first run at 250 draws a chain was wasted on nearly every
+vehicle, the first run already has :data:`FIRST_EXTENSION` times the warm-up and draws (thinned
+alike). ``sample_stats.extension`` records each vehicle's factor; a vehicle
 still failing at the cap is left to fit's warnings, which then say what to try next.
 """
 
@@ -79,7 +81,15 @@ from bayesdrive.inference.vehicles import (
     static_key,
 )
 
-__all__ = ["INIT_RADIUS", "MAX_EXTENSION", "NUTSConfig", "NUTSDraws", "run", "sample_nuts"]
+__all__ = [
+    "FIRST_EXTENSION",
+    "INIT_RADIUS",
+    "MAX_EXTENSION",
+    "NUTSConfig",
+    "NUTSDraws",
+    "run",
+    "sample_nuts",
+]
 
 # Chains start uniformly in (-2, 2) on the unconstrained scale (NumPyro's init_to_uniform): the
 # middle 76% of each prior interval, so chains start dispersed as R-hat needs.
@@ -87,6 +97,10 @@ INIT_RADIUS = 2.0
 # A vehicle that fails its checks runs again with 2, 4, ... up to this many times the warm-up and
 # draws (module docstring, "Extension").
 MAX_EXTENSION = 8
+# The first run's factor: at fit's 1000 draws an unextended run fell short on nearly every vehicle
+# of six or seven parameters, and 4x passed in a fraction of the time extension from 1x took
+# (module docstring, "Extension").
+FIRST_EXTENSION = 4
 # An extension asks for this much more ESS than the shortfall it covers (see _next_factor).
 EXTENSION_MARGIN = 1.25
 
@@ -261,6 +275,7 @@ def run(
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
     max_extension: int | None = None,
+    first_extension: int | None = None,
 ) -> EngineResult:
     """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
 
@@ -272,7 +287,9 @@ def run(
     factor each vehicle's warm-up and draws were extended by (1: none; at most ``max_extension``,
     a power of two or the cap itself). ``max_extension`` defaults to :data:`MAX_EXTENSION` from
     :data:`~bayesdrive.inference.convergence.EXTENSION_MIN_DRAWS` draws on, else 1 (fewer
-    draws cannot show ESS 400, so extending them would only cost time).
+    draws cannot show ESS 400, so extending them would only cost time). ``first_extension`` is
+    the factor of the first run (default :data:`FIRST_EXTENSION`, at most ``max_extension``, 1
+    where ``max_extension`` is).
     """
     num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
@@ -280,11 +297,17 @@ def run(
             "need num_chains >= 1, num_warmup >= 1 and at least 2 draws per chain, got "
             f"num_chains={num_chains}, num_warmup={num_warmup}, num_particles={num_particles}"
         )
+    enough = num_chains * num_samples >= EXTENSION_MIN_DRAWS
     if max_extension is None:
-        enough = num_chains * num_samples >= EXTENSION_MIN_DRAWS
         max_extension = MAX_EXTENSION if enough else 1
     if max_extension < 1:
         raise ValueError(f"max_extension must be at least 1, got {max_extension}")
+    if first_extension is None:
+        first_extension = min(FIRST_EXTENSION, max_extension) if enough else 1
+    if not 1 <= first_extension <= max_extension:
+        raise ValueError(
+            f"first_extension must be in [1, max_extension={max_extension}], got {first_extension}"
+        )
     if not 0.0 < target_accept_prob < 1.0:
         raise ValueError(f"target_accept_prob must be in (0, 1), got {target_accept_prob}")
     problem = prepare(
@@ -299,13 +322,13 @@ def run(
         dense_mass=dense_mass,
     )
     out, compile_time, run_time = _run_vehicles(
-        problem, key, config, vehicle_chunk, vehicle_batch, progress
+        problem, key, _scaled(config, first_extension), vehicle_chunk, vehicle_batch, progress
     )
     # Extension: vehicles that fail the convergence checks run again, from their own keys folded
     # with the factor, with factor x the warm-up and draws, thinned back to the stored count. A
     # vehicle's factors follow from its own draws alone, so its result does not depend on which
     # vehicles it is fitted with.
-    factors = np.ones(problem.num_vehicles, dtype=np.int64)
+    factors = np.full(problem.num_vehicles, first_extension, dtype=np.int64)
     shortfalls = _shortfalls(problem, out.theta)
     while True:
         next_factors = {
@@ -317,15 +340,17 @@ def run(
             break
         for factor in sorted(set(next_factors.values())):
             rows = np.asarray([i for i, f in next_factors.items() if f == factor])
-            longer = config._replace(
-                num_warmup=factor * num_warmup, num_samples=factor * num_samples, thin=factor
-            )
             subset = problem._replace(
                 series=jax.tree.map(lambda a, rows=rows: a[rows], problem.series),
                 vehicle_ids=tuple(problem.vehicle_ids[i] for i in rows),
             )
             extended, extra_compile, extra_run = _run_vehicles(
-                subset, jax.random.fold_in(key, factor), longer, vehicle_chunk, vehicle_batch, None
+                subset,
+                jax.random.fold_in(key, factor),
+                _scaled(config, factor),
+                vehicle_chunk,
+                vehicle_batch,
+                None,
             )
             out = jax.tree.map(lambda a, b, rows=rows: _replace_rows(a, rows, b), out, extended)
             factors[rows] = factor
@@ -358,6 +383,15 @@ def run(
             "vehicle_batch": vehicle_batch,
             "max_extension": max_extension,
         },
+    )
+
+
+def _scaled(config: NUTSConfig, factor: int) -> NUTSConfig:
+    """``config`` with ``factor`` times the warm-up and draws, keeping every factor-th draw."""
+    return config._replace(
+        num_warmup=factor * config.num_warmup,
+        num_samples=factor * config.num_samples,
+        thin=factor,
     )
 
 
