@@ -9,7 +9,7 @@ Each check applies where it means something, per vehicle and parameter (numbers 
   engines whose draws form Markov chains (:data:`MARKOV_ENGINES`); a filter's particles have no
   order along which autocorrelation would mean anything;
 * ``autocorr``: an emcee run shorter than 50 integrated autocorrelation times of the parameter
-  after burn-in (:data:`~bayesdrive.inference.ensemble.AUTOCORR_RELIABLE_FACTOR`);
+  after burn-in (:data:`AUTOCORR_RELIABLE_FACTOR`);
 * ``replicate_spread``: with several SMC replicates, the ESS that the spread of their means
   implies (:func:`~bayesdrive.inference.agreement.mcse_mean`) below :data:`ESS_MIN`;
 * ``spread``, for every engine: a parameter whose draws are all equal has collapsed onto one
@@ -26,26 +26,36 @@ import logging
 import math
 from typing import Any, NamedTuple
 
+import arviz
+import numpy as np
 import xarray as xr
 
 from bayesdrive.inference.agreement import convergence_table
-from bayesdrive.inference.ensemble import AUTOCORR_RELIABLE_FACTOR
 from bayesdrive.inference.output import metadata
 
 __all__ = [
+    "AUTOCORR_RELIABLE_FACTOR",
     "ESS_MIN",
+    "EXTENSION_MIN_DRAWS",
     "MARKOV_ENGINES",
     "RHAT_MAX",
     "ConvergenceProblem",
     "ConvergenceReport",
+    "chain_problems",
     "check_convergence",
     "log_problems",
+    "next_step",
 ]
 
 log = logging.getLogger(__name__)
 
 RHAT_MAX = 1.01
 ESS_MIN = 400.0
+# The engines extend a failing run only when they keep at least this many draws: fewer, nearly
+# independent, still fall short of ESS_MIN by chance too often for an extension to be worth it.
+EXTENSION_MIN_DRAWS = int(2 * ESS_MIN)
+# emcee's rule of thumb: an autocorrelation estimate needs a run of at least 50 tau.
+AUTOCORR_RELIABLE_FACTOR = 50
 MARKOV_ENGINES = ("nuts", "emcee", "hierarchical", "pmmh")
 # Problems logged one by one; the rest are counted (all of them are in the metadata).
 LOGGED_PROBLEMS = 10
@@ -80,18 +90,68 @@ class ConvergenceProblem(NamedTuple):
         )
 
 
+def chain_problems(
+    vehicle: str, names: tuple[str, ...], draws: np.ndarray, *, rhat: bool = True
+) -> list[ConvergenceProblem]:
+    """The R-hat (with ``rhat`` and two or more chains), bulk- and tail-ESS checks of
+    :func:`check_convergence` on one vehicle's draws (chain, draw, parameter), with the same
+    estimators and limits: what an engine that extends its own run must pass."""
+    dataset = xr.Dataset({"theta": (("chain", "draw", "param"), np.asarray(draws, np.float64))})
+    checks = [("ess_bulk", arviz.ess(dataset, method="bulk"), ESS_MIN, False)]
+    checks.append(("ess_tail", arviz.ess(dataset, method="tail"), ESS_MIN, False))
+    if rhat and draws.shape[0] >= 2:
+        checks.insert(0, ("rhat", arviz.rhat(dataset), RHAT_MAX, True))
+    problems = []
+    for check, values, limit, above in checks:
+        for name, value in zip(names, np.asarray(values["theta"].values, float), strict=True):
+            if math.isnan(value) or (value > limit if above else value < limit):
+                problems.append(ConvergenceProblem(vehicle, name, check, float(value), limit))
+    return problems
+
+
+def next_step(engine: str | None, options: dict[str, Any]) -> str | None:
+    """What to try after a run that failed its checks, from the run's own (extended) settings."""
+    if engine == "nuts" and "num_samples" in options:
+        cap = options.get("max_extension", 1)
+        draws = options["num_samples"] * options["num_chains"]
+        if cap == 1:
+            return (
+                f"rerun with --draws {max(2 * draws, 2 * EXTENSION_MIN_DRAWS)} --warmup "
+                f"{2 * options['num_warmup']} (from {EXTENSION_MIN_DRAWS} draws on, the run "
+                "also extends itself where it falls short)"
+            )
+        return (
+            f"the run already extended itself up to {cap}x its warm-up and draws; rerun with "
+            f"--draws {2 * cap * draws} --warmup {2 * cap * options['num_warmup']}, and look for "
+            "a ridge or a second mode in the pair plot if that fails too"
+        )
+    steps = options.get("max_steps", options.get("num_steps"))
+    if engine == "emcee" and steps is not None:
+        return (
+            f"the run already extended itself up to {steps} steps; rerun with --steps "
+            f"{2 * steps}, or cross-check with --engine nuts"
+        )
+    if engine in MARKOV_ENGINES:
+        return "rerun with more --draws and a longer --warmup"
+    if engine == "smc":
+        return "rerun with more --particles"
+    return None
+
+
 class ConvergenceReport(NamedTuple):
     """The checks that ran, what failed, and why some could not run (None: all applicable ran)."""
 
     checks: list[str]
     problems: list[ConvergenceProblem]
     unchecked: str | None
+    next_step: str | None = None
 
     def as_metadata(self) -> dict[str, Any]:
         return {
             "checks": self.checks,
             "problems": [p._asdict() for p in self.problems],
             "unchecked": self.unchecked,
+            "next_step": self.next_step if self.problems else None,
         }
 
 
@@ -126,8 +186,15 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
         flag("ess_bulk", "ess_bulk", ESS_MIN, above=False)
         flag("ess_tail", "ess_tail", ESS_MIN, above=False)
     if "autocorr_time" in table:
-        options = meta.get("engine_options") or {}
-        sampled = options["num_steps"] - options["num_burn"]
+        stats = tree["sample_stats"].to_dataset()
+        if "num_steps" in stats:  # per vehicle: the run may have extended itself
+            kept = stats["num_steps"] - stats["num_burn"]
+            sampled = table["vehicle"].map(
+                dict(zip(map(str, kept["vehicle"].values), kept.values, strict=True))
+            )
+        else:
+            options = meta.get("engine_options") or {}
+            sampled = options["num_steps"] - options["num_burn"]
         table["run_over_tau"] = sampled / table["autocorr_time"]
         flag("autocorr", "run_over_tau", AUTOCORR_RELIABLE_FACTOR, above=False)
     if replicated_smc:
@@ -138,13 +205,16 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
             f"{engine} with one chain of independent-looking draws: no R-hat, ESS or replicate "
             "check applies (smc: use replicates > 1)"
         )
-    return ConvergenceReport(["spread", *checks], problems, unchecked)
+    advice = next_step(engine, meta.get("engine_options") or {})
+    return ConvergenceReport(["spread", *checks], problems, unchecked, advice)
 
 
 def log_problems(report: ConvergenceReport) -> None:
-    """One warning per problem (the first :data:`LOGGED_PROBLEMS`), then how many more."""
+    """One warning per problem (the first :data:`LOGGED_PROBLEMS`), each with the next step to
+    take, then how many more."""
+    advice = f"; next: {report.next_step}" if report.next_step else ""
     for problem in report.problems[:LOGGED_PROBLEMS]:
-        log.warning("not converged: %s", problem.message())
+        log.warning("not converged: %s%s", problem.message(), advice)
     hidden = len(report.problems) - LOGGED_PROBLEMS
     if hidden > 0:
         log.warning("... and %d more convergence problem(s), listed in the metadata", hidden)

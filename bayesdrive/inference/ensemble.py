@@ -1,6 +1,6 @@
 r"""``emcee``: the affine-invariant ensemble sampler (Goodman & Weare 2010), a second cross-check.
 
-Per vehicle one ``emcee.EnsembleSampler`` with ``max(4 d, 32)`` walkers (stretch move) targets
+Per vehicle one ``emcee.EnsembleSampler`` with ``max(4 d, 32)`` walkers targets
 the same posterior as every engine: the model's uniform prior box times the masked sum of
 ``model.transition_logpdf`` (the shared :func:`~bayesdrive.inference.likelihood.series_loglik`).
 The log posterior is one jitted JAX function, vectorised over walkers (``vectorize=True``: one call
@@ -10,9 +10,17 @@ scores the whole ensemble) and compiled once for every vehicle, since all share 
 1000 steps to find a posterior 1/4000 of the prior width (a measured NGSIM-like case). So, as
 emcee's authors advise, walkers start in a tiny ball (``START_BALL`` of the prior width) around a
 posterior mode: the best of ``START_CANDIDATES`` prior draws per walker, polished by L-BFGS-B on
-the box with JAX gradients. Stretch moves expand such a ball within tens of steps, well inside the
+the box with JAX gradients. The moves expand such a ball within tens of steps, well inside the
 burn-in; the price is that a second, distant mode goes unseen (the particle engines and NUTS'
 dispersed chains are the check for that).
+
+**Moves.** ``move="stretch"`` (default): Goodman and Weare's stretch move, emcee's default.
+``move="de"``: differential evolution (``DEMove``) on 80% of the steps and the DE snooker move on
+20%. On trafficgen followers (``reports/convergence.md``) the DE mixture's autocorrelation time
+was a third to a half of the stretch move's, so it passed its checks in fewer steps, but its
+posterior sds came out narrower than smc's and nuts' (a_max, b_pref, sigma: tails it visits too
+rarely for its own autocorrelation estimate to tell): a cross-check must not be fast and wrong,
+so the stretch move stays the default and runs longer (``MAX_EXTENSION``).
 
 **Seeding.** Each vehicle's key (the seed with its id folded in,
 :mod:`bayesdrive.inference.vehicles`) gives its mode-search candidates, its start ball and a
@@ -30,6 +38,16 @@ recorded as ``autocorr_reliable``); the kept steps are thinned by ``ceil(max tau
 flattened into one chain (``chain = 1``). Vehicles with different tau have different numbers of
 thinned draws; all keep the same number (``num_particles``, or the smallest over vehicles if
 lower), taking their latest thinned draws.
+
+**Extension.** After ``num_steps`` each vehicle's run is checked as
+:func:`~bayesdrive.inference.fit.fit` will check it: kept steps at least 50 tau, bulk and tail ESS
+of the stored draws at least 400 (:mod:`bayesdrive.inference.convergence`). A vehicle that fails
+continues the same chains, doubling the run, with the burn-in the same fraction of it, up to
+``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``, or ``num_steps`` when fewer than
+:data:`~bayesdrive.inference.convergence.EXTENSION_MIN_DRAWS` draws are kept). Why (``reports/convergence.md``):
+with six IDM parameters the stretch move's 2000 kept steps were well short of 50 tau on every
+vehicle. ``sample_stats`` records each vehicle's ``num_steps`` and
+``num_burn``; fit's 50-tau check uses them.
 """
 
 from __future__ import annotations
@@ -47,24 +65,37 @@ import scipy.optimize
 from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
+from bayesdrive.inference.convergence import (
+    AUTOCORR_RELIABLE_FACTOR,
+    EXTENSION_MIN_DRAWS,
+    chain_problems,
+)
 from bayesdrive.inference.likelihood import series_loglik
 from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
 
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",
+    "MAX_EXTENSION",
+    "MOVES",
     "START_BALL",
     "START_CANDIDATES",
     "num_walkers_for",
     "run",
 ]
 
-# emcee's rule of thumb: an autocorrelation estimate needs a run of at least 50 tau.
-AUTOCORR_RELIABLE_FACTOR = 50
 # Prior draws per walker searched for the optimiser's starting point, and the start ball's radius
 # as a fraction of each prior interval.
 START_CANDIDATES = 32
 START_BALL = 1e-4
+# A vehicle that fails fit's checks continues its run, doubling it, up to this many times
+# num_steps (module docstring, "Extension").
+MAX_EXTENSION = 8
+# The ensemble moves with their weights (module docstring, "Moves").
+MOVES = {
+    "de": lambda: [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
+    "stretch": lambda: [(emcee.moves.StretchMove(), 1.0)],
+}
 
 
 def num_walkers_for(dim: int) -> int:
@@ -79,6 +110,8 @@ def run(
     num_steps: int = 4000,
     num_burn: int | None = None,
     num_walkers: int | None = None,
+    max_steps: int | None = None,
+    move: str = "stretch",
     **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """emcee for every vehicle of ``arrays`` (module docstring).
@@ -97,10 +130,15 @@ def run(
     dim = len(names)
     walkers = num_walkers_for(dim) if num_walkers is None else num_walkers
     burn = num_steps // 2 if num_burn is None else num_burn
-    if walkers < 2 * dim or not 0 <= burn < num_steps - 1:
+    if max_steps is None:  # fewer draws than EXTENSION_MIN_DRAWS cannot show ESS 400
+        max_steps = MAX_EXTENSION * num_steps if num_particles >= EXTENSION_MIN_DRAWS else num_steps
+    if move not in MOVES:
+        raise ValueError(f"unknown move {move!r}; choose one of {sorted(MOVES)}")
+    if walkers < 2 * dim or not 0 <= burn < num_steps - 1 or max_steps < num_steps:
         raise ValueError(
-            f"need num_walkers >= 2 * {dim} and 0 <= num_burn < num_steps - 1, got "
-            f"num_walkers={walkers}, num_burn={burn}, num_steps={num_steps}"
+            f"need num_walkers >= 2 * {dim}, 0 <= num_burn < num_steps - 1 and max_steps >= "
+            f"num_steps, got num_walkers={walkers}, num_burn={burn}, num_steps={num_steps}, "
+            f"max_steps={max_steps}"
         )
     lower, upper = np.asarray(box.lower, np.float64), np.asarray(box.upper, np.float64)
     width = upper - lower
@@ -117,7 +155,7 @@ def run(
     def vehicle_series(i: int) -> Any:
         return jax.tree.map(lambda a: a[i], series)
 
-    # The stretch move scores half of the ensemble at a time, the initial state all of it:
+    # Every move scores half of the ensemble at a time, the initial state all of it:
     # compile both shapes up front, so the timed runs hold no compilation.
     started = time.perf_counter()
     log_posterior = jax.jit(log_posterior)
@@ -142,7 +180,7 @@ def run(
     candidates, balls, seeds = jax.vmap(vehicle_start)(problem.keys(key))
     balls, seeds = np.asarray(balls), np.asarray(seeds).astype(np.int64)
 
-    chains, taus, thins, kept, acceptance = [], [], [], [], []
+    chains, taus, thins, kept, acceptance, run_steps = [], [], [], [], [], []
     run_time = 0.0
     for i in range(num_vehicles):
         vehicle = vehicle_series(i)
@@ -163,17 +201,30 @@ def run(
             lower + START_BALL * width,
             upper - START_BALL * width,
         )
-        sampler = emcee.EnsembleSampler(walkers, dim, log_prob, vectorize=True)
+        sampler = emcee.EnsembleSampler(walkers, dim, log_prob, moves=MOVES[move](), vectorize=True)
         state = emcee.State(start, random_state=np.random.RandomState(seeds[i]).get_state())
         sampler.run_mcmc(state, num_steps, progress=False)
-        # tol=0: the 50-tau check is recorded per vehicle (autocorr_reliable), not logged.
-        tau = sampler.get_autocorr_time(discard=burn, tol=0)
-        thin = max(1, math.ceil(float(np.max(tau))))
-        draws = sampler.get_chain(discard=burn, thin=thin, flat=True)
+        steps, vehicle_burn = num_steps, burn
+        while True:
+            # tol=0: the 50-tau check is recorded per vehicle (autocorr_reliable), not logged.
+            tau = sampler.get_autocorr_time(discard=vehicle_burn, tol=0)
+            thin = max(1, math.ceil(float(np.max(tau))))
+            draws = sampler.get_chain(discard=vehicle_burn, thin=thin, flat=True)
+            if steps >= max_steps or _converged(
+                problem.vehicle_ids[i], names, draws[-num_particles:], tau, steps - vehicle_burn
+            ):
+                break
+            # Extension: double the run, continuing the same chains; the burn-in stays the
+            # same fraction of it, so the first steps, furthest from stationarity, are dropped.
+            more = min(steps, max_steps - steps)
+            sampler.run_mcmc(None, more, progress=False)
+            vehicle_burn = (steps + more) * burn // num_steps
+            steps += more
         run_time += time.perf_counter() - started
         chains.append(draws)
         taus.append(tau)
         thins.append(thin)
+        run_steps.append((steps, vehicle_burn))
         kept.append(len(draws))
         acceptance.append(float(np.mean(sampler.acceptance_fraction)))
         if progress is not None:
@@ -185,6 +236,7 @@ def run(
     log_lik = problem.score(theta)  # (vehicle, draw, step)
     run_time += time.perf_counter() - started
     tau_array = np.asarray(taus)
+    steps_array, burn_array = np.asarray(run_steps).T
     return EngineResult(
         posterior=posterior_draws(names, theta[:, None]),
         sample_stats={
@@ -193,8 +245,10 @@ def run(
             "kept_draws": (("vehicle",), np.asarray(kept)),
             "autocorr_reliable": (
                 ("vehicle",),
-                (num_steps - burn) > AUTOCORR_RELIABLE_FACTOR * tau_array.max(axis=1),
+                (steps_array - burn_array) > AUTOCORR_RELIABLE_FACTOR * tau_array.max(axis=1),
             ),
+            "num_steps": (("vehicle",), steps_array),
+            "num_burn": (("vehicle",), burn_array),
             "acceptance_fraction": (("vehicle",), np.asarray(acceptance)),
             "seed": (("vehicle",), seeds),
         },
@@ -205,9 +259,20 @@ def run(
             "num_steps": num_steps,
             "num_burn": burn,
             "num_walkers": walkers,
-            "move": "stretch (a = 2)",
+            "max_steps": max_steps,
+            "move": move,
         },
     )
+
+
+def _converged(
+    vehicle: str, names: tuple[str, ...], draws: np.ndarray, tau: np.ndarray, kept_steps: int
+) -> bool:
+    """Whether one vehicle's run passes fit's emcee checks: at least 50 tau after burn-in, and
+    bulk and tail ESS of the stored (thinned, flattened) draws."""
+    if kept_steps < AUTOCORR_RELIABLE_FACTOR * float(np.max(tau)):
+        return False
+    return not chain_problems(vehicle, names, draws[None], rhat=False)
 
 
 def _posterior_mode(

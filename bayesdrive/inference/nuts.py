@@ -35,11 +35,27 @@ ESS 224 diagonal, 1213 dense, with half the leapfrog steps per draw. On vehicle 
 8000 draws; only more draws did. Over all 15 vehicles of ``benchmarks/bench_agreement.py`` the
 dense matrix met 727 divergences (467 on vehicle 11, whose posterior presses on prior bounds), the
 diagonal one 31 with fewer draws: so the default stays diagonal.
+
+**Extension.** After the run every vehicle's stored draws go through the checks that
+:func:`~bayesdrive.inference.fit.fit` runs afterwards (R-hat, bulk and tail ESS,
+:func:`~bayesdrive.inference.convergence.chain_problems`, same limits). A vehicle that fails runs
+again from fresh dispersed starts, with its key folded with the factor, with a power of two times
+the warm-up and the draws (the one that covers the worst ESS shortfall, at least double the last),
+up to ``max_extension`` (:data:`MAX_EXTENSION`) times, and keeps every factor-th draw, so every
+vehicle stores the same number. Why (``reports/convergence.md``): at the default 250 draws a chain
+the six IDM parameters' bulk and tail ESS fell short of 400 on nearly every vehicle, slowest for
+the ridge parameters ``v_des`` (unidentified in following without free driving: the posterior
+spreads to the upper bound) and ``d_min`` (piled on the lower bound); more draws, not a dense mass
+matrix, closed the gap; and since the first run at 250 draws a chain was wasted on nearly every
+vehicle, the first run already has :data:`FIRST_EXTENSION` times the warm-up and draws (thinned
+alike). ``sample_stats.extension`` records each vehicle's factor; a vehicle
+still failing at the cap is left to fit's warnings, which then say what to try next.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple, Unpack
 
@@ -55,6 +71,7 @@ from numpyro.infer.util import potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.inference.convergence import EXTENSION_MIN_DRAWS, chain_problems
 from bayesdrive.inference.likelihood import StepInputs, series_loglik
 from bayesdrive.inference.output import EngineInputs, EngineResult
 from bayesdrive.inference.vehicles import (
@@ -64,11 +81,28 @@ from bayesdrive.inference.vehicles import (
     static_key,
 )
 
-__all__ = ["INIT_RADIUS", "NUTSConfig", "NUTSDraws", "run", "sample_nuts"]
+__all__ = [
+    "FIRST_EXTENSION",
+    "INIT_RADIUS",
+    "MAX_EXTENSION",
+    "NUTSConfig",
+    "NUTSDraws",
+    "run",
+    "sample_nuts",
+]
 
 # Chains start uniformly in (-2, 2) on the unconstrained scale (NumPyro's init_to_uniform): the
 # middle 76% of each prior interval, so chains start dispersed as R-hat needs.
 INIT_RADIUS = 2.0
+# A vehicle that fails its checks runs again with 2, 4, ... up to this many times the warm-up and
+# draws (module docstring, "Extension").
+MAX_EXTENSION = 8
+# The first run's factor: at fit's 1000 draws an unextended run fell short on nearly every vehicle
+# of six or seven parameters, and 4x passed in a fraction of the time extension from 1x took
+# (module docstring, "Extension").
+FIRST_EXTENSION = 4
+# An extension asks for this much more ESS than the shortfall it covers (see _next_factor).
+EXTENSION_MARGIN = 1.25
 
 
 class NUTSConfig(NamedTuple):
@@ -80,6 +114,8 @@ class NUTSConfig(NamedTuple):
     target_accept_prob: float = 0.95
     max_tree_depth: int = 10
     dense_mass: bool = False
+    # Keep every thin-th post-warm-up draw (an extended run stores as many draws as the first).
+    thin: int = 1
 
 
 class NUTSDraws(NamedTuple):
@@ -138,7 +174,9 @@ def sample_nuts(
         # One scan over warm-up and sampling (warm-up draws dropped afterwards): a second loop
         # would trace and compile the whole NUTS tree builder a second time.
         _, draws = jax.lax.scan(iterate, state, length=config.num_warmup + config.num_samples)
-        return jax.tree.map(lambda a: a[config.num_warmup :], draws)
+        # The last draw of every thin-long stretch: the final draw is always kept.
+        start = config.num_warmup + config.thin - 1
+        return jax.tree.map(lambda a: a[start :: config.thin], draws)
 
     num_chains = jax.tree.leaves(init_z)[0].shape[0]
     return jax.vmap(one_chain)(jax.random.split(key, num_chains), init_z)
@@ -230,6 +268,8 @@ def run(
     dense_mass: bool = False,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
+    max_extension: int | None = None,
+    first_extension: int | None = None,
     **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
@@ -238,15 +278,32 @@ def run(
     num_chains`` (rounded up) per chain after ``num_warmup`` warm-up iterations. ``prior`` (default:
     the uniform box) needs ``logpdf(theta)`` and support inside the box. ``sample_stats`` holds per draw ``diverging``,
     ``tree_depth``, ``n_steps``, ``acceptance_rate``, ``energy`` and ``lp`` (the log density on the
-    unconstrained scale), and the adapted ``step_size`` per vehicle and chain.
+    unconstrained scale), the adapted ``step_size`` per vehicle and chain, and ``extension``, the
+    factor each vehicle's warm-up and draws were extended by (1: none; at most ``max_extension``,
+    a power of two or the cap itself). ``max_extension`` defaults to :data:`MAX_EXTENSION` from
+    :data:`~bayesdrive.inference.convergence.EXTENSION_MIN_DRAWS` draws on, else 1 (fewer
+    draws cannot show ESS 400, so extending them would only cost time). ``first_extension`` is
+    the factor of the first run (default :data:`FIRST_EXTENSION`, at most ``max_extension``, 1
+    where ``max_extension`` is).
     """
     problem = prepare("nuts", arrays, inputs, num_particles=2000, whole_series=True)
-    model, num_particles = problem.model, problem.num_particles
+    num_particles = problem.num_particles
     num_samples = -(-num_particles // max(num_chains, 1))
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
         raise ValueError(
             "need num_chains >= 1, num_warmup >= 1 and at least 2 draws per chain, got "
             f"num_chains={num_chains}, num_warmup={num_warmup}, num_particles={num_particles}"
+        )
+    enough = num_chains * num_samples >= EXTENSION_MIN_DRAWS
+    if max_extension is None:
+        max_extension = MAX_EXTENSION if enough else 1
+    if max_extension < 1:
+        raise ValueError(f"max_extension must be at least 1, got {max_extension}")
+    if first_extension is None:
+        first_extension = min(FIRST_EXTENSION, max_extension) if enough else 1
+    if not 1 <= first_extension <= max_extension:
+        raise ValueError(
+            f"first_extension must be in [1, max_extension={max_extension}], got {first_extension}"
         )
     if not 0.0 < target_accept_prob < 1.0:
         raise ValueError(f"target_accept_prob must be in (0, 1), got {target_accept_prob}")
@@ -258,24 +315,47 @@ def run(
         max_tree_depth=max_tree_depth,
         dense_mass=dense_mass,
     )
-    per_vehicle = functools.partial(
-        _nuts_vehicle,
-        model=model,
-        names=problem.names,
-        fixed=problem.fixed,
-        box=problem.box,
-        prior=problem.given_prior,
-        config=config,
-    )
-    out, compile_time, run_time = problem.run(
-        per_vehicle,
+    out, compile_time, run_time = _run_vehicles(
+        problem,
         key,
-        chunk=vehicle_chunk,
-        batch=vehicle_batch,
-        progress=problem.progress,
-        cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
+        _scaled(config, first_extension),
+        vehicle_chunk,
+        vehicle_batch,
+        problem.progress,
     )
-    out = jax.tree.map(lambda a: a[0], out)  # the one replicate
+    # Extension: vehicles that fail the convergence checks run again, from their own keys folded
+    # with the factor, with factor x the warm-up and draws, thinned back to the stored count. A
+    # vehicle's factors follow from its own draws alone, so its result does not depend on which
+    # vehicles it is fitted with.
+    factors = np.full(problem.num_vehicles, first_extension, dtype=np.int64)
+    shortfalls = _shortfalls(problem, out.theta)
+    while True:
+        next_factors = {
+            i: min(_next_factor(int(factors[i]), short), max_extension)
+            for i, short in enumerate(shortfalls)
+            if short is not None and factors[i] < max_extension
+        }
+        if not next_factors:
+            break
+        for factor in sorted(set(next_factors.values())):
+            rows = np.asarray([i for i, f in next_factors.items() if f == factor])
+            subset = problem._replace(
+                series=jax.tree.map(lambda a, rows=rows: a[rows], problem.series),
+                vehicle_ids=tuple(problem.vehicle_ids[i] for i in rows),
+            )
+            extended, extra_compile, extra_run = _run_vehicles(
+                subset,
+                jax.random.fold_in(key, factor),
+                _scaled(config, factor),
+                vehicle_chunk,
+                vehicle_batch,
+                None,
+            )
+            out = jax.tree.map(lambda a, b, rows=rows: _replace_rows(a, rows, b), out, extended)
+            factors[rows] = factor
+            compile_time, run_time = compile_time + extra_compile, run_time + extra_run
+            for i, short in zip(rows, _shortfalls(subset, extended.theta), strict=True):
+                shortfalls[i] = short
 
     def chain_draw_vehicle(values: np.ndarray) -> np.ndarray:
         return np.moveaxis(values, 0, -1)  # (vehicle, chain, draw) -> (chain, draw, vehicle)
@@ -291,6 +371,7 @@ def run(
             "energy": (per_draw, chain_draw_vehicle(out.energy)),
             "lp": (per_draw, chain_draw_vehicle(out.lp)),
             "step_size": (("vehicle", "chain"), out.step_size),
+            "extension": (("vehicle",), factors),
         },
         log_likelihood=log_likelihood_draws(out.log_likelihood),
         compile_time_s=compile_time,
@@ -299,5 +380,72 @@ def run(
             **config._asdict(),
             "vehicle_chunk": vehicle_chunk,
             "vehicle_batch": vehicle_batch,
+            "max_extension": max_extension,
         },
     )
+
+
+def _scaled(config: NUTSConfig, factor: int) -> NUTSConfig:
+    """``config`` with ``factor`` times the warm-up and draws, keeping every factor-th draw."""
+    return config._replace(
+        num_warmup=factor * config.num_warmup,
+        num_samples=factor * config.num_samples,
+        thin=factor,
+    )
+
+
+def _run_vehicles(
+    problem: Any,
+    key: Array,
+    config: NUTSConfig,
+    chunk: int,
+    batch: int,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[_VehicleOutput, float, float]:
+    """One NUTS run of ``config`` on every vehicle of ``problem``: outputs (vehicle, ...)."""
+    per_vehicle = functools.partial(
+        _nuts_vehicle,
+        model=problem.model,
+        names=problem.names,
+        fixed=problem.fixed,
+        box=problem.box,
+        prior=problem.given_prior,
+        config=config,
+    )
+    out, compile_time, run_time = problem.run(
+        per_vehicle,
+        key,
+        chunk=chunk,
+        batch=batch,
+        progress=progress,
+        cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
+    )
+    return jax.tree.map(lambda a: a[0], out), compile_time, run_time  # the one replicate
+
+
+def _shortfalls(problem: Any, theta: np.ndarray) -> list[float | None]:
+    """Per vehicle of draws (vehicle, chain, draw, d): None if they pass every convergence check,
+    else the worst shortfall, the largest ESS_MIN / ESS (at least 2 where R-hat fails)."""
+    shortfalls: list[float | None] = []
+    for i, vehicle in enumerate(problem.vehicle_ids):
+        problems = chain_problems(vehicle, problem.names, theta[i])
+        shortfalls.append(
+            max(2.0 if p.check == "rhat" else p.limit / max(p.value, 1.0) for p in problems)
+            if problems
+            else None
+        )
+    return shortfalls
+
+
+def _next_factor(factor: int, shortfall: float) -> int:
+    """The next extension: the power of two that covers the ESS shortfall with a quarter to spare
+    (ESS grows about with the draws until the stored draws are nearly independent), at least
+    double the last."""
+    wanted = factor * EXTENSION_MARGIN * shortfall
+    return max(2 * factor, 2 ** math.ceil(math.log2(wanted)))
+
+
+def _replace_rows(values: np.ndarray, rows: np.ndarray, new: np.ndarray) -> np.ndarray:
+    values = np.array(values)
+    values[rows] = new
+    return values

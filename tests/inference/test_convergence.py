@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.inference.convergence import ESS_MIN, RHAT_MAX, check_convergence
+from bayesdrive.inference.convergence import (
+    ESS_MIN,
+    RHAT_MAX,
+    chain_problems,
+    check_convergence,
+    next_step,
+)
 from bayesdrive.inference.output import REQUIRED_METADATA, build_tree
 
 VEHICLES = ("a", "b")
@@ -92,6 +98,23 @@ def test_a_sticky_chain_fails_bulk_and_tail_ess():
     assert {("a", "v_des", "ess_bulk"), ("a", "v_des", "ess_tail")} <= failed
     assert all(vehicle == "a" and param == "v_des" for vehicle, param, _ in failed)
     assert all(p.value < ESS_MIN for p in report.problems if p.check.startswith("ess"))
+    # The per-vehicle checks an engine runs before extending itself name the same problems.
+    names = tuple(posterior)
+    for i, vehicle in enumerate(VEHICLES):
+        draws = np.stack([posterior[name][:, :, i] for name in names], axis=-1)
+        assert set(chain_problems(vehicle, names, draws)) == {
+            p for p in report.problems if p.vehicle == vehicle
+        }
+
+
+def test_the_next_step_names_the_options_to_raise():
+    nuts_options = {"num_samples": 250, "num_chains": 4, "num_warmup": 500, "max_extension": 8}
+    assert "--draws 16000 --warmup 8000" in next_step("nuts", nuts_options)
+    unextended = nuts_options | {"num_samples": 50, "max_extension": 1}  # 200 draws: no extension
+    assert "--draws 1600 --warmup 1000" in next_step("nuts", unextended)
+    assert "--steps 32000" in next_step("emcee", {"num_steps": 4000, "max_steps": 16000})
+    assert "--particles" in next_step("smc", {})
+    assert next_step("lm", {}) is None
 
 
 @pytest.mark.parametrize(("tau", "fails"), [(10.0, False), (30.0, True)])

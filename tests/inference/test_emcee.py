@@ -7,6 +7,8 @@ within 4 / sqrt(2 draws) relative (each fails with probability about 1e-4 for a 
 The same check must fail for the deliberately wrong sd-doubled likelihood.
 """
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -16,6 +18,8 @@ from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import ensemble
 from bayesdrive.inference.agreement import grid_posterior
+from bayesdrive.inference.fit import fit
+from bayesdrive.inference.output import metadata
 from bayesdrive.inference.sbc import sd_doubled
 from bayesdrive.inference.synthetic import simulate_following
 
@@ -70,8 +74,9 @@ def test_layout_single_chain_thinned_by_autocorrelation(result):
     thin = result.sample_stats["thin"][1]
     assert result.sample_stats["autocorr_time"][0] == ("vehicle", "param")
     assert thin[0] == int(np.ceil(tau.max()))
-    burn, steps, walkers = (result.options[k] for k in ("num_burn", "num_steps", "num_walkers"))
-    assert walkers == 32 and burn == steps // 2
+    walkers = result.options["num_walkers"]
+    steps, burn = (result.sample_stats[k][1][0] for k in ("num_steps", "num_burn"))
+    assert walkers == 32 and burn == steps // 2  # the burn-in stays half of an extended run too
     # Kept: every thin-th step after burn-in, all walkers; at most num_particles of them.
     available = walkers * len(range(burn + thin[0] - 1, steps, thin[0]))
     assert result.sample_stats["kept_draws"][1][0] == available
@@ -88,3 +93,25 @@ def test_walker_rule():
 def test_too_few_walkers_are_refused(vehicle):
     with pytest.raises(ValueError, match="num_walkers"):
         ensemble.run(jax.random.key(0), vehicle, model=IDM, params=["sigma", "tau"], num_walkers=3)
+
+
+def test_a_short_run_extends_to_fifty_tau_and_a_capped_one_warns_with_the_next_step(
+    vehicle, caplog
+):
+    """300 steps (150 kept) are under 50 tau of sigma: the run continues its chains, doubling,
+    up to 8x (2400), and passes fit's checks. Negative control: capped at 300 steps the same run
+    must fail the 50-tau check, and the warning must say what to run next."""
+    options = {"model": IDM, "engine": "emcee", "params": ["sigma"], "draws": 1000}
+    extended = fit(jax.random.key(SEED), vehicle, num_steps=300, **options)
+    steps = int(extended["sample_stats"]["num_steps"].values[0])
+    assert 300 < steps <= ensemble.MAX_EXTENSION * 300
+    assert metadata(extended)["convergence"]["problems"] == []
+    with caplog.at_level(logging.WARNING, logger="bayesdrive.inference.convergence"):
+        capped = fit(jax.random.key(SEED), vehicle, num_steps=300, max_steps=300, **options)
+    assert int(capped["sample_stats"]["num_steps"].values[0]) == 300
+    problems = metadata(capped)["convergence"]["problems"]
+    assert ("sim0", "sigma", "autocorr") in {
+        (p["vehicle"], p["param"], p["check"]) for p in problems
+    }
+    warnings = [r.getMessage() for r in caplog.records if "not converged" in r.getMessage()]
+    assert warnings and all("next: " in w and "--steps 600" in w for w in warnings)

@@ -8,6 +8,8 @@ must match its mean within 4 Monte Carlo standard errors (ArviZ MCSE) and its sd
 about 1e-4 for a correct sampler. Other SBC-based checks of nuts live in tests/inference/test_sbc.py.
 """
 
+import logging
+
 import arviz
 import jax
 import jax.numpy as jnp
@@ -18,7 +20,10 @@ from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference import nuts
 from bayesdrive.inference.agreement import grid_posterior
+from bayesdrive.inference.convergence import chain_problems
+from bayesdrive.inference.fit import fit
 from bayesdrive.inference.likelihood import series_loglik, step_inputs
+from bayesdrive.inference.output import metadata
 from bayesdrive.inference.synthetic import simulate_following
 
 SEED = 3
@@ -82,8 +87,101 @@ def test_pointwise_log_likelihood_scores_every_stored_draw(vehicle, result):
         ({"num_chains": 0}, "num_chains"),
         ({"num_particles": 2, "num_chains": 2}, "2 draws per chain"),
         ({"target_accept_prob": 1.0}, "target_accept_prob"),
+        ({"max_extension": 0}, "max_extension"),
+        ({"max_extension": 2, "first_extension": 4}, "first_extension"),
     ],
 )
 def test_bad_settings_are_refused(vehicle, options, message):
     with pytest.raises(ValueError, match=message):
         nuts.run(jax.random.key(0), vehicle, model=IDM, params=["sigma"], **options)
+
+
+def fake_sampler(passes_from: dict[str, int], steps: int):
+    """Stands in for one NUTS run (``nuts._run_vehicles``): per vehicle, seeded random-walk chains
+    (they fail R-hat and ESS) below the extension factor ``passes_from[vehicle]``, independent
+    normal draws (they pass) from it on. Records each run's factor and vehicles."""
+    calls = []
+
+    def run_vehicles(problem, key, config, chunk, batch, progress):
+        calls.append((config.thin, problem.vehicle_ids))
+        assert config.num_warmup == config.thin * OPTIONS["num_warmup"]
+        rng = np.random.default_rng(config.thin)
+        shape = (config.num_chains, config.num_samples // config.thin, len(problem.names))
+        theta = np.stack(
+            [
+                rng.normal(size=shape).cumsum(axis=1)
+                if config.thin < passes_from[vehicle]
+                else rng.normal(size=shape)
+                for vehicle in problem.vehicle_ids
+            ]
+        )
+        zeros = np.zeros(theta.shape[:3])
+        out = nuts._VehicleOutput(
+            theta=theta,
+            log_likelihood=np.zeros((*theta.shape[:3], steps)),
+            diverging=zeros.astype(bool),
+            tree_depth=zeros,
+            num_steps=zeros,
+            accept_prob=zeros,
+            energy=zeros,
+            lp=zeros,
+            step_size=zeros[:, :, 0],
+        )
+        return out, 0.0, 0.0
+
+    return run_vehicles, calls
+
+
+def two_vehicles(vehicle):
+    return vehicle.subset(np.array([0, 0]))._replace(vehicle_ids=("steady", "slow"))
+
+
+def test_failing_vehicles_alone_are_extended_until_they_pass(vehicle, monkeypatch):
+    """The first run has FIRST_EXTENSION (4) times the warm-up and draws; 'slow' passes only from
+    8x: it alone reruns, at 8x, the cap, and passes; 'steady' keeps its first draws."""
+    run_vehicles, calls = fake_sampler({"steady": 1, "slow": 8}, vehicle.mask.shape[1])
+    monkeypatch.setattr(nuts, "_run_vehicles", run_vehicles)
+    result = nuts.run(
+        jax.random.key(SEED), two_vehicles(vehicle), model=IDM, params=["sigma"], **OPTIONS
+    )
+    assert calls == [(nuts.FIRST_EXTENSION, ("steady", "slow")), (8, ("slow",))]
+    np.testing.assert_array_equal(result.sample_stats["extension"][1], [4, 8])
+    assert result.posterior["sigma"].shape == (4, 250, 2)  # thinned back to the stored count
+    for i, name in enumerate(("steady", "slow")):
+        draws = result.posterior["sigma"][:, :, i, None]
+        assert chain_problems(name, ("sigma",), draws) == []
+
+
+def test_extension_stops_at_the_cap_and_fit_warns_with_the_next_step(vehicle, monkeypatch, caplog):
+    """Negative control: 'slow' would need 16x; started at 1x with the cap at 2x it stops there,
+    still failing, and every warning line names the vehicle, the parameter and what to run next."""
+    run_vehicles, calls = fake_sampler({"steady": 1, "slow": 16}, vehicle.mask.shape[1])
+    monkeypatch.setattr(nuts, "_run_vehicles", run_vehicles)
+    with caplog.at_level(logging.WARNING, logger="bayesdrive.inference.convergence"):
+        tree = fit(
+            jax.random.key(SEED),
+            two_vehicles(vehicle),
+            model=IDM,
+            engine="nuts",
+            params=["sigma"],
+            draws=OPTIONS["num_particles"],
+            chains=OPTIONS["num_chains"],
+            warmup=OPTIONS["num_warmup"],
+            max_extension=2,
+            first_extension=1,
+        )
+    assert calls == [(1, ("steady", "slow")), (2, ("slow",))]
+    np.testing.assert_array_equal(tree["sample_stats"]["extension"].values, [1, 2])
+    convergence = metadata(tree)["convergence"]
+    assert {p["vehicle"] for p in convergence["problems"]} == {"slow"}
+    assert {p["check"] for p in convergence["problems"]} == {"rhat", "ess_bulk", "ess_tail"}
+    assert "--draws 4000 --warmup 800" in convergence["next_step"]
+    warnings = [r.getMessage() for r in caplog.records if "not converged" in r.getMessage()]
+    assert len(warnings) == 3
+    assert all("vehicle slow, parameter sigma" in w and "next: " in w for w in warnings)
+
+
+def test_the_next_extension_covers_the_ess_shortfall():
+    assert nuts._next_factor(1, 1.1) == 2  # at least double
+    assert nuts._next_factor(1, 2.5) == 4  # 2.5 * 1.25 = 3.1 draws' worth: the next power of two
+    assert nuts._next_factor(2, 1.0) == 4
