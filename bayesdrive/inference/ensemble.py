@@ -6,8 +6,8 @@ the same posterior as every engine: the model's uniform prior box times the mask
 The log posterior is one jitted JAX function, vectorised over walkers (``vectorize=True``: one call
 scores the whole ensemble) and compiled once for every vehicle, since all share one padded shape.
 
-**Start.** An ensemble only contracts geometrically: walkers started at prior draws took well over
-1000 steps to find a posterior 1/4000 of the prior width (a measured NGSIM-like case). So, as
+**Start.** An ensemble only contracts geometrically: walkers started at prior draws take very
+many steps to find a posterior a small fraction of the prior width wide, as NGSIM's are. So, as
 emcee's authors advise, walkers start in a tiny ball (``START_BALL`` of the prior width) around a
 posterior mode: the best of ``START_CANDIDATES`` prior draws per walker, polished by L-BFGS-B on
 the box with JAX gradients. The moves expand such a ball within tens of steps, well inside the

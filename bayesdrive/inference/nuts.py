@@ -17,9 +17,9 @@ and vehicles run through :func:`~bayesdrive.inference.vehicles.map_vehicles`, co
 of time for all of them. Each vehicle's chains draw from the vehicle's own key (the seed with its
 id folded in, :mod:`bayesdrive.inference.vehicles`), so a vehicle's draws are bit-identical
 whichever vehicles it is fitted with, in whatever order or chunk. ``vehicle_batch`` vectorises that many vehicles together; NUTS trees are
-``while`` loops, so a vectorised batch waits for its deepest tree at every iteration. Measured
-(``benchmarks/bench_agreement.py --nuts-batch``, 15 NGSIM vehicles, six parameters, 4 chains x
-(200 + 200)): one vehicle at a time 58 s, all 15 in one batch 131 s, so the default is 1.
+``while`` loops, so a vectorised batch waits for its deepest tree at every iteration: one
+vehicle at a time was faster than all in one batch (``benchmarks/bench_agreement.py
+--nuts-batch`` measures both), so the default is 1.
 
 ``target_accept_prob`` defaults to 0.95, not NumPyro's 0.8: on real NGSIM followers the default
 gave 67 divergences over 15 vehicles and 0.95 gave one (the team's measurement); on the 15 vehicles
