@@ -25,7 +25,7 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import MODELS, get_model
 from bayesdrive.inference import fit as _fit
-from bayesdrive.inference.output import load_result, save_result
+from bayesdrive.inference.core.output import load_result, save_result
 from bayesdrive.simulation.evaluation import evaluate
 from bayesdrive.simulation.posterior import posterior_predictive
 from bayesdrive.simulation.scenarios import merge_fit_arrays

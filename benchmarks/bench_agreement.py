@@ -11,7 +11,7 @@ divergences, the per-pair agreement summary and every failing vehicle), ``agreem
 pf is the paper's filter: its departures are reported, not hidden.
 
 ``--nuts-batch`` also times nuts with all vehicles vectorised in one batch against one vehicle
-at a time (short runs), the design choice documented in :mod:`bayesdrive.inference.nuts`.
+at a time (short runs), the design choice documented in :mod:`bayesdrive.inference.engines.nuts`.
 
 Run: ``python benchmarks/bench_agreement.py [--vehicles 15] [--seed 7]``; ``--model NAME`` fits
 another model (an extension's parameters too) into ``reports/agreement/<model>/``, and
@@ -35,22 +35,22 @@ from bayesdrive.data.registry import load
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference import nuts
-from bayesdrive.inference.agreement import (
+from bayesdrive.inference.core.output import metadata
+from bayesdrive.inference.diagnostics.agreement import (
     CRITERION,
     agreement_summary,
     agreement_table,
     convergence_table,
 )
+from bayesdrive.inference.engines import nuts
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import metadata
 from bayesdrive.reports.diagnostic_plots import plot_agreement_heatmap, plot_marginals
 
 DATA = "ngsim_i80_chains"
 # Long runs: the agreement criterion needs Monte Carlo error well below 0.1 posterior sd (means)
 # and well below 10% (sds), and an ESS of at least 1000 for every vehicle and parameter (nuts: bulk
 # and tail ESS; smc: from the spread of its independent replicates, see
-# bayesdrive.inference.agreement.mcse_mean). 8 smc replicates gave a minimum of 500 (vehicle 11),
+# bayesdrive.inference.diagnostics.agreement.mcse_mean). 8 smc replicates gave a minimum of 500 (vehicle 11),
 # hence 20. nuts: a dense mass matrix lifted the worst tail ESS of vehicle 124 but met 467
 # divergences on vehicle 11 and 217 on vehicle 112 and went narrow on vehicle 11 (diagonal, 8000
 # draws: 31 divergences in all), so the mass matrix is diagonal. Vehicle 124's a_max and b_pref

@@ -36,9 +36,9 @@ from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.registry import load
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.registry import get_model
+from bayesdrive.inference.core.likelihood import param_names, score_draws, step_inputs
+from bayesdrive.inference.core.output import load_result, metadata, save_result
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.likelihood import param_names, score_draws, step_inputs
-from bayesdrive.inference.output import load_result, metadata, save_result
 from bayesdrive.simulation.evaluation import evaluate, evaluation_scenarios
 from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
 

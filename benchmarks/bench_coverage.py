@@ -2,7 +2,7 @@
 
 For each seed (``--seeds`` of them from ``--first-seed``; defaults 100 seeds from 0): four
 followers whose (v_des, tau, sigma) are drawn from the uniform prior box, simulated for 10 s behind
-a replayed synthetic leader (:func:`bayesdrive.inference.sbc.simulate_replications`), then fitted
+a replayed synthetic leader (:func:`bayesdrive.inference.diagnostics.sbc.simulate_replications`), then fitted
 by every engine of ``--engines`` (default ``smc,pf``) from the same data, each with its own key
 folded from the seed (so one engine's fit of a seed is the same whichever others run). With truths
 drawn from the prior, exact posteriors give central 90% intervals that cover the truth 90% of the
@@ -33,8 +33,8 @@ from scipy.stats import norm
 
 from bayesdrive.data.atomic import write_atomic, write_text_atomic
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import nuts, pf, smc
-from bayesdrive.inference.sbc import sd_doubled, simulate_replications
+from bayesdrive.inference.diagnostics.sbc import sd_doubled, simulate_replications
+from bayesdrive.inference.engines import nuts, pf, smc
 
 PARAMS = ("v_des", "tau", "sigma")
 LEVEL = 0.90

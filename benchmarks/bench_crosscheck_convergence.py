@@ -18,7 +18,7 @@ a dense mass matrix (``nuts-dense``) or 4000 draws after 1000 warm-up (``nuts-4x
 convergence problems fit reports (exit 3 when any), wall time, extension factors; per parameter:
 vehicles failing, median R-hat and ESS, and how many posteriors press on a prior bound (1st or 99th
 percentile within 2% of the box's width of its edge); agreement of each engine with smc
-(``bayesdrive.inference.agreement``).
+(``bayesdrive.inference.diagnostics.agreement``).
 
 Runs are independent jobs; ``--jobs N`` runs N at once (processes; each uses the cores JAX
 gives it). The full study (24 followers of 60 s, three data sets, eight runs each)::
@@ -94,9 +94,9 @@ def one_run(data: str, run: str, seed: int, followers: int, duration: float, fol
 
     from bayesdrive.data.readers import read
     from bayesdrive.drivers.registry import get_model
-    from bayesdrive.inference.agreement import convergence_table
+    from bayesdrive.inference.core.output import metadata, save_result
+    from bayesdrive.inference.diagnostics.agreement import convergence_table
     from bayesdrive.inference.fit import fit
-    from bayesdrive.inference.output import metadata, save_result
 
     path = generate_data(data, seed, followers, duration, Path(folder))
     trajectories = read(path, format="ngsim_raw")
@@ -175,8 +175,8 @@ def markdown(frame: pd.DataFrame) -> str:
 
 
 def agreement(data: str, runs: list[str], folder: Path) -> list[dict]:
-    from bayesdrive.inference.agreement import agreement_table
-    from bayesdrive.inference.output import load_result
+    from bayesdrive.inference.core.output import load_result
+    from bayesdrive.inference.diagnostics.agreement import agreement_table
 
     smc = load_result(folder / f"{data}-smc.nc")
     rows = []
@@ -266,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
             "",
             "## Agreement with smc",
             "",
-            "Per vehicle and parameter, `bayesdrive.inference.agreement`'s criterion (means "
+            "Per vehicle and parameter, `bayesdrive.inference.diagnostics.agreement`'s criterion (means "
             "within max(0.1 sd, 3 MCSE), sds within 10%).",
             "",
             markdown(pd.DataFrame(agreements)),

@@ -42,9 +42,9 @@ from bayesdrive.data.views import FollowerArrays, follower_arrays
 from bayesdrive.drivers import execution_noise, idm
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import pf, smc
+from bayesdrive.inference.core.vehicles import clear_compiled
+from bayesdrive.inference.engines import pf, smc
 from bayesdrive.inference.fit import first_vehicles
-from bayesdrive.inference.vehicles import clear_compiled
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy_pf_reference as reference

@@ -28,7 +28,7 @@ from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState, fill_params
 from bayesdrive.drivers.gipps import GIPPS, gipps_acceleration
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import nuts
+from bayesdrive.inference.engines import nuts
 from bayesdrive.inference.fit import first_vehicles
 
 DATA = "ngsim_i80_chains"

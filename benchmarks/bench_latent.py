@@ -45,17 +45,17 @@ from bayesdrive.data.registry import load
 from bayesdrive.data.views import FollowerArrays, follower_arrays
 from bayesdrive.drivers.idm import IDM, IDMParams
 from bayesdrive.drivers.measurement_noise import with_measurement_noise
-from bayesdrive.inference import lm
-from bayesdrive.inference.agreement import convergence_table
-from bayesdrive.inference.latent import (
+from bayesdrive.inference.core.likelihood import fixed_params
+from bayesdrive.inference.core.output import build_tree
+from bayesdrive.inference.diagnostics.agreement import convergence_table
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines import lm
+from bayesdrive.inference.engines.pmmh import (
     latent_data,
     noisy_readings,
     run,
     state_filter_loglik,
 )
-from bayesdrive.inference.likelihood import fixed_params
-from bayesdrive.inference.output import build_tree
-from bayesdrive.inference.synthetic import simulate_following
 
 NOISY_IDM = with_measurement_noise(IDM)
 TRUTH = {"tau": 1.5, "sigma_obs": 0.1}

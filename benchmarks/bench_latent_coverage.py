@@ -72,9 +72,9 @@ from bayesdrive.drivers.idm import IDM  # noqa: E402
 from bayesdrive.drivers.measurement_noise import with_measurement_noise  # noqa: E402
 from bayesdrive.drivers.video_noise import with_video_noise  # noqa: E402
 from bayesdrive.inference import smc  # noqa: E402, F401  (in the fingerprint)
+from bayesdrive.inference.engines.pmmh import latent_data, state_filter_loglik  # noqa: E402
+from bayesdrive.inference.engines.pmmh import run as run_pmmh  # noqa: E402
 from bayesdrive.inference.fit import fit  # noqa: E402
-from bayesdrive.inference.latent import latent_data, state_filter_loglik  # noqa: E402
-from bayesdrive.inference.latent import run as run_pmmh  # noqa: E402
 from trafficgen import generate  # noqa: E402
 from trafficgen.mechanisms import MECHANISMS  # noqa: E402
 from trafficgen.simulate import DRIVER_RANGES  # noqa: E402

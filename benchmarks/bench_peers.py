@@ -3,8 +3,8 @@
 The problem is ``bench_agreement``'s: NGSIM I-80 (``ngsim_i80_chains``) vehicles 124 and 140,
 fitting windows, all six IDM parameters, the uniform prior box. Every sampler targets one
 density, built from the library's own functions: the per-vehicle log-likelihood
-(:func:`~bayesdrive.inference.likelihood.series_loglik`) plus the log prior, on the logit scale
-of the prior box with its Jacobian (:mod:`bayesdrive.inference.kernels`, as smc's moves use).
+(:func:`~bayesdrive.inference.core.likelihood.series_loglik`) plus the log prior, on the logit scale
+of the prior box with its Jacobian (:mod:`bayesdrive.inference.core.kernels`, as smc's moves use).
 
 * ``smc``: the engine at its defaults, ``--particles`` swept, ``--replicates`` independent
   replicates (the Monte Carlo error of a mean is their spread);
@@ -28,11 +28,11 @@ machine's background load falls on all three alike.
 
 **Agreement** with the long NUTS reference runs (400,000 draws a vehicle), read from the committed
 table ``reports/agreement/reference.md`` (its ``nuts (reference)`` rows: mean, sd and Monte Carlo
-standard error), by the criterion of :mod:`bayesdrive.inference.agreement` (``CRITERION``, with its
+standard error), by the criterion of :mod:`bayesdrive.inference.diagnostics.agreement` (``CRITERION``, with its
 constants): for every parameter of both vehicles, the means within max(0.1 pooled sd, 3 combined
 standard errors) and the sds within 10%. The library's ``agreement_table`` compares two sets of
 draws; the reference is a table of summaries, so the criterion is applied here to the summaries.
-A sampler's standard errors are :func:`~bayesdrive.inference.agreement.mcse_mean`'s (replicate
+A sampler's standard errors are :func:`~bayesdrive.inference.diagnostics.agreement.mcse_mean`'s (replicate
 spread for the particle samplers, ArviZ's for NUTS chains).
 
 Writes ``reports/peers/runs.csv`` (one row per sampler, setting and vehicle) and
@@ -68,12 +68,17 @@ from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.data.registry import load
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import nuts, smc
-from bayesdrive.inference.agreement import CRITERION, judge, mcse_mean
-from bayesdrive.inference.kernels import Box, from_free, log_jacobian, to_free
-from bayesdrive.inference.likelihood import series_loglik
-from bayesdrive.inference.output import set_metadata
-from bayesdrive.inference.vehicles import VehicleProblem, posterior_draws, prepare, vehicle_keys
+from bayesdrive.inference.core.kernels import Box, from_free, log_jacobian, to_free
+from bayesdrive.inference.core.likelihood import series_loglik
+from bayesdrive.inference.core.output import set_metadata
+from bayesdrive.inference.core.vehicles import (
+    VehicleProblem,
+    posterior_draws,
+    prepare,
+    vehicle_keys,
+)
+from bayesdrive.inference.diagnostics.agreement import CRITERION, judge, mcse_mean
+from bayesdrive.inference.engines import nuts, smc
 
 DATA = "ngsim_i80_chains"
 REFERENCE = Path("reports/agreement/reference.md")

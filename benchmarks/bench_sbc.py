@@ -28,8 +28,8 @@ from bayesdrive.cli.sbc_cmd import write_outcome
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
+from bayesdrive.inference.diagnostics.sbc import run_sbc, sd_doubled
 from bayesdrive.inference.fit import ENGINES
-from bayesdrive.inference.sbc import run_sbc, sd_doubled
 
 PARAMS = ("d_min", "tau", "a_max", "sigma")
 # Each engine at the settings a user would run: ~1000 draws per replication.
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
         f"{args.seed}, parameters {', '.join(PARAMS)} (and an extended model's own) from the "
         "uniform prior box, the rest at their defaults; a replayed synthetic leader per "
         "replication, the follower simulated by the fitted model's own step "
-        "(bayesdrive.inference.synthetic); L = 99 ranks. Verdict: chi-square per parameter at "
+        "(bayesdrive.inference.diagnostics.synthetic_followers); L = 99 ranks. Verdict: chi-square per parameter at "
         "0.01 / the number of parameters (Bonferroni). The sd-doubled rows fit a likelihood "
         "with twice the execution-noise sd on the same simulated data (same seed): they must "
         "be rejected.\n\n"

@@ -121,7 +121,7 @@ def run_one(mode: str, size: int, args: argparse.Namespace) -> dict:
     import jax
 
     from bayesdrive.drivers.idm import IDM
-    from bayesdrive.inference import smc
+    from bayesdrive.inference.engines import smc
 
     if args.source == "trafficgen":
         arrays = followers(size, args.duration, args.seed, Path(args.workdir))

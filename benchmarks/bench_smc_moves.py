@@ -5,7 +5,7 @@ reference.
 Both settings fit the 15 vehicles of ``benchmarks/bench_agreement.py`` (same choice rule, fitting
 windows, six IDM parameters, 1000 particles, 20 replicates, seed 7) in one process, so their wall
 times compare as a ratio. Each is judged per vehicle and parameter by the agreement criterion
-(:func:`bayesdrive.inference.agreement.judge`) against the NUTS rows (128,000 draws) of the
+(:func:`bayesdrive.inference.diagnostics.agreement.judge`) against the NUTS rows (128,000 draws) of the
 committed ``reports/agreement/agreement.csv``, so the long NUTS run is not repeated. Writes
 ``reports/agreement/smc_moves.md`` and ``smc_moves.csv``.
 
@@ -31,9 +31,9 @@ from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
 from bayesdrive.data.registry import load  # noqa: E402
 from bayesdrive.data.views import follower_arrays  # noqa: E402
 from bayesdrive.drivers.idm import IDM  # noqa: E402
-from bayesdrive.inference.agreement import CRITERION, judge, mcse_mean  # noqa: E402
+from bayesdrive.inference.core.output import metadata  # noqa: E402
+from bayesdrive.inference.diagnostics.agreement import CRITERION, judge, mcse_mean  # noqa: E402
 from bayesdrive.inference.fit import fit  # noqa: E402
-from bayesdrive.inference.output import metadata  # noqa: E402
 from benchmarks.bench_agreement import DATA, choose_vehicles, markdown  # noqa: E402
 from benchmarks.bench_scaling import commit  # noqa: E402
 

@@ -30,7 +30,7 @@ from pathlib import Path
 from bayesdrive.data import registry
 from bayesdrive.data.atomic import write_text_atomic
 from bayesdrive.experiments.paper import FULL, calibration_step, holdout_step
-from bayesdrive.inference.output import load_result, metadata
+from bayesdrive.inference.core.output import load_result, metadata
 from bayesdrive.reports.html import Report
 from bayesdrive.reports.paper_report import calibration_section, holdout_section
 

@@ -34,7 +34,7 @@ from bayesdrive.experiments.paper import (
     turing_comparison,
     turing_models,
 )
-from bayesdrive.inference.output import load_result
+from bayesdrive.inference.core.output import load_result
 
 ROOT = Path(__file__).resolve().parents[1]
 

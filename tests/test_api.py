@@ -21,7 +21,7 @@ import bayesdrive as bd
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers.columns import read_columns
 from bayesdrive.data.views import follower_arrays
-from bayesdrive.inference.output import build_tree
+from bayesdrive.inference.core.output import build_tree
 
 ROOT = Path(__file__).resolve().parents[1]
 CHAIN = "1_11_24_44_55_54.csv"

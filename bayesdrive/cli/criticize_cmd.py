@@ -112,7 +112,7 @@ def criticize_command(
     from bayesdrive.data.errors import DataError
     from bayesdrive.drivers.extensions import CAUSES, extend
     from bayesdrive.drivers.registry import get_model
-    from bayesdrive.inference.likelihood import check_model
+    from bayesdrive.inference.core.likelihood import check_model
 
     check_json_out(json_out, force)
     check_cluster_options(cluster, chunk_size)
@@ -229,8 +229,8 @@ def _write_final_model(
     from bayesdrive.criticism.criticize import named_key
     from bayesdrive.data.atomic import write_text_atomic
     from bayesdrive.drivers.registry import get_model
+    from bayesdrive.inference.core.output import save_result
     from bayesdrive.inference.fit import fit
-    from bayesdrive.inference.output import save_result
     from bayesdrive.reports.model_card import model_card
 
     report = result.report

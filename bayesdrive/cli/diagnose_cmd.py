@@ -2,8 +2,8 @@
 
 For each saved result: R-hat (two or more chains), bulk and tail ESS and MCSE per vehicle and
 parameter (ArviZ), NUTS divergences, emcee autocorrelation times (see
-:mod:`bayesdrive.inference.agreement`); for a hierarchical result also how drivers differ
-(:func:`~bayesdrive.inference.population.how_drivers_differ`). With two or more results on the
+:mod:`bayesdrive.inference.diagnostics.agreement`); for a hierarchical result also how drivers differ
+(:func:`~bayesdrive.inference.population.summary.how_drivers_differ`). With two or more results on the
 same data and model, the agreement table of every pair: difference of means in posterior sds, sd ratio, Wasserstein
 distance, and the verdict |Δmean| <= max(0.1 sd, 3 combined MCSE) with sds within 10%.
 ``--out DIR`` writes the tables as CSV and the pictures (marginal overlays, agreement heat map).
@@ -61,7 +61,7 @@ def worst_convergence(table: pd.DataFrame) -> dict[str, dict[str, float | None]]
 
 def _labels(paths: list[Path], trees: list[Any]) -> list[str]:
     """The engine name of each result, numbered where two results share one."""
-    from bayesdrive.inference.output import metadata
+    from bayesdrive.inference.core.output import metadata
 
     engines = [str(metadata(tree).get("engine")) for tree in trees]
     return [
@@ -97,7 +97,7 @@ def _print_population(label: str, rows: dict[str, dict[str, Any]]) -> None:
 
 
 def _print_agreement(summary: pd.DataFrame) -> None:
-    from bayesdrive.inference.agreement import CRITERION
+    from bayesdrive.inference.diagnostics.agreement import CRITERION
 
     table = Table(title="agreement per engine pair and parameter", title_justify="left")
     for column in (
@@ -160,15 +160,15 @@ def diagnose(
 ) -> None:
     """Convergence of each result and, for several results on the same data, their agreement."""
     # Imported here so that `bayesdrive diagnose --help` does not import JAX and ArviZ.
-    from bayesdrive.inference.agreement import (
+    from bayesdrive.inference.core.output import load_result, metadata
+    from bayesdrive.inference.diagnostics.agreement import (
         CRITERION,
         agreement_summary,
         agreement_table,
         convergence_table,
         same_data,
     )
-    from bayesdrive.inference.output import load_result, metadata
-    from bayesdrive.inference.population import how_drivers_differ
+    from bayesdrive.inference.population.summary import how_drivers_differ
     from bayesdrive.reports.diagnostic_plots import plot_agreement_heatmap, plot_marginals
 
     missing = [str(p) for p in results if not p.is_file()]

@@ -51,7 +51,7 @@ def sumo(
 
     Use the types with --step-method.ballistic, as bayesdrive integrates positions that way.
     """
-    from bayesdrive.inference.output import load_result
+    from bayesdrive.inference.core.output import load_result
     from bayesdrive.simulation import sumo as export
 
     if population and draws is None:

@@ -4,12 +4,12 @@ DATA is a file, a folder or a data set name; a held-out name is read from the he
 (``--data-dir``, else as :func:`bayesdrive.data.registry.holdout_dir` finds it) with a logged
 note: fitting its vehicles with fixed settings is evaluation, tuning anything on it is not.
 Merge episodes are fitted per stay of the cooperating car behind the merging car, with the
-merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.output`), summary.json
+merge scene beside every step, so ``--model cidm`` learns c too. OUT gets result.nc (the result tree, :mod:`bayesdrive.inference.core.output`), summary.json
 (:func:`bayesdrive.inference.fit.summary`) and, for pf and ``smc --sequential``, the per-step
 diagnostics ess.png, unique_particles.png and convergence.png, then manifest.json last (arguments, seed, complete);
 the folder is all of one run or none (:mod:`bayesdrive.data.outputs`: a complete one is replaced
 only with ``--force``). Bad input ends with a one-line ``error: ...`` on standard error and exit
-code 2; a fit that fails a convergence check (:mod:`bayesdrive.inference.convergence`) is still
+code 2; a fit that fails a convergence check (:mod:`bayesdrive.inference.diagnostics.convergence`) is still
 written, warns naming each vehicle and parameter, and exits with code 3.
 """
 
@@ -175,6 +175,8 @@ def fit(
     from bayesdrive.data.errors import DataError
     from bayesdrive.drivers.registry import get_model
     from bayesdrive.inference import distributed
+    from bayesdrive.inference.core.likelihood import param_names
+    from bayesdrive.inference.core.output import save_result
     from bayesdrive.inference.fit import (
         BATCHED_ENGINES,
         PARTICLE_ENGINES,
@@ -182,8 +184,6 @@ def fit(
         summary,
     )
     from bayesdrive.inference.fit import fit as fit_model
-    from bayesdrive.inference.likelihood import param_names
-    from bayesdrive.inference.output import save_result
     from bayesdrive.reports.filter_plots import write_filter_plots
     from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
 

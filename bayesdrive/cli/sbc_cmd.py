@@ -3,7 +3,7 @@
 Draws parameters from the model's prior box, simulates one follower per replication behind a replayed
 synthetic leader, fits all replications in one engine call and tests the ranks of the truths for
 uniformity per parameter (chi-square, judged at alpha / K: Bonferroni; KS reported). See
-:mod:`bayesdrive.inference.sbc`. ``--sd-doubled`` fits a deliberately wrong likelihood (twice the
+:mod:`bayesdrive.inference.diagnostics.sbc`. ``--sd-doubled`` fits a deliberately wrong likelihood (twice the
 noise sd): a study with power must reject it. Exit code 0 whether or not calibration holds: the
 verdict is in the output.
 """
@@ -32,7 +32,7 @@ from bayesdrive.cli.names import ENGINES as ENGINE_NAMES
 from bayesdrive.data.atomic import write_text_atomic
 
 if TYPE_CHECKING:
-    from bayesdrive.inference.sbc import SBCOutcome
+    from bayesdrive.inference.diagnostics.sbc import SBCOutcome
 
 __all__ = ["sbc", "write_outcome"]
 
@@ -133,8 +133,8 @@ def sbc(
     import jax
 
     from bayesdrive.drivers.registry import get_model
+    from bayesdrive.inference.diagnostics.sbc import run_sbc, sd_doubled
     from bayesdrive.inference.fit import ENGINES, check_engine_model
-    from bayesdrive.inference.sbc import run_sbc, sd_doubled
 
     if engine not in ENGINES:
         raise fail(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")

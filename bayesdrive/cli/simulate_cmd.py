@@ -33,7 +33,7 @@ def _posterior_draw(key, result: Path, num_scenes: int, num_vehicles: int):
     import numpy as np
 
     from bayesdrive.drivers.registry import get_model
-    from bayesdrive.inference.output import load_result, metadata
+    from bayesdrive.inference.core.output import load_result, metadata
     from bayesdrive.simulation.generate import draw_pooled
     from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
 

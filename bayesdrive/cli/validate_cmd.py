@@ -87,7 +87,7 @@ def sumo(
 
     from bayesdrive.data.errors import DataError
     from bayesdrive.data.registry import load
-    from bayesdrive.inference.output import load_result
+    from bayesdrive.inference.core.output import load_result
     from bayesdrive.simulation.sumo import fitted_step_length
     from bayesdrive.simulation.sumo_validation import validate_sumo, validated_model
 

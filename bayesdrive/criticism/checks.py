@@ -67,8 +67,8 @@ from bayesdrive.drivers.base import EgoState, fill_params
 from bayesdrive.drivers.execution_noise import STOP_SPEED, increment_law
 from bayesdrive.drivers.extensions import extend
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.inference.heldout_evidence import FitResult
-from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.engines.heldout_evidence import FitResult
 from bayesdrive.simulation.follower_rollout import Rollouts
 
 __all__ = [

@@ -6,7 +6,7 @@ Steps (``criticize``):
 1. Build the per-step arrays with the history the extensions need
    (:func:`~bayesdrive.data.views.scored_series`; same split rule as every engine).
 2. Fit the base model to every vehicle's fitting window and continue over its held-out window
-   (:mod:`bayesdrive.inference.heldout_evidence`).
+   (:mod:`bayesdrive.inference.engines.heldout_evidence`).
 3. Run the checks on the held-out windows (:mod:`bayesdrive.criticism.checks`), including
    closed-loop rollouts of the base model.
 4. **Screening**: a cause is a candidate when one of the screening checks that point to it (score
@@ -15,7 +15,7 @@ Steps (``criticize``):
    (Bonferroni within the cause's checks); lenient on purpose, since the verdict is decided by the
    gain, whose multiplicity correction covers every cause whether screened in or not.
 5. Fit each candidate extension, starting from the base posterior (the extension nests the base
-   model; see :func:`~bayesdrive.inference.heldout_evidence.fit_model`), continue it over the held-out
+   model; see :func:`~bayesdrive.inference.engines.heldout_evidence.fit_model`), continue it over the held-out
    window the same way, and compute its gain, significance (Holm over all causes) and rollout RMSE
    change (:mod:`bayesdrive.criticism.gain`).
 6. Verdict: the significant cause with the largest gain, else "none".
@@ -70,7 +70,7 @@ from bayesdrive.drivers.extensions import (
     extend,
 )
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference.heldout_evidence import DEFAULT_CONFIG, FitResult, fit_model
+from bayesdrive.inference.engines.heldout_evidence import DEFAULT_CONFIG, FitResult, fit_model
 from bayesdrive.simulation.follower_rollout import Rollouts, heldout_windows, rollout
 
 __all__ = [
@@ -118,21 +118,21 @@ class CriticizeConfig(NamedTuple):
     num_particles: int = DEFAULT_CONFIG.num_particles
     num_moves: int = DEFAULT_CONFIG.num_moves
     # Moves per tempering stage continue past num_moves until a particle has moved with
-    # probability 1 - this (bayesdrive.inference.heldout_evidence, "How many moves"); 0: num_moves only.
+    # probability 1 - this (bayesdrive.inference.engines.heldout_evidence, "How many moves"); 0: num_moves only.
     unmoved_tolerance: float = DEFAULT_CONFIG.unmoved_tolerance
     screen_p: float = SCREEN_P
     alpha: float = ALPHA
     horizon_s: float = 5.0
     num_rollouts: int = 32  # per held-out window; 0 skips the rollouts (no RMSE, no multistep)
     causes: tuple[str, ...] = CAUSES
-    vehicle_batch: int = 1  # see bayesdrive.inference.heldout_evidence.fit_model
+    vehicle_batch: int = 1  # see bayesdrive.inference.engines.heldout_evidence.fit_model
     max_rounds: int = 3  # rounds of the loop (module docstring, step 7); 1: the first cause only
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
 # trafficgen, the independent generator at the repository root): the default sampler (moves until every particle has moved with
 # probability 0.99, Drovandi & Pettitt 2011's c = 0.01, since 4 fixed moves let the speed-noise
-# posterior collapse: bayesdrive.inference.heldout_evidence), without rollouts, to keep CI fast.
+# posterior collapse: bayesdrive.inference.engines.heldout_evidence), without rollouts, to keep CI fast.
 DETECTION_CONFIG = CriticizeConfig(num_rollouts=0)
 
 

@@ -4,7 +4,7 @@ r"""What an extension gains over the base model on held-out data, and whether th
 :math:`\log p(y_{held} \mid y_{fit})`: the sum of the one-step predictive log densities over the
 vehicle's held-out window, each step predicted from everything before it (leave-future-out, not
 leave-one-out: the held-out window lies after the fitting window). The tempering sampler gives it
-by continuing from the fitting-window posterior (:mod:`bayesdrive.inference.heldout_evidence`). The gain
+by continuing from the fitting-window posterior (:mod:`bayesdrive.inference.engines.heldout_evidence`). The gain
 of an extension is the sum over vehicles of the per-vehicle differences,
 
 .. math::
@@ -45,7 +45,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats
 
-from bayesdrive.inference.heldout_evidence import FitResult
+from bayesdrive.inference.engines.heldout_evidence import FitResult
 
 __all__ = ["ALPHA", "Gain", "elpd_gain", "holm", "rmse_change", "transformed_t_test"]
 

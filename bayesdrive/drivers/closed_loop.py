@@ -5,7 +5,7 @@ paper's tables and scene generation (:mod:`bayesdrive.simulation.rollout` builds
 the held-out forecasts of the criticism and the calibration
 (:mod:`bayesdrive.simulation.follower_rollout`: one follower behind its replayed leader), the
 posterior predictive, and the synthetic data of SBC and the coverage studies
-(:mod:`bayesdrive.inference.synthetic`). It lives beside the driver models, below both the
+(:mod:`bayesdrive.inference.diagnostics.synthetic_followers`). It lives beside the driver models, below both the
 engines and the simulation, because the engines' synthetic data need it too; it knows no engine.
 
 **The step** (:func:`step`): the model's inputs at step ``j`` of a buffer of the one series

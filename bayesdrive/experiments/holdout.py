@@ -16,7 +16,7 @@ with the documented defaults and scoring them on their later held-out windows is
 3. **Population predictive** (``idm-population``): the hierarchical population model of the
    training data set of the same kind (:data:`TRAINING_DATA`: NGSIM I-80 chains for NGSIM sets,
    OpenACC Vicolungo for OpenACC and ACC sets), estimated in two stages
-   (:func:`~bayesdrive.inference.population.two_stage`) from the highway experiment's
+   (:func:`~bayesdrive.inference.population.two_stage.two_stage`) from the highway experiment's
    per-vehicle smc posteriors of that set's fitting windows (validated against the joint fit in
    ``tests/inference/test_population.py``); every follower is treated as a driver with no data of its own:
    each rollout draws its parameters from the population distribution of a new driver.
@@ -58,9 +58,9 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import scored_series
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.inference.core.output import load_result, metadata, save_result
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import load_result, metadata, save_result
-from bayesdrive.inference.population import two_stage
+from bayesdrive.inference.population.two_stage import two_stage
 from bayesdrive.simulation.baselines import Policy, baseline_policy
 from bayesdrive.simulation.blackbox import TrainConfig
 from bayesdrive.simulation.calibration import LEAD_TIMES_S, predictive_calibration

@@ -50,9 +50,9 @@ from bayesdrive.experiments.holdout import (
     evaluate_data_set,
     population_from,
 )
+from bayesdrive.inference.core.output import load_result, metadata, save_result
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.fit import summary as fit_summary
-from bayesdrive.inference.output import load_result, metadata, save_result
 from bayesdrive.reports.model_card import model_card
 from bayesdrive.simulation.baselines import baseline_policy
 from bayesdrive.simulation.generate import (

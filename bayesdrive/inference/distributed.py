@@ -1,12 +1,12 @@
 """``fit`` on a Dask cluster: chunks of vehicles as tasks, each chunk's result saved as it finishes.
 
-The criticism's fits (:func:`~bayesdrive.inference.heldout_evidence.fit_model`) run in chunks the
+The criticism's fits (:func:`~bayesdrive.inference.engines.heldout_evidence.fit_model`) run in chunks the
 same way (:func:`fit_model_on_cluster`), each vehicle from its own key, so a criticism on a cluster
 reports what the plain run reports; its chunks are not saved (a criticism is one result).
 
 Vehicles are split into chunks of ``chunk_size`` in the data's order, never by the number of
 workers, and every vehicle's key derives from the run's key and its own id
-(:func:`~bayesdrive.inference.vehicles.vehicle_keys`), so the combined result is bit-identical to
+(:func:`~bayesdrive.inference.core.vehicles.vehicle_keys`), so the combined result is bit-identical to
 one :func:`~bayesdrive.inference.fit.fit` of all vehicles, whatever the cluster, the order chunks
 finish in, a worker lost mid-run (Dask runs its task again elsewhere) or a restart. Chunks are
 sliced from one padded array of all vehicles, so each has the plain run's step axis.
@@ -45,17 +45,17 @@ from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.convergence import check_convergence, log_problems
-from bayesdrive.inference.fit import MCMC_OPTIONS, first_vehicles, fit
-from bayesdrive.inference.heldout_evidence import FitResult, fit_model, join_fits
-from bayesdrive.inference.output import (
+from bayesdrive.inference.core.output import (
     load_result,
     metadata,
     psis_loo_check,
     save_result,
     set_metadata,
 )
-from bayesdrive.inference.smc_core import TemperingConfig
+from bayesdrive.inference.core.smc import TemperingConfig
+from bayesdrive.inference.diagnostics.convergence import check_convergence, log_problems
+from bayesdrive.inference.engines.heldout_evidence import FitResult, fit_model, join_fits
+from bayesdrive.inference.fit import MCMC_OPTIONS, first_vehicles, fit
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
@@ -392,7 +392,7 @@ def fit_model_on_cluster(
     start: FitResult | None = None,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> FitResult:
-    """:func:`~bayesdrive.inference.heldout_evidence.fit_model` (one vehicle at a time) of
+    """:func:`~bayesdrive.inference.engines.heldout_evidence.fit_model` (one vehicle at a time) of
     ``series`` in chunks of ``chunk_size`` vehicles on the Dask ``client``: the same result, bit
     for bit."""
     rows = chunk_rows(len(series.vehicle_ids), chunk_size)

@@ -1,9 +1,9 @@
 """``fit``: run an inference engine on trajectories and get the result tree; ``summary`` of it.
 
 Engines live in :data:`ENGINES` (name -> function). Every engine has the signature of
-:class:`Engine` and returns an :class:`~bayesdrive.inference.output.EngineResult`; ``fit`` adds
-the metadata, builds the one result layout of :mod:`bayesdrive.inference.output` and checks
-convergence (:mod:`bayesdrive.inference.convergence`), so another engine joins by adding itself
+:class:`Engine` and returns an :class:`~bayesdrive.inference.core.output.EngineResult`; ``fit`` adds
+the metadata, builds the one result layout of :mod:`bayesdrive.inference.core.output` and checks
+convergence (:mod:`bayesdrive.inference.diagnostics.convergence`), so another engine joins by adding itself
 to :data:`ENGINES` and :data:`INFERENCE_LIBRARY`.
 
 Sizes: the filters (:data:`PARTICLE_ENGINES`) take ``num_particles``; every other engine takes
@@ -25,10 +25,11 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import ensemble, latent, lm, nuts, pf, population, smc
-from bayesdrive.inference.convergence import check_convergence, log_problems
-from bayesdrive.inference.likelihood import check_model, param_names
-from bayesdrive.inference.output import EngineResult, build_tree, metadata, set_metadata
+from bayesdrive.inference.core.likelihood import check_model, param_names
+from bayesdrive.inference.core.output import EngineResult, build_tree, metadata, set_metadata
+from bayesdrive.inference.diagnostics.convergence import check_convergence, log_problems
+from bayesdrive.inference.engines import emcee, lm, nuts, pf, pmmh, smc
+from bayesdrive.inference.population import hierarchical
 
 __all__ = [
     "BATCHED_ENGINES",
@@ -47,7 +48,7 @@ __all__ = [
 
 class Engine(Protocol):
     """An inference engine: every vehicle of ``arrays``; its keyword arguments are every engine's
-    :class:`~bayesdrive.inference.vehicles.EngineInputs` and its own options."""
+    :class:`~bayesdrive.inference.core.vehicles.EngineInputs` and its own options."""
 
     def __call__(self, key: Array, arrays: FollowerArrays, **options: Any) -> EngineResult: ...
 
@@ -56,10 +57,10 @@ ENGINES: dict[str, Engine] = {
     "smc": smc.run,
     "pf": pf.run,
     "nuts": nuts.run,
-    "emcee": ensemble.run,
+    "emcee": emcee.run,
     "lm": lm.run,
-    "hierarchical": population.run,
-    "pmmh": latent.run,
+    "hierarchical": hierarchical.run,
+    "pmmh": pmmh.run,
 }
 # The package that draws each engine's samples (ArviZ's inference_library attribute).
 INFERENCE_LIBRARY = {
@@ -94,7 +95,7 @@ def check_engine_model(engine: str, model: DriverModel) -> None:
     that score one step at a time (smc, pf, lm) need a model without a state filter."""
     get_engine(engine)
     if engine == "pmmh":
-        latent.check_model(model)
+        pmmh.check_model(model)
     else:
         check_model(model, engine, whole_series=engine in WHOLE_SERIES)
 
@@ -142,8 +143,8 @@ def fit(
     all, default 1000; ``num_particles`` is taken as ``draws`` there, as before), ``chains`` and
     ``warmup`` (MCMC engines, :data:`MCMC_OPTIONS`) size the run. ``engine_options`` go to the engine (e.g.
     ``ess_threshold`` for smc, ``epochs`` for pf). Returns the result tree
-    (:mod:`bayesdrive.inference.output`); its metadata ``convergence`` holds the checks of
-    :func:`~bayesdrive.inference.convergence.check_convergence`, whose problems are also logged
+    (:mod:`bayesdrive.inference.core.output`); its metadata ``convergence`` holds the checks of
+    :func:`~bayesdrive.inference.diagnostics.convergence.check_convergence`, whose problems are also logged
     as warnings.
     """
     run_engine = get_engine(engine)

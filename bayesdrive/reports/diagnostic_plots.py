@@ -18,8 +18,8 @@ from matplotlib.colors import BoundaryNorm, ListedColormap
 from matplotlib.figure import Figure
 
 from bayesdrive.data.atomic import write_atomic
-from bayesdrive.inference.agreement import MEAN_TOLERANCE_SD
-from bayesdrive.inference.sbc import SBCOutcome
+from bayesdrive.inference.diagnostics.agreement import MEAN_TOLERANCE_SD
+from bayesdrive.inference.diagnostics.sbc import SBCOutcome
 
 __all__ = ["plot_agreement_heatmap", "plot_marginals", "plot_rank_ecdf", "save_figure"]
 

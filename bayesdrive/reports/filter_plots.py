@@ -1,6 +1,6 @@
 """Pictures of a particle engine's diagnostics, drawn from a result tree (engines draw nothing).
 
-Each function takes a result tree (:mod:`bayesdrive.inference.output`) with the particle engines'
+Each function takes a result tree (:mod:`bayesdrive.inference.core.output`) with the particle engines'
 ``sample_stats`` and writes one PNG atomically. Figures are built on matplotlib's object API with
 the Agg canvas, so nothing touches pyplot's global state. Steps outside a vehicle's usable mask are
 left out of every trace; thin lines are vehicles, the thick line their median (drawn where at

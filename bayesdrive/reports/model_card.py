@@ -10,8 +10,8 @@ import numpy as np
 import xarray as xr
 
 from bayesdrive.data.provenance import describe_code
+from bayesdrive.inference.core.output import metadata
 from bayesdrive.inference.fit import summary as fit_summary
-from bayesdrive.inference.output import metadata
 
 __all__ = ["model_card", "posterior_lines"]
 

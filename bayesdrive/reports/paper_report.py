@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.drivers.closed_loop import FILTERED, STATIONARY
 from bayesdrive.drivers.registry import MODELS
-from bayesdrive.inference.agreement import agreement_summary, agreement_table
+from bayesdrive.inference.diagnostics.agreement import agreement_summary, agreement_table
 from bayesdrive.reports.filter_plots import plot_convergence
 from bayesdrive.reports.html import Report, Section
 from bayesdrive.simulation.two_sample import BOOSTING
@@ -35,7 +35,7 @@ PAPER_NOTE = (
 # Every driver-model parameter's unit, for table headers and axis labels.
 UNITS = {spec.name: spec.unit for model in MODELS.values() for spec in model.specs}
 LEGEND_FONTSIZE = 9
-# The agreement summary's columns (bayesdrive.inference.agreement) as a reader names them.
+# The agreement summary's columns (bayesdrive.inference.diagnostics.agreement) as a reader names them.
 AGREEMENT_HEADERS = {
     "a": "engine",
     "b": "reference engine",

@@ -9,7 +9,7 @@ its parameters for every rollout. Baselines (names in :data:`BASELINES`):
 * ``idm-nls``: the IDM at the paper's published nonlinear-least-squares fit (v_des 17.837 m/s,
   tau 0.918 s, d_min 5.249 m, a_max 0.758 m/s^2, b_pref 3.811 m/s^2), deterministic.
 * ``idm-lm``: the IDM fitted per vehicle by Levenberg-Marquardt on its own *fitting* window
-  (:mod:`bayesdrive.inference.lm`), deterministic at the fitted values.
+  (:mod:`bayesdrive.inference.engines.lm`), deterministic at the fitted values.
 * ``cv`` / ``ca``: constant velocity / constant acceleration +1 m/s^2 (the paper's value),
   deterministic; the :data:`CONSTANT_ACCELERATION` model below.
 * ``blackbox``: a behavioural-cloning MLP policy (:mod:`bayesdrive.simulation.blackbox`) trained
@@ -47,7 +47,7 @@ from bayesdrive.drivers.execution_noise import (
     step_logpdf,
 )
 from bayesdrive.drivers.idm import IDM, IDMParams
-from bayesdrive.inference import lm
+from bayesdrive.inference.engines import lm
 from bayesdrive.simulation.blackbox import (
     BlackboxParams,
     TrainConfig,

@@ -31,8 +31,8 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.registry import get_model
+from bayesdrive.inference.core.output import load_result, metadata
 from bayesdrive.inference.distributed import chunk_rows, run_tasks
-from bayesdrive.inference.output import load_result, metadata
 from bayesdrive.simulation.baselines import (
     BASELINES,
     CAR_FOLLOWING_ONLY,

@@ -1,6 +1,6 @@
 """Posterior draws of a saved result as simulator parameters, per vehicle or pooled.
 
-A result tree (:mod:`bayesdrive.inference.output`) holds, per parameter, draws shaped
+A result tree (:mod:`bayesdrive.inference.core.output`) holds, per parameter, draws shaped
 (chain, draw, vehicle). The simulator wants, per vehicle, a (draws, parameters) matrix; the paper's
 scene generation uses the pooled mixture of all vehicles' draws, and drivers with no data of their
 own draw from the hierarchical engine's population distribution of a new driver.
@@ -19,7 +19,7 @@ from jax import Array
 from bayesdrive.data.readers._common import DEFAULT_LENGTH_M
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.output import metadata
+from bayesdrive.inference.core.output import metadata
 from bayesdrive.simulation.baselines import Policy, particle_policy
 from bayesdrive.simulation.rollout import draw_particles, platoon_scene, rollout
 

@@ -107,7 +107,7 @@ from bayesdrive.data.atomic import write_atomic
 from bayesdrive.data.provenance import provenance_line
 from bayesdrive.drivers.idm import DELTA
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.output import metadata
+from bayesdrive.inference.core.output import metadata
 from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle, population_draws
 
 __all__ = [

@@ -56,7 +56,7 @@ from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import FollowerArrays, Window, follower_arrays
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.output import metadata
+from bayesdrive.inference.core.output import metadata
 from bayesdrive.simulation.posterior import fixed_params, particles_by_vehicle
 from bayesdrive.simulation.rollout import (
     broadcast_params,

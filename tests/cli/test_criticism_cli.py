@@ -12,8 +12,8 @@ from bayesdrive.cli.criticize_cmd import criticize_command
 from bayesdrive.criticism.criticize import POWERED_VEHICLES, criticized_series, power_warning
 from bayesdrive.data.readers import read
 from bayesdrive.data.views import follower_arrays
+from bayesdrive.inference.core.output import load_result, metadata
 from bayesdrive.inference.fit import first_vehicles
-from bayesdrive.inference.output import load_result, metadata
 from trafficgen import DETECTION_SCENARIO, generate
 
 app = typer.Typer()

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from bayesdrive.cli.main import app
 from bayesdrive.data.registry import HOLDOUT
 from bayesdrive.data.views import full_history_mask, history_steps
-from bayesdrive.inference.output import load_result, metadata
+from bayesdrive.inference.core.output import load_result, metadata
 
 runner = CliRunner()
 # One chain file (fast to read) with samples of negative bumper gap, which the reader flags.

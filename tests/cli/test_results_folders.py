@@ -29,8 +29,8 @@ from bayesdrive.data.outputs import (
     open_results,
     staging_path,
 )
-from bayesdrive.inference import output
-from bayesdrive.inference.output import load_result, metadata
+from bayesdrive.inference.core import output
+from bayesdrive.inference.core.output import load_result, metadata
 
 REPO = Path(__file__).resolve().parents[2]
 CHAIN = "ngsim_i80_chains/124_136_140_146_162_164.csv"

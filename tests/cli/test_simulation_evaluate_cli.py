@@ -13,7 +13,7 @@ from bayesdrive.cli.main import app
 from bayesdrive.data import registry
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.views import SPLIT_RULE, follower_arrays
-from bayesdrive.inference.output import build_tree, save_result
+from bayesdrive.inference.core.output import build_tree, save_result
 from bayesdrive.simulation import evaluation
 from bayesdrive.simulation.scenarios import platoon_scenarios
 

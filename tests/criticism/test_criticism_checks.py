@@ -20,7 +20,7 @@ from bayesdrive.criticism.gain import elpd_gain, holm, rmse_change
 from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
 from bayesdrive.drivers.extensions import as_extended
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference.heldout_evidence import FitResult
+from bayesdrive.inference.engines.heldout_evidence import FitResult
 
 VEHICLES, STEPS = 12, 300
 

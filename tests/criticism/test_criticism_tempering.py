@@ -25,10 +25,10 @@ from bayesdrive.drivers.execution_noise import (
     step_logpdf,
 )
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.inference.heldout_evidence import DEFAULT_CONFIG, fit_model
-from bayesdrive.inference.kernels import WalkInfo, WalkState, moves_until_moved
-from bayesdrive.inference.likelihood import step_inputs, step_logpdfs
-from bayesdrive.inference.smc_core import TemperingConfig
+from bayesdrive.inference.core.kernels import WalkInfo, WalkState, moves_until_moved
+from bayesdrive.inference.core.likelihood import step_inputs, step_logpdfs
+from bayesdrive.inference.core.smc import TemperingConfig
+from bayesdrive.inference.engines.heldout_evidence import DEFAULT_CONFIG, fit_model
 
 SIGMA = 0.4
 DT = 0.1
@@ -234,7 +234,7 @@ def test_base_evidence_agrees_with_the_smc_engine(tmp_path):
     from bayesdrive.data.views import scored_series
     from bayesdrive.drivers.extensions import as_extended
     from bayesdrive.drivers.idm import IDM
-    from bayesdrive.inference import smc
+    from bayesdrive.inference.engines import smc
     from trafficgen import generate
 
     path = tmp_path / "two.csv"

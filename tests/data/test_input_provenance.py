@@ -9,8 +9,8 @@ import jax
 from bad_inputs import ngsim_table, openacc_table, write_ngsim, write_openacc
 
 from bayesdrive.data.readers import read
+from bayesdrive.inference.core.output import load_result, metadata, save_result
 from bayesdrive.inference.fit import fit, summary
-from bayesdrive.inference.output import load_result, metadata, save_result
 
 
 def sha256(path) -> str:

@@ -23,9 +23,9 @@ from bayesdrive.drivers.extensions.autocorrelated_noise import NoiseMemoryInputs
 from bayesdrive.drivers.extensions.inputs import inputs_at as extended_inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference import latent
-from bayesdrive.inference.likelihood import StepInputs, check_model
-from bayesdrive.inference.output import set_metadata
+from bayesdrive.inference.core.likelihood import StepInputs, check_model
+from bayesdrive.inference.core.output import set_metadata
+from bayesdrive.inference.engines import pmmh
 from bayesdrive.simulation.evaluation import _posterior_policy
 from bayesdrive.simulation.generate import desired_speed_name
 from bayesdrive.simulation.posterior import posterior_predictive
@@ -177,7 +177,7 @@ def test_engines_read_the_declared_observation():
     observed_otherwise = IDM._replace(name="idm_observed", observation="some_observation_model")
     with pytest.raises(NotImplementedError, match="observed with noise"):
         check_model(observed_otherwise, "smc")
-    latent.check_model(observed_otherwise)
+    pmmh.check_model(observed_otherwise)
     check_model(IDM, "smc")
     with pytest.raises(ValueError, match="observes them exactly"):
-        latent.check_model(IDM)
+        pmmh.check_model(IDM)

@@ -18,8 +18,10 @@ from bayesdrive.cli.main import app
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.gipps import GIPPS, gipps_acceleration
-from bayesdrive.inference import fit, nuts, population, smc
-from bayesdrive.inference.output import load_result, metadata
+from bayesdrive.inference import fit
+from bayesdrive.inference.core.output import load_result, metadata
+from bayesdrive.inference.engines import nuts, smc
+from bayesdrive.inference.population import hierarchical
 from bayesdrive.simulation.generate import equilibrium_gap
 
 DT = 0.1
@@ -247,7 +249,7 @@ CHAIN = "ngsim_i80_chains/124_136_140_146_162_164.csv"
 # Warm-up cut for the NUTS-based engines so each run stays a few seconds (defaults: 500).
 QUICK = {
     "nuts": functools.partial(nuts.run, num_warmup=50, num_chains=2),
-    "hierarchical": functools.partial(population.run, num_warmup=50, num_chains=2),
+    "hierarchical": functools.partial(hierarchical.run, num_warmup=50, num_chains=2),
 }
 
 

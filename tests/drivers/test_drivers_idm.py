@@ -14,7 +14,7 @@ from scipy import stats
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.execution_noise import STOP_SPEED
 from bayesdrive.drivers.idm import IDM, idm_acceleration
-from bayesdrive.inference.likelihood import StepInputs
+from bayesdrive.inference.core.likelihood import StepInputs
 
 DT = 0.1
 # Textbook parameters used in the hand computations below.

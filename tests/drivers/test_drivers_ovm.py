@@ -13,7 +13,7 @@ from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.ovm import OVM
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference import smc
+from bayesdrive.inference.engines import smc
 from bayesdrive.simulation.generate import equilibrium_gap
 from trafficgen.ovm import ovm_platoon
 

@@ -29,7 +29,7 @@ from bayesdrive.drivers.extensions.autocorrelated_noise import (
 from bayesdrive.drivers.extensions.cut_in import cah_acceleration
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs, history_steps, inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
-from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_logpdfs
 
 DT = 0.1
 K = history_steps(DT)

@@ -14,8 +14,8 @@ from bayesdrive.data.views import AheadArrays, FollowerArrays
 from bayesdrive.drivers.extensions import extend
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import canonical_name, get_model
+from bayesdrive.inference.core.likelihood import series_loglik, step_inputs
 from bayesdrive.inference.fit import check_engine_model, fit
-from bayesdrive.inference.likelihood import series_loglik, step_inputs
 
 DT = 0.1
 TRUTH = {"v_des": 25.0, "d_min": 2.0, "tau": 1.2, "a_max": 1.5, "b_pref": 2.0, "sigma": 0.15}
@@ -231,7 +231,7 @@ def test_generated_platoons_of_a_composite_model_start_in_equilibrium():
 def test_synthetic_followers_read_their_inputs_through_the_model():
     """inference.synthetic simulates any model: a composite with its extensions off follows the
     IDM's path under the same keys; switched on it differs, and Gipps runs too."""
-    from bayesdrive.inference.synthetic import simulate_following
+    from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
 
     def params_of(model, **values):
         base = model.defaults()._replace(**{k: np.float32(v) for k, v in values.items()})

@@ -29,8 +29,8 @@ from bayesdrive.experiments.holdout import (
     paired_difference,
     population_from,
 )
+from bayesdrive.inference.core.output import load_result
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import load_result
 from bayesdrive.reports.html import Section
 from bayesdrive.reports.paper_report import calibration_section, holdout_section, holdout_table
 from bayesdrive.simulation.blackbox import TrainConfig

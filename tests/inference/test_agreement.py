@@ -13,14 +13,14 @@ from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.inference.agreement import (
+from bayesdrive.inference.core.output import build_tree, metadata, save_result
+from bayesdrive.inference.diagnostics.agreement import (
     agreement_summary,
     agreement_table,
     convergence_table,
     mcse_mean,
     same_data,
 )
-from bayesdrive.inference.output import build_tree, metadata, save_result
 
 VEHICLES = ("shifted-a-little", "shifted-a-lot", "scaled")
 

@@ -28,7 +28,7 @@ from typer.testing import CliRunner
 from bayesdrive.cli.main import app
 from bayesdrive.data.outputs import MANIFEST, staging_path
 from bayesdrive.inference import distributed
-from bayesdrive.inference.output import RUN_DEPENDENT_ATTRS, load_result, metadata
+from bayesdrive.inference.core.output import RUN_DEPENDENT_ATTRS, load_result, metadata
 
 pytest.importorskip("distributed")
 

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.inference.convergence import (
+from bayesdrive.inference.core.output import REQUIRED_METADATA, build_tree
+from bayesdrive.inference.diagnostics.convergence import (
     ESS_MIN,
     RHAT_MAX,
     chain_problems,
     check_convergence,
     next_step,
 )
-from bayesdrive.inference.output import REQUIRED_METADATA, build_tree
 
 VEHICLES = ("a", "b")
 CHAINS, DRAWS = 4, 1000

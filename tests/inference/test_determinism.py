@@ -24,7 +24,7 @@ import xarray as xr
 from typer.testing import CliRunner
 
 from bayesdrive.cli.main import COMPILATION_CACHE_ENV, app
-from bayesdrive.inference.output import RUN_DEPENDENT_ATTRS, load_result, metadata
+from bayesdrive.inference.core.output import RUN_DEPENDENT_ATTRS, load_result, metadata
 
 CHAIN = "ngsim_i80_chains/115_124_136_140_146_162.csv"
 

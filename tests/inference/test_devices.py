@@ -30,8 +30,8 @@ FIT = textwrap.dedent(
     """
     import jax, jax.numpy as jnp, numpy as np
     from bayesdrive.drivers.idm import IDM
-    from bayesdrive.inference import smc
-    from bayesdrive.inference.synthetic import simulate_following
+    from bayesdrive.inference.engines import smc
+    from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
 
     def followers():
         params = IDM.params_type(*(jnp.full(3, s.default) for s in IDM.specs))

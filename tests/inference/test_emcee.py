@@ -16,12 +16,12 @@ import pytest
 
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import ensemble
-from bayesdrive.inference.agreement import grid_posterior
+from bayesdrive.inference.core.output import metadata
+from bayesdrive.inference.diagnostics.agreement import grid_posterior
+from bayesdrive.inference.diagnostics.sbc import sd_doubled
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines import emcee
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import metadata
-from bayesdrive.inference.sbc import sd_doubled
-from bayesdrive.inference.synthetic import simulate_following
 
 SEED = 3
 OPTIONS = {"num_steps": 1200, "num_particles": 500}
@@ -35,7 +35,7 @@ def vehicle():
 
 @pytest.fixture(scope="module")
 def result(vehicle):
-    return ensemble.run(jax.random.key(SEED), vehicle, model=IDM, params=["sigma"], **OPTIONS)
+    return emcee.run(jax.random.key(SEED), vehicle, model=IDM, params=["sigma"], **OPTIONS)
 
 
 def matches_exact(vehicle, draws: np.ndarray) -> bool:
@@ -53,17 +53,17 @@ def test_emcee_matches_exact_posterior(vehicle, result):
 
 
 def test_sd_doubled_likelihood_fails_the_same_check(vehicle):
-    wrong = ensemble.run(
+    wrong = emcee.run(
         jax.random.key(SEED), vehicle, model=sd_doubled(IDM), params=["sigma"], **OPTIONS
     )
     assert not matches_exact(vehicle, wrong.posterior["sigma"])
 
 
 def test_same_seed_gives_identical_chains_and_other_seeds_differ(vehicle, result):
-    again = ensemble.run(jax.random.key(SEED), vehicle, model=IDM, params=["sigma"], **OPTIONS)
+    again = emcee.run(jax.random.key(SEED), vehicle, model=IDM, params=["sigma"], **OPTIONS)
     np.testing.assert_array_equal(again.posterior["sigma"], result.posterior["sigma"])
     np.testing.assert_array_equal(again.sample_stats["seed"][1], result.sample_stats["seed"][1])
-    other = ensemble.run(jax.random.key(SEED + 1), vehicle, model=IDM, params=["sigma"], **OPTIONS)
+    other = emcee.run(jax.random.key(SEED + 1), vehicle, model=IDM, params=["sigma"], **OPTIONS)
     assert not np.array_equal(other.posterior["sigma"], result.posterior["sigma"])
 
 
@@ -82,17 +82,17 @@ def test_layout_single_chain_thinned_by_autocorrelation(result):
     assert result.sample_stats["kept_draws"][1][0] == available
     assert draws.shape[1] == min(available, OPTIONS["num_particles"])
     assert bool(result.sample_stats["autocorr_reliable"][1][0]) == (
-        steps - burn > ensemble.AUTOCORR_RELIABLE_FACTOR * tau.max()
+        steps - burn > emcee.AUTOCORR_RELIABLE_FACTOR * tau.max()
     )
 
 
 def test_walker_rule():
-    assert [ensemble.num_walkers_for(d) for d in (1, 6, 8, 9, 12)] == [32, 32, 32, 36, 48]
+    assert [emcee.num_walkers_for(d) for d in (1, 6, 8, 9, 12)] == [32, 32, 32, 36, 48]
 
 
 def test_too_few_walkers_are_refused(vehicle):
     with pytest.raises(ValueError, match="num_walkers"):
-        ensemble.run(jax.random.key(0), vehicle, model=IDM, params=["sigma", "tau"], num_walkers=3)
+        emcee.run(jax.random.key(0), vehicle, model=IDM, params=["sigma", "tau"], num_walkers=3)
 
 
 def test_a_short_run_extends_to_fifty_tau_and_a_capped_one_warns_with_the_next_step(
@@ -104,9 +104,9 @@ def test_a_short_run_extends_to_fifty_tau_and_a_capped_one_warns_with_the_next_s
     options = {"model": IDM, "engine": "emcee", "params": ["sigma"], "draws": 1000}
     extended = fit(jax.random.key(SEED), vehicle, num_steps=300, **options)
     steps = int(extended["sample_stats"]["num_steps"].values[0])
-    assert 300 < steps <= ensemble.MAX_EXTENSION * 300
+    assert 300 < steps <= emcee.MAX_EXTENSION * 300
     assert metadata(extended)["convergence"]["problems"] == []
-    with caplog.at_level(logging.WARNING, logger="bayesdrive.inference.convergence"):
+    with caplog.at_level(logging.WARNING, logger="bayesdrive.inference.diagnostics.convergence"):
         capped = fit(jax.random.key(SEED), vehicle, num_steps=300, max_steps=300, **options)
     assert int(capped["sample_stats"]["num_steps"].values[0]) == 300
     problems = metadata(capped)["convergence"]["problems"]

@@ -13,15 +13,15 @@ import xarray as xr
 
 from bayesdrive.data.views import SPLIT_RULE
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference.fit import ENGINES, fit, summary
-from bayesdrive.inference.output import (
+from bayesdrive.inference.core.output import (
     REQUIRED_METADATA,
     build_tree,
     load_result,
     metadata,
     save_result,
 )
-from bayesdrive.inference.synthetic import simulate_following
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.fit import ENGINES, fit, summary
 from bayesdrive.reports.filter_plots import write_filter_plots
 
 # The shapes and settings of test_inference_smc's recovery fits, so a session compiles once.

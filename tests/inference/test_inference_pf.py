@@ -12,9 +12,9 @@ import pytest
 from jax import Array
 
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import pf
-from bayesdrive.inference.likelihood import fixed_params, step_inputs, step_loglik
-from bayesdrive.inference.synthetic import simulate_following
+from bayesdrive.inference.core.likelihood import fixed_params, step_inputs, step_loglik
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines import pf
 
 PARAMS = ("v_des", "tau", "sigma")
 PARTICLES = 256

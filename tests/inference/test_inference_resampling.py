@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bayesdrive.inference.resampling import RESAMPLERS, count_distinct_sorted, systematic
-from bayesdrive.inference.weights import effective_sample_size, log_mean_weight, normalize
+from bayesdrive.inference.core.resampling import RESAMPLERS, count_distinct_sorted, systematic
+from bayesdrive.inference.core.weights import effective_sample_size, log_mean_weight, normalize
 
 SEED = 20240601
 REPEATS = 2000

@@ -22,8 +22,8 @@ from bayesdrive.drivers.execution_noise import (
     step_logpdf,
 )
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import smc
-from bayesdrive.inference.synthetic import simulate_following
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines import smc
 
 DT = 0.1
 

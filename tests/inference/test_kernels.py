@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from bayesdrive.inference.kernels import (
+from bayesdrive.inference.core.kernels import (
     Box,
     Independent,
     WalkState,
@@ -21,7 +21,7 @@ from bayesdrive.inference.kernels import (
     to_free,
     walk_step,
 )
-from bayesdrive.inference.weights import effective_sample_size
+from bayesdrive.inference.core.weights import effective_sample_size
 
 BOX = Box(jnp.asarray([-4.0, 0.0]), jnp.asarray([4.0, 3.0]))
 

@@ -32,18 +32,18 @@ from bayesdrive.drivers.cidm import MergeInputs
 from bayesdrive.drivers.execution_noise import exact_initial_sample, exact_observation_logpdf
 from bayesdrive.drivers.idm import IDM, IDMParams
 from bayesdrive.drivers.measurement_noise import shift_ego, with_measurement_noise
-from bayesdrive.inference.fit import fit
-from bayesdrive.inference.latent import (
+from bayesdrive.inference.core.likelihood import fixed_params
+from bayesdrive.inference.core.output import metadata
+from bayesdrive.inference.core.vehicles import vehicle_keys
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines.pmmh import (
     latent_data,
     noisy_readings,
     pmmh,
     run,
     state_filter_loglik,
 )
-from bayesdrive.inference.likelihood import fixed_params
-from bayesdrive.inference.output import metadata
-from bayesdrive.inference.synthetic import simulate_following
-from bayesdrive.inference.vehicles import vehicle_keys
+from bayesdrive.inference.fit import fit
 
 # ---------------------------------------------------------------------------------------------
 # A linear car-following model through the driver-model interface (no speed clip: linear Gaussian)

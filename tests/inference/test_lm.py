@@ -11,10 +11,10 @@ from scipy import special, stats
 
 from bayesdrive.drivers.cidm import CIDM
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import lm
+from bayesdrive.inference.core.output import metadata
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines import lm
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import metadata
-from bayesdrive.inference.synthetic import simulate_following
 
 # Away from the defaults and from the prior centre, so neither start is already the answer; v_des
 # below the synthetic leaders' top speeds (up to 26 m/s), so the free-road term is exercised.

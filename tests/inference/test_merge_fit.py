@@ -11,9 +11,9 @@ import pytest
 from bayesdrive.data import registry
 from bayesdrive.data.views import pooled_series
 from bayesdrive.drivers.cidm import CIDM, yield_target
+from bayesdrive.inference.core.likelihood import fixed_params, series_loglik, step_inputs
+from bayesdrive.inference.core.output import metadata
 from bayesdrive.inference.fit import first_vehicles, fit
-from bayesdrive.inference.likelihood import fixed_params, series_loglik, step_inputs
-from bayesdrive.inference.output import metadata
 from bayesdrive.simulation.scenarios import (
     MERGE_FIT_STAY_S,
     fitting_episodes,

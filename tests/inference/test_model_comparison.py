@@ -30,8 +30,8 @@ from bayesdrive.data import registry
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
+from bayesdrive.inference.core.output import load_result, metadata, save_result
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import load_result, metadata, save_result
 
 CHAIN = "ngsim_i80_chains/124_136_140_146_162_164.csv"
 VEHICLES = 2

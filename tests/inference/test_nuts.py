@@ -2,7 +2,7 @@
 
 The exact check: one vehicle simulated by the stochastic IDM (64 steps, sigma = 0.5, seed 3),
 sigma inferred with the other parameters at their (true) defaults, so the posterior is a 1-D
-integral computed by quadrature (:func:`bayesdrive.inference.agreement.grid_posterior`). NUTS
+integral computed by quadrature (:func:`bayesdrive.inference.diagnostics.agreement.grid_posterior`). NUTS
 must match its mean within 4 Monte Carlo standard errors (ArviZ MCSE) and its sd within
 4 / sqrt(2 ESS) relative (the sampling sd of an sd estimate), both failing with probability
 about 1e-4 for a correct sampler. Other SBC-based checks of nuts live in tests/inference/test_sbc.py.
@@ -18,13 +18,13 @@ import pytest
 
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import nuts
-from bayesdrive.inference.agreement import grid_posterior
-from bayesdrive.inference.convergence import chain_problems
+from bayesdrive.inference.core.likelihood import series_loglik, step_inputs
+from bayesdrive.inference.core.output import metadata
+from bayesdrive.inference.diagnostics.agreement import grid_posterior
+from bayesdrive.inference.diagnostics.convergence import chain_problems
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines import nuts
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.likelihood import series_loglik, step_inputs
-from bayesdrive.inference.output import metadata
-from bayesdrive.inference.synthetic import simulate_following
 
 SEED = 3
 OPTIONS = {"num_chains": 4, "num_warmup": 200, "num_particles": 1000}
@@ -157,7 +157,7 @@ def test_extension_stops_at_the_cap_and_fit_warns_with_the_next_step(vehicle, mo
     still failing, and every warning line names the vehicle, the parameter and what to run next."""
     run_vehicles, calls = fake_sampler({"steady": 1, "slow": 16}, vehicle.mask.shape[1])
     monkeypatch.setattr(nuts, "_run_vehicles", run_vehicles)
-    with caplog.at_level(logging.WARNING, logger="bayesdrive.inference.convergence"):
+    with caplog.at_level(logging.WARNING, logger="bayesdrive.inference.diagnostics.convergence"):
         tree = fit(
             jax.random.key(SEED),
             two_vehicles(vehicle),

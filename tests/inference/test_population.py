@@ -19,11 +19,11 @@ from bayesdrive.cli.main import app
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import population
+from bayesdrive.inference.core.output import build_tree, metadata, save_result
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
 from bayesdrive.inference.fit import fit
-from bayesdrive.inference.output import build_tree, metadata, save_result
-from bayesdrive.inference.population import how_drivers_differ, pooled_population
-from bayesdrive.inference.synthetic import simulate_following
+from bayesdrive.inference.population import hierarchical, two_stage
+from bayesdrive.inference.population.summary import how_drivers_differ, pooled_population
 
 SEED = 21
 NAMES = ("tau", "sigma")
@@ -140,12 +140,12 @@ def test_population_draws_in_natural_units(simulated):
 
 def test_one_vehicle_is_not_a_population():
     with pytest.raises(ValueError, match="at least 2 vehicles"):
-        population.run(jax.random.key(0), constant_arrays(1), model=IDM, params=["sigma"])
+        hierarchical.run(jax.random.key(0), constant_arrays(1), model=IDM, params=["sigma"])
 
 
 def test_custom_prior_is_refused():
     with pytest.raises(ValueError, match="own population prior"):
-        population.run(jax.random.key(0), constant_arrays(2), model=IDM, prior=IDM.prior())
+        hierarchical.run(jax.random.key(0), constant_arrays(2), model=IDM, prior=IDM.prior())
 
 
 def test_saved_result_diagnosed_with_how_drivers_differ(simulated, tmp_path):
@@ -178,7 +178,7 @@ def test_two_stage_matches_the_joint_fit(simulated):
     )
 
     def population_gap(tree) -> float:
-        two = population.two_stage(
+        two = two_stage.two_stage(
             jax.random.key(SEED + 4), tree, num_particles=600, num_chains=2, num_warmup=300
         )
         assert two["posterior"]["tau"].shape == (2, 300, VEHICLES)

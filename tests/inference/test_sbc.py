@@ -25,14 +25,14 @@ from bayesdrive.cli.main import app
 from bayesdrive.cli.sbc_cmd import write_outcome
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import ensemble, nuts, smc
-from bayesdrive.inference.sbc import (
+from bayesdrive.inference.diagnostics.sbc import (
     choose_bins,
     posterior_ranks,
     run_sbc,
     sd_doubled,
     uniformity_tests,
 )
+from bayesdrive.inference.engines import emcee, nuts, smc
 
 SEED = 11
 NAMES = ("tau", "a_max", "sigma")
@@ -44,7 +44,7 @@ COVERAGE_ALPHA = 0.001
 ENGINES = {
     "smc": (smc.run, {"num_particles": 400}),
     "nuts": (nuts.run, {"num_particles": 400, "num_warmup": 150}),
-    "emcee": (ensemble.run, {"num_particles": 400, "num_steps": 400}),
+    "emcee": (emcee.run, {"num_particles": 400, "num_steps": 400}),
 }
 
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from bayesdrive.inference.kernels import Box, WalkState
-from bayesdrive.inference.smc_core import (
+from bayesdrive.inference.core.kernels import Box, WalkState
+from bayesdrive.inference.core.smc import (
     SMCState,
     TemperingConfig,
     adaptive_tempering,

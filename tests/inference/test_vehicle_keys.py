@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 
 from bayesdrive.drivers.idm import IDM
-from bayesdrive.inference import fit, nuts, pf, smc
-from bayesdrive.inference.output import EngineResult
-from bayesdrive.inference.synthetic import simulate_following
-from bayesdrive.inference.vehicles import vehicle_hash, vehicle_keys
+from bayesdrive.inference import fit
+from bayesdrive.inference.core.output import EngineResult
+from bayesdrive.inference.core.vehicles import vehicle_hash, vehicle_keys
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
+from bayesdrive.inference.engines import nuts, pf, smc
 
 PARAMS = ("v_des", "sigma")
 STEPS = 40

@@ -37,7 +37,7 @@ from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.drivers.video_noise import INITIAL_SPEED_SD, with_video_noise
-from bayesdrive.inference.likelihood import step_inputs, step_logpdfs
+from bayesdrive.inference.core.likelihood import step_inputs, step_logpdfs
 from trafficgen import generate
 from trafficgen.mechanisms import MECHANISMS
 

@@ -32,7 +32,7 @@ import pandas as pd
 import pytest
 
 from bayesdrive.drivers.idm import IDM, IDMParams
-from bayesdrive.inference.output import load_result
+from bayesdrive.inference.core.output import load_result
 from bayesdrive.simulation.rollout import broadcast_params, platoon_scene, rollout
 from bayesdrive.simulation.sumo import (
     follow_in_sumo,

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from bayesdrive.cli.main import app
 from bayesdrive.drivers.gipps import GIPPS
-from bayesdrive.inference.output import load_result, set_metadata
+from bayesdrive.inference.core.output import load_result, set_metadata
 from bayesdrive.simulation.sumo import (
     per_vehicle_drivers,
     population_drivers,

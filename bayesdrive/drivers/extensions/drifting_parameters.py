@@ -17,7 +17,7 @@ filtered mean. With :math:`q = 0` it is the base model exactly; otherwise it is 
 whose error is second order in the offset's uncertainty (small: the offset moves by
 :math:`q\sqrt{\Delta t}` per step). A step that ends in a stop censors its acceleration and does not
 update the filter. The filter restarts (offset 0, known) after a gap in the data; the latent-state
-particle filter of :mod:`bayesdrive.inference.latent` targets noisy positions, not exactly observed
+particle filter of :mod:`bayesdrive.inference.engines.pmmh` targets noisy positions, not exactly observed
 states with a hidden parameter, so it is not used here.
 
 =========  ======  =======  ============  ===========================================

@@ -12,7 +12,7 @@ what the driver sees:
 * the **second vehicle ahead** and the leader's **acceleration** (the series' ``ahead`` part).
 
 **Which steps are scored.** A model that reads its past is scored only on steps whose K steps
-before are usable too (:func:`~bayesdrive.inference.likelihood.step_inputs`); a model comparison
+before are usable too (:func:`~bayesdrive.inference.core.likelihood.step_inputs`); a model comparison
 scores every model on the same such steps (:func:`~bayesdrive.data.views.scored_series`).
 """
 

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from bayesdrive.inference.weights import normalize
+from bayesdrive.inference.core.weights import normalize
 
 __all__ = ["RESAMPLERS", "count_distinct_sorted", "multinomial", "stratified", "systematic"]
 

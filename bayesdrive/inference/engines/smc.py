@@ -4,7 +4,7 @@ Per vehicle: adaptive tempering on the whole series, closing moves, and, on requ
 sequential pass for per-step diagnostics. All exact up to Monte Carlo error.
 
 **Tempering** (Del Moral, Doucet & Jasra 2006), the SMC core's adaptive tempering
-(:mod:`bayesdrive.inference.smc_core`, shared with the criticism's held-out continuation): prior
+(:mod:`bayesdrive.inference.core.smc`, shared with the criticism's held-out continuation): prior
 draws, targets :math:`p(\theta)\, p(y_{1:T} \mid \theta)^\lambda` with each next :math:`\lambda`
 found by bisection so that the reweighting keeps an ESS of ``ess_threshold * N``, then resampling
 and ``temper_moves`` moves per stage (with ``unmoved_tolerance`` > 0, more until every particle
@@ -17,7 +17,7 @@ end; after t = 100 a pass along the data held 0-5 of 4000 particles in the far m
 four seeds, and no local move crosses back. Along :math:`\lambda` the final mode is favoured
 from the start, so tempering finds it in every seed tried.
 
-**Moves** are the sampler core's (:mod:`bayesdrive.inference.kernels`), on
+**Moves** are the sampler core's (:mod:`bayesdrive.inference.core.kernels`), on
 u = logit((theta - lower) / (upper - lower)) where the prior has finite bounds (theta itself
 elsewhere), the target on u carrying the Jacobian, so parameters piled against a prior bound move
 freely. By default a move is a random walk with the covariance of u of the reweighted cloud
@@ -44,7 +44,7 @@ posterior tail the tempering path's excess mass outlived a fixed number of closi
 
 **Sequential pass** (``sequential=True``, off by default; it changes no draw): resample-move SMC
 along the data, also known as IBIS (Chopin 2002, Biometrika 89:539), from its own prior draws.
-At step t the SMC core's step (:func:`~bayesdrive.inference.smc_core.step`) reweights every
+At step t the SMC core's step (:func:`~bayesdrive.inference.core.smc.step`) reweights every
 particle by the exact one-step density of the observed transition, so the weighted set targets
 :math:`p(\theta \mid y_{1:t})`; when the ESS falls below ``ess_threshold * N`` it is resampled
 (systematic) and rejuvenated by ``num_moves`` moves that score steps 1..t, in blocks of
@@ -56,10 +56,10 @@ vehicle 107's.
 autocorrelation along the draw order measures. ``replicates`` independent runs (replicate r of a
 vehicle runs on the vehicle's key with r folded in) fill the posterior's ``chain`` dimension, so the Monte Carlo standard error of a
 posterior mean is the spread of the replicate means
-(:func:`bayesdrive.inference.agreement.mcse_mean`); per-step diagnostics are replicate 0's.
+(:func:`bayesdrive.inference.diagnostics.agreement.mcse_mean`); per-step diagnostics are replicate 0's.
 
 Vehicles are independent, each with its own key derived from the seed and its id
-(:mod:`bayesdrive.inference.vehicles`), so its draws are bit-identical whichever vehicles it is
+(:mod:`bayesdrive.inference.core.vehicles`), so its draws are bit-identical whichever vehicles it is
 fitted with, in whatever order or chunk. Vehicles run in compiled chunks; inside a chunk
 ``vehicle_batch`` of them are vectorised together: the tempering and closing loops then run until
 the batch's slowest vehicle is done, and the sequential pass's rejuvenation under ``lax.cond``
@@ -81,11 +81,11 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.kernels import Box, WalkState, moves_until_decorrelated
-from bayesdrive.inference.likelihood import StepInputs, particles_loglik, series_loglik
-from bayesdrive.inference.output import EngineInputs, EngineResult
-from bayesdrive.inference.resampling import count_distinct_sorted
-from bayesdrive.inference.smc_core import (
+from bayesdrive.inference.core.kernels import Box, WalkState, moves_until_decorrelated
+from bayesdrive.inference.core.likelihood import StepInputs, particles_loglik, series_loglik
+from bayesdrive.inference.core.output import EngineInputs, EngineResult
+from bayesdrive.inference.core.resampling import count_distinct_sorted
+from bayesdrive.inference.core.smc import (
     SMCState,
     TemperingConfig,
     adaptive_tempering,
@@ -94,14 +94,14 @@ from bayesdrive.inference.smc_core import (
     fit_cloud,
     stage_moves,
 )
-from bayesdrive.inference.smc_core import step as smc_step
-from bayesdrive.inference.vehicles import (
+from bayesdrive.inference.core.smc import step as smc_step
+from bayesdrive.inference.core.vehicles import (
     log_likelihood_draws,
     posterior_draws,
     prepare,
     static_key,
 )
-from bayesdrive.inference.weights import convergence_curve, weighted_mean_cov
+from bayesdrive.inference.core.weights import convergence_curve, weighted_mean_cov
 
 __all__ = ["SCORE_BLOCK", "SMCConfig", "run"]
 
@@ -378,7 +378,7 @@ def run(
     moves work on their logit scale. ``replicates`` independent runs of ``num_particles`` each
     become the posterior's chains. The log-likelihood group scores every final particle.
     A tempering stage runs ``temper_moves`` moves, and with ``unmoved_tolerance`` > 0 more, up to
-    ``max_moves``, until every particle has likely moved (:mod:`~bayesdrive.inference.smc_core`);
+    ``max_moves``, until every particle has likely moved (:mod:`~bayesdrive.inference.core.smc`);
     a vehicle whose tempering has not reached the posterior after ``max_stages`` stages is an
     error.
     """

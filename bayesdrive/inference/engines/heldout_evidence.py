@@ -3,10 +3,10 @@ r"""Fitting any (extended) driver model and scoring its held-out predictive dens
 **Beside ``smc``.** The engines fit one window; the criticism needs the fitting-window posterior
 *and* its continuation into the held-out window (phase 2 below), whose normalising constant is
 the held-out predictive density. Both this and ``smc`` run the one adaptive tempering of the SMC
-core (:mod:`bayesdrive.inference.smc_core`: its step, temperature search, proposal fit, moves and
-stop rules, with one settings type, :class:`~bayesdrive.inference.smc_core.TemperingConfig`), and
+core (:mod:`bayesdrive.inference.core.smc`: its step, temperature search, proposal fit, moves and
+stop rules, with one settings type, :class:`~bayesdrive.inference.core.smc.TemperingConfig`), and
 every model's steps come from the model itself
-(:func:`~bayesdrive.inference.likelihood.step_inputs`, :func:`~bayesdrive.inference.likelihood.step_logpdfs`).
+(:func:`~bayesdrive.inference.core.likelihood.step_inputs`, :func:`~bayesdrive.inference.core.likelihood.step_logpdfs`).
 For the base model its log-evidence is checked against ``smc``'s in the tests.
 
 **The sampler.** Adaptive-tempering SMC (Del Moral, Doucet & Jasra 2006; Jasra et al. 2011) for
@@ -51,7 +51,7 @@ of the one-step densities of those steps (the Markov property; the autocorrelate
 lifted from the step before, which may lie in the fitting window).
 
 **Keys.** Each vehicle draws from its own key, the run's key with the vehicle's id folded in
-(:func:`~bayesdrive.inference.vehicles.vehicle_keys`), so a vehicle's fit is the same bits whichever
+(:func:`~bayesdrive.inference.core.vehicles.vehicle_keys`), so a vehicle's fit is the same bits whichever
 other vehicles are fitted beside it: a criticism split into chunks of vehicles on a cluster gives
 the plain run's result (:func:`~bayesdrive.inference.distributed.fit_model_on_cluster`).
 
@@ -73,10 +73,10 @@ from jax import Array
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.inference.kernels import Box, WalkState
-from bayesdrive.inference.likelihood import StepInputs, step_inputs, step_logpdfs
-from bayesdrive.inference.smc_core import TemperingConfig, adaptive_tempering, check_finished
-from bayesdrive.inference.vehicles import map_vehicles, vehicle_keys
+from bayesdrive.inference.core.kernels import Box, WalkState
+from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.core.smc import TemperingConfig, adaptive_tempering, check_finished
+from bayesdrive.inference.core.vehicles import map_vehicles, vehicle_keys
 
 __all__ = [
     "BRIDGE_MAX_STAGES",
@@ -187,7 +187,7 @@ def _fit_vehicle(
     """Both phases for one vehicle (module docstring and :func:`fit_model`).
 
     Phase 1 tempers ``tempered`` in on top of ``anchor``
-    (:func:`~bayesdrive.inference.smc_core.adaptive_tempering`): from the prior,
+    (:func:`~bayesdrive.inference.core.smc.adaptive_tempering`): from the prior,
     anchor 0 and tempered the fit-window log-likelihood; as a bridge from ``start_theta`` (base
     posterior draws, paired with prior draws of the new parameters), anchor the extension switched
     off (= the base model) and tempered the log-likelihood ratio of the extension to it. Which one
@@ -279,7 +279,7 @@ def fit_model(
     """Fit ``extended`` to every vehicle's fitting window and score its held-out window.
 
     All the model's parameters are inferred under its uniform prior box. Vehicles run through
-    :func:`~bayesdrive.inference.vehicles.map_vehicles`, as every engine's do: one vehicle per
+    :func:`~bayesdrive.inference.core.vehicles.map_vehicles`, as every engine's do: one vehicle per
     compiled call by default, or ``vehicle_batch`` of them vectorised together (one compile per
     model, settings and padded shape, cached for the process). ``series`` comes from
     :func:`~bayesdrive.data.views.scored_series` (its ``windows`` are the scored steps);

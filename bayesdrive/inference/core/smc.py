@@ -12,7 +12,7 @@ Every sequential Monte Carlo sampler of the package is assembled here (BlackJAX'
 * :func:`tempering_step` and :func:`adaptive_tempering`: the targets
   :math:`p(\theta)\, e^{\ell_a(\theta)} e^{\lambda \ell_t(\theta)}` from :math:`\lambda = 0` to
   1, each next :math:`\lambda` the largest whose reweighting keeps an ESS of
-  ``ess_threshold * N`` (:func:`~bayesdrive.inference.kernels.next_temperature`, bisection,
+  ``ess_threshold * N`` (:func:`~bayesdrive.inference.core.kernels.next_temperature`, bisection,
   Jasra et al. 2011), the particles resampled at every stage and moved by :func:`stage_moves`
   of :func:`cloud_move` until every particle has likely moved. The product of the stages' mean
   incremental weights estimates the normalising constant, unbiased.
@@ -24,7 +24,7 @@ that a particle has not moved is at most ``unmoved_tolerance`` (Drovandi & Petti
 exactly ``num_moves`` with 0); tempering stops at :math:`\lambda = 1` or after ``max_stages``;
 :class:`TemperingConfig` holds the settings. The kernels themselves (the random walk on the logit
 scale of the prior box, the independent Student-t move, the stopping rules of a run of moves)
-are :mod:`bayesdrive.inference.kernels`.
+are :mod:`bayesdrive.inference.core.kernels`.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from bayesdrive.inference.kernels import (
+from bayesdrive.inference.core.kernels import (
     Box,
     Independent,
     Move,
@@ -50,8 +50,8 @@ from bayesdrive.inference.kernels import (
     to_free,
     walk_step,
 )
-from bayesdrive.inference.resampling import systematic
-from bayesdrive.inference.weights import effective_sample_size, normalize, weighted_mean_cov
+from bayesdrive.inference.core.resampling import systematic
+from bayesdrive.inference.core.weights import effective_sample_size, normalize, weighted_mean_cov
 
 __all__ = [
     "BISECTION_STEPS",
@@ -232,7 +232,7 @@ def stage_moves(
 
 
 class TemperingState(NamedTuple):
-    """The tempering layer's state: the cloud (:class:`~bayesdrive.inference.kernels.WalkState`,
+    """The tempering layer's state: the cloud (:class:`~bayesdrive.inference.core.kernels.WalkState`,
     ``tempered`` the log-likelihood being tempered in), its log weights (N,), the temperature (),
     the log normalising constant so far (), and counts: stages (), moves () and the sum of their
     acceptance rates ()."""

@@ -4,7 +4,7 @@ Per vehicle the model is the particle engines' posterior, written as a NumPyro m
 parameters ``theta ~ Uniform(lower, upper)`` on the model's prior box (NumPyro samples them in an
 unconstrained space through the logit-of-box transform and adds the Jacobian), and the likelihood
 ``numpyro.factor`` of the masked sum of ``model.transition_logpdf`` over the vehicle's steps (the
-shared :func:`~bayesdrive.inference.likelihood.series_loglik`).
+shared :func:`~bayesdrive.inference.core.likelihood.series_loglik`).
 
 **One compiled program, per-vehicle adaptation.** ``numpyro.infer.MCMC`` recompiles at every
 ``run()``, and batching all vehicles into one joint model (a vehicle plate) would make them share
@@ -13,9 +13,9 @@ one step size and one mass matrix, although their posterior scales differ by ord
 functional kernel, ``numpyro.infer.hmc.hmc(potential_fn_gen=...)``, directly: for one vehicle its
 ``num_chains`` chains are vectorised (``vmap``, NumPyro's ``chain_method="vectorized"``), each with
 its own warm-up (dual-averaging step size and a diagonal mass matrix on Stan's windowed schedule),
-and vehicles run through :func:`~bayesdrive.inference.vehicles.map_vehicles`, compiled once ahead
+and vehicles run through :func:`~bayesdrive.inference.core.vehicles.map_vehicles`, compiled once ahead
 of time for all of them. Each vehicle's chains draw from the vehicle's own key (the seed with its
-id folded in, :mod:`bayesdrive.inference.vehicles`), so a vehicle's draws are bit-identical
+id folded in, :mod:`bayesdrive.inference.core.vehicles`), so a vehicle's draws are bit-identical
 whichever vehicles it is fitted with, in whatever order or chunk. ``vehicle_batch`` vectorises that many vehicles together; NUTS trees are
 ``while`` loops, so a vectorised batch waits for its deepest tree at every iteration: one
 vehicle at a time was faster than all in one batch (``benchmarks/bench_agreement.py
@@ -38,7 +38,7 @@ diagonal one 31 with fewer draws: so the default stays diagonal.
 
 **Extension.** After the run every vehicle's stored draws go through the checks that
 :func:`~bayesdrive.inference.fit.fit` runs afterwards (R-hat, bulk and tail ESS,
-:func:`~bayesdrive.inference.convergence.chain_problems`, same limits). A vehicle that fails runs
+:func:`~bayesdrive.inference.diagnostics.convergence.chain_problems`, same limits). A vehicle that fails runs
 again from fresh dispersed starts, with its key folded with the factor, with a power of two times
 the warm-up and the draws (the one that covers the worst ESS shortfall, at least double the last),
 up to ``max_extension`` (:data:`MAX_EXTENSION`) times, and keeps every factor-th draw, so every
@@ -71,15 +71,15 @@ from numpyro.infer.util import potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.convergence import EXTENSION_MIN_DRAWS, chain_problems
-from bayesdrive.inference.likelihood import StepInputs, series_loglik
-from bayesdrive.inference.output import EngineInputs, EngineResult
-from bayesdrive.inference.vehicles import (
+from bayesdrive.inference.core.likelihood import StepInputs, series_loglik
+from bayesdrive.inference.core.output import EngineInputs, EngineResult
+from bayesdrive.inference.core.vehicles import (
     log_likelihood_draws,
     posterior_draws,
     prepare,
     static_key,
 )
+from bayesdrive.inference.diagnostics.convergence import EXTENSION_MIN_DRAWS, chain_problems
 
 __all__ = [
     "FIRST_EXTENSION",
@@ -281,7 +281,7 @@ def run(
     unconstrained scale), the adapted ``step_size`` per vehicle and chain, and ``extension``, the
     factor each vehicle's warm-up and draws were extended by (1: none; at most ``max_extension``,
     a power of two or the cap itself). ``max_extension`` defaults to :data:`MAX_EXTENSION` from
-    :data:`~bayesdrive.inference.convergence.EXTENSION_MIN_DRAWS` draws on, else 1 (fewer
+    :data:`~bayesdrive.inference.diagnostics.convergence.EXTENSION_MIN_DRAWS` draws on, else 1 (fewer
     draws cannot show ESS 400, so extending them would only cost time). ``first_extension`` is
     the factor of the first run (default :data:`FIRST_EXTENSION`, at most ``max_extension``, 1
     where ``max_extension`` is).

@@ -1,11 +1,11 @@
 """What every engine does around its own per-vehicle kernel, written once.
 
 Every engine is ``run(key, arrays, *, <its own options>, **inputs)``, ``inputs`` the keyword
-arguments all engines share (:class:`~bayesdrive.inference.output.EngineInputs`, described there
+arguments all engines share (:class:`~bayesdrive.inference.core.output.EngineInputs`, described there
 once). :func:`prepare` is every engine's preamble: take those inputs (with the engine's default
 size), refuse a model the engine cannot fit, check the inferred and fixed parameters, take the
 prior (the model's uniform box by default) and build every step's inputs through the model
-(:func:`~bayesdrive.inference.likelihood.step_inputs`). It returns a :class:`VehicleProblem`, which runs a kernel over all vehicles
+(:func:`~bayesdrive.inference.core.likelihood.step_inputs`). It returns a :class:`VehicleProblem`, which runs a kernel over all vehicles
 (:meth:`VehicleProblem.run`, through :func:`map_vehicles`) and scores draws; :func:`posterior_draws`
 and :func:`log_likelihood_draws` put per-vehicle outputs in the result's (chain, draw, vehicle)
 layout. An engine keeps only its kernel, its own options and its own sample stats.
@@ -35,7 +35,7 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.likelihood import (
+from bayesdrive.inference.core.likelihood import (
     StepInputs,
     check_model,
     fixed_params,
@@ -43,7 +43,7 @@ from bayesdrive.inference.likelihood import (
     score_draws,
     step_inputs,
 )
-from bayesdrive.inference.output import EngineInputs
+from bayesdrive.inference.core.output import EngineInputs
 
 __all__ = [
     "VehicleProblem",
@@ -84,7 +84,7 @@ class VehicleProblem(NamedTuple):
     parameter tuple ``fixed`` (defaults where not given), the model's uniform ``box`` over
     ``names``, the ``prior`` (the box unless one was given), every vehicle's ``series``
     (vehicle, step), the ``vehicle_ids``, the run's size ``num_particles`` and the ``progress``
-    callback (:class:`~bayesdrive.inference.output.EngineInputs`)."""
+    callback (:class:`~bayesdrive.inference.core.output.EngineInputs`)."""
 
     model: DriverModel
     names: tuple[str, ...]
@@ -149,7 +149,7 @@ class VehicleProblem(NamedTuple):
 
 def _engine_model(engine: str, inputs: EngineInputs) -> DriverModel:
     """The ``model`` of an engine's ``inputs``; a TypeError, as for any keyword-only argument,
-    names an input missing or not in :class:`~bayesdrive.inference.output.EngineInputs`
+    names an input missing or not in :class:`~bayesdrive.inference.core.output.EngineInputs`
     (nothing passed is ignored)."""
     unknown = sorted(set(inputs) - set(EngineInputs.__annotations__))
     if unknown:
@@ -169,9 +169,9 @@ def prepare(
     check: Callable[[DriverModel], None] | None = None,
 ) -> VehicleProblem:
     """Every engine's preamble (module docstring) on its ``inputs``
-    (:class:`~bayesdrive.inference.output.EngineInputs`), ``num_particles`` the engine's default
+    (:class:`~bayesdrive.inference.core.output.EngineInputs`), ``num_particles`` the engine's default
     size. ``check`` refuses a model the engine cannot fit (default:
-    :func:`~bayesdrive.inference.likelihood.check_model` for ``engine``, which scores whole series
+    :func:`~bayesdrive.inference.core.likelihood.check_model` for ``engine``, which scores whole series
     when ``whole_series``)."""
     model = _engine_model(engine, inputs)
     prior = inputs.get("prior")

@@ -24,12 +24,12 @@ mean weight) is what the paper's filter would report, but it is not a valid evid
 is an artificial parameter random walk, so the filter targets no fixed-parameter posterior. Use
 ``smc`` for inference; this engine exists to reproduce the paper honestly.
 
-Each step is the SMC core's step (:func:`bayesdrive.inference.smc_core.step`): the one-step
+Each step is the SMC core's step (:func:`bayesdrive.inference.core.smc.step`): the one-step
 density as the potential, resampling at every step, the dither as the move. Vectorised over
 vehicles (``vmap``) and particles, with a ``lax.scan`` over steps; vehicles are
 sorted by series length into chunks and steps where a whole chunk has no data are skipped. Every
 random draw of a vehicle (its prior draws, its filter, its start in the next epoch) comes from its
-own key, the seed with its id folded in (:mod:`bayesdrive.inference.vehicles`), and a vehicle's
+own key, the seed with its id folded in (:mod:`bayesdrive.inference.core.vehicles`), and a vehicle's
 filter never reads its chunk mates: with one epoch its draws are bit-identical whichever vehicles
 it is fitted with, in whatever order or chunk. Later epochs start from the pool of all vehicles'
 particles, so they depend on the others by design.
@@ -49,19 +49,19 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.likelihood import StepInputs, particles_loglik
-from bayesdrive.inference.output import EngineInputs, EngineResult
-from bayesdrive.inference.resampling import count_distinct_sorted
-from bayesdrive.inference.smc_core import SMCState
-from bayesdrive.inference.smc_core import step as smc_step
-from bayesdrive.inference.vehicles import (
+from bayesdrive.inference.core.likelihood import StepInputs, particles_loglik
+from bayesdrive.inference.core.output import EngineInputs, EngineResult
+from bayesdrive.inference.core.resampling import count_distinct_sorted
+from bayesdrive.inference.core.smc import SMCState
+from bayesdrive.inference.core.smc import step as smc_step
+from bayesdrive.inference.core.vehicles import (
     log_likelihood_draws,
     map_vehicles,
     posterior_draws,
     prepare,
     static_key,
 )
-from bayesdrive.inference.weights import convergence_curve
+from bayesdrive.inference.core.weights import convergence_curve
 
 __all__ = ["MAX_DITHERED", "Grid", "dither_steps", "make_grid", "run"]
 

@@ -2,7 +2,7 @@ r"""Simulation-based calibration (Talts, Betancourt, Simpson, Vehtari & Gelman 2
 
 For replication r = 1..R: draw :math:`\theta_r` from the prior (the model's uniform box), simulate
 one follower with the stochastic model (``model.transition_sample``, through
-:func:`~bayesdrive.inference.synthetic.simulate_following`: a replayed synthetic oscillating
+:func:`~bayesdrive.inference.diagnostics.synthetic_followers.simulate_following`: a replayed synthetic oscillating
 leader), fit it with the engine under test, and take the rank of :math:`\theta_{r,k}` among
 ``num_ranks`` = L posterior draws of parameter k (the number of draws below it, 0..L). If the
 engine returns the exact posterior, every rank is uniform on 0..L, whatever the model.
@@ -37,9 +37,9 @@ import scipy.stats
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, fill_params
-from bayesdrive.inference.likelihood import fixed_params, param_names
-from bayesdrive.inference.output import EngineResult, thinned_draws
-from bayesdrive.inference.synthetic import simulate_following
+from bayesdrive.inference.core.likelihood import fixed_params, param_names
+from bayesdrive.inference.core.output import EngineResult, thinned_draws
+from bayesdrive.inference.diagnostics.synthetic_followers import simulate_following
 
 __all__ = [
     "MIN_EXPECTED",

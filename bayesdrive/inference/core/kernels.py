@@ -1,6 +1,6 @@
 r"""The sampler core's kernels: the pure pieces that the SMC core
-(:mod:`bayesdrive.inference.smc_core`) assembles into ``smc`` (the default engine) and the held-out
-continuation of the criticism (:mod:`bayesdrive.inference.heldout_evidence`), so there is one
+(:mod:`bayesdrive.inference.core.smc`) assembles into ``smc`` (the default engine) and the held-out
+continuation of the criticism (:mod:`bayesdrive.inference.engines.heldout_evidence`), so there is one
 temperature search, one random-walk move and one set of stopping rules:
 
 * :func:`next_temperature`: the largest temperature whose reweighting keeps a target effective
@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from bayesdrive.inference.weights import effective_sample_size
+from bayesdrive.inference.core.weights import effective_sample_size
 
 __all__ = [
     "Box",

@@ -5,7 +5,7 @@ the true states are hidden, so the likelihood of a parameter vector is an integr
 :func:`state_filter_loglik` estimates it with a bootstrap particle filter over states (Gordon et al.
 1993): particles move by the model's ``transition_sample``, are weighted by its
 ``observation_logpdf`` and resampled systematically when the effective sample size falls below half
-the particles (the SMC core's step, :func:`bayesdrive.inference.smc_core.step`, with the
+the particles (the SMC core's step, :func:`bayesdrive.inference.core.smc.step`, with the
 observation density as its potential; the transition is the filter's proposal). The estimate of the likelihood (not of its log) is unbiased, which is what particle
 marginal Metropolis-Hastings needs (Andrieu, Doucet & Holenstein 2010): :func:`pmmh` runs a
 random-walk Metropolis chain over the static parameters in which the exact likelihood is replaced
@@ -28,9 +28,9 @@ bumper gap of the data layer, and each particle sees ``gap - e_t`` (``shift_ego`
 its own latent position, never to the noisy reading.
 
 **Engine.** :func:`run` is the ``pmmh`` engine (the :class:`~bayesdrive.inference.fit.Engine`
-signature, returning an :class:`~bayesdrive.inference.output.EngineResult`). Each vehicle's
+signature, returning an :class:`~bayesdrive.inference.core.output.EngineResult`). Each vehicle's
 chains and scoring filters draw from the vehicle's own key, the seed with its id folded in
-(:mod:`bayesdrive.inference.vehicles`), so a vehicle's draws do not depend on the others.
+(:mod:`bayesdrive.inference.core.vehicles`), so a vehicle's draws do not depend on the others.
 Chains and vehicles are flattened into lanes of one ``vmap`` level: nested ``vmap`` of the threefry RNG multiplies XLA
 compile time on CPU. **Starting values matter**: far from the posterior the
 filter degenerates, its estimate's variance explodes and PMMH chains stick; warm-up from prior
@@ -53,11 +53,11 @@ from jax import Array
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.measurement_noise import shift_ego
-from bayesdrive.inference.likelihood import StepInputs, step_inputs
-from bayesdrive.inference.output import EngineInputs, EngineResult
-from bayesdrive.inference.smc_core import SMCState
-from bayesdrive.inference.smc_core import step as smc_step
-from bayesdrive.inference.vehicles import (
+from bayesdrive.inference.core.likelihood import StepInputs, step_inputs
+from bayesdrive.inference.core.output import EngineInputs, EngineResult
+from bayesdrive.inference.core.smc import SMCState
+from bayesdrive.inference.core.smc import step as smc_step
+from bayesdrive.inference.core.vehicles import (
     log_likelihood_draws,
     map_vehicles,
     posterior_draws,
@@ -296,7 +296,7 @@ def pmmh(
     by default, at independent prior draws.
 
     ``keys`` hold one PRNG key per vehicle (vehicle,), e.g. from
-    :func:`~bayesdrive.inference.vehicles.vehicle_keys`; all of a vehicle's randomness comes from
+    :func:`~bayesdrive.inference.core.vehicles.vehicle_keys`; all of a vehicle's randomness comes from
     its key, so results do not depend on ``vehicle_chunk``: how many vehicles one compiled call
     vectorises (default: all);
     ``progress(done, total)`` is called after each chunk. Chains and vehicles are vectorised with
@@ -393,7 +393,7 @@ def _map_lanes(
 ) -> tuple[Any, float, float]:
     """``per_lane`` over lanes: ``lane_inputs`` have leading axes (vehicle, lane), and each
     vehicle's ``vehicle_inputs`` (leading axis vehicle) go to all its lanes. Runs through
-    :func:`~bayesdrive.inference.vehicles.map_vehicles` with the lanes of ``vehicle_chunk``
+    :func:`~bayesdrive.inference.core.vehicles.map_vehicles` with the lanes of ``vehicle_chunk``
     vehicles vectorised together; outputs come back as (vehicle, lane, ...)."""
     num_vehicles, num_lanes = jax.tree.leaves(lane_inputs)[0].shape[:2]
     flat = jax.tree.map(lambda a: a.reshape(num_vehicles * num_lanes, *a.shape[2:]), lane_inputs)

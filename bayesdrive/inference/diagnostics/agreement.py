@@ -42,8 +42,8 @@ import xarray as xr
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.likelihood import fixed_params, series_loglik, step_inputs
-from bayesdrive.inference.output import metadata
+from bayesdrive.inference.core.likelihood import fixed_params, series_loglik, step_inputs
+from bayesdrive.inference.core.output import metadata
 
 __all__ = [
     "CRITERION",
@@ -275,7 +275,7 @@ def grid_posterior(
     """Exact posterior of one parameter of one vehicle on a grid: (grid, normalised density).
 
     Uniform prior on the model's bounds for ``name``, the others at ``fixed`` (else defaults);
-    the likelihood is the engines' (:func:`~bayesdrive.inference.likelihood.series_loglik`),
+    the likelihood is the engines' (:func:`~bayesdrive.inference.core.likelihood.series_loglik`),
     normalised by the trapezoid rule in float64.
     """
     spec = model.spec(name)

@@ -2,7 +2,7 @@ r"""``emcee``: the affine-invariant ensemble sampler (Goodman & Weare 2010), a s
 
 Per vehicle one ``emcee.EnsembleSampler`` with ``max(4 d, 32)`` walkers targets
 the same posterior as every engine: the model's uniform prior box times the masked sum of
-``model.transition_logpdf`` (the shared :func:`~bayesdrive.inference.likelihood.series_loglik`).
+``model.transition_logpdf`` (the shared :func:`~bayesdrive.inference.core.likelihood.series_loglik`).
 The log posterior is one jitted JAX function, vectorised over walkers (``vectorize=True``: one call
 scores the whole ensemble) and compiled once for every vehicle, since all share one padded shape.
 
@@ -23,7 +23,7 @@ rarely for its own autocorrelation estimate to tell): a cross-check must not be 
 so the stretch move stays the default and runs longer (``MAX_EXTENSION``).
 
 **Seeding.** Each vehicle's key (the seed with its id folded in,
-:mod:`bayesdrive.inference.vehicles`) gives its mode-search candidates, its start ball and a
+:mod:`bayesdrive.inference.core.vehicles`) gives its mode-search candidates, its start ball and a
 32-bit seed, so a vehicle's chains are the same whichever vehicles it is fitted with, in whatever
 order; the ensemble's numpy
 ``RandomState`` is seeded with it through ``emcee.State(p0, random_state=...)`` (emcee's own
@@ -41,10 +41,10 @@ lower), taking their latest thinned draws.
 
 **Extension.** After ``num_steps`` each vehicle's run is checked as
 :func:`~bayesdrive.inference.fit.fit` will check it: kept steps at least 50 tau, bulk and tail ESS
-of the stored draws at least 400 (:mod:`bayesdrive.inference.convergence`). A vehicle that fails
+of the stored draws at least 400 (:mod:`bayesdrive.inference.diagnostics.convergence`). A vehicle that fails
 continues the same chains, doubling the run, with the burn-in the same fraction of it, up to
 ``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``, or ``num_steps`` when fewer than
-:data:`~bayesdrive.inference.convergence.EXTENSION_MIN_DRAWS` draws are kept). Why (``reports/convergence.md``):
+:data:`~bayesdrive.inference.diagnostics.convergence.EXTENSION_MIN_DRAWS` draws are kept). Why (``reports/convergence.md``):
 with six IDM parameters the stretch move's 2000 kept steps were well short of 50 tau on every
 vehicle. ``sample_stats`` records each vehicle's ``num_steps`` and
 ``num_burn``; fit's 50-tau check uses them.
@@ -65,14 +65,14 @@ import scipy.optimize
 from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
-from bayesdrive.inference.convergence import (
+from bayesdrive.inference.core.likelihood import series_loglik
+from bayesdrive.inference.core.output import EngineInputs, EngineResult
+from bayesdrive.inference.core.vehicles import log_likelihood_draws, posterior_draws, prepare
+from bayesdrive.inference.diagnostics.convergence import (
     AUTOCORR_RELIABLE_FACTOR,
     EXTENSION_MIN_DRAWS,
     chain_problems,
 )
-from bayesdrive.inference.likelihood import series_loglik
-from bayesdrive.inference.output import EngineInputs, EngineResult
-from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
 
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",

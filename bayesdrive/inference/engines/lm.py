@@ -48,7 +48,7 @@ best fit lies on the edge of the box, where the sigmoid is flat (``sample_stats.
 NGSIM I-80 fit windows most vehicles have one, e.g. b_pref at its upper bound. A Gaussian cannot
 describe such a posterior; use a sampling engine there. The draws come from one
 numpy generator per vehicle, seeded from the vehicle's own key (the seed with its id folded in,
-:mod:`bayesdrive.inference.vehicles`; ``sample_stats.seed``), so a vehicle's draws are the same
+:mod:`bayesdrive.inference.core.vehicles`; ``sample_stats.seed``), so a vehicle's draws are the same
 whichever vehicles it is fitted with; the fit itself is deterministic and needs no key.
 """
 
@@ -69,9 +69,9 @@ from scipy.special import expit
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.execution_noise import STOP_SPEED
-from bayesdrive.inference.likelihood import StepInputs, check_model
-from bayesdrive.inference.output import EngineInputs, EngineResult
-from bayesdrive.inference.vehicles import log_likelihood_draws, posterior_draws, prepare
+from bayesdrive.inference.core.likelihood import StepInputs, check_model
+from bayesdrive.inference.core.output import EngineInputs, EngineResult
+from bayesdrive.inference.core.vehicles import log_likelihood_draws, posterior_draws, prepare
 
 __all__ = ["ResidualSeries", "residual_series", "run"]
 
@@ -91,7 +91,7 @@ class ResidualSeries(NamedTuple):
 
     implied: implied acceleration (dx - v dt) / (dt^2/2), computed in float64 (m/s^2).
     used: 1 on the steps that enter the least squares (masked in and moving), else 0.
-    steps: the steps with the model's own inputs (:func:`~bayesdrive.inference.likelihood.step_inputs`).
+    steps: the steps with the model's own inputs (:func:`~bayesdrive.inference.core.likelihood.step_inputs`).
     """
 
     implied: Array

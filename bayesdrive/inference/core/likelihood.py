@@ -1,5 +1,5 @@
 """What every engine shares: the per-step log-likelihood, built only from the driver-model
-interface (the per-vehicle preamble and loop are :mod:`bayesdrive.inference.vehicles`).
+interface (the per-vehicle preamble and loop are :mod:`bayesdrive.inference.core.vehicles`).
 
 Step t of vehicle n scores the observed transition from sample t to t+1 with the model's exact
 one-step density ``model.transition_logpdf`` (states relative to the current step: x = 0 and the

@@ -1,7 +1,7 @@
 """Convergence checks that :func:`bayesdrive.inference.fit.fit` runs after every fit.
 
 Each check applies where it means something, per vehicle and parameter (numbers from
-:func:`~bayesdrive.inference.agreement.convergence_table`):
+:func:`~bayesdrive.inference.diagnostics.agreement.convergence_table`):
 
 * ``rhat``: rank-normalised split R-hat above :data:`RHAT_MAX`, with two or more chains (NUTS
   chains, PMMH chains, hierarchical chains, SMC replicates);
@@ -11,7 +11,7 @@ Each check applies where it means something, per vehicle and parameter (numbers 
 * ``autocorr``: an emcee run shorter than 50 integrated autocorrelation times of the parameter
   after burn-in (:data:`AUTOCORR_RELIABLE_FACTOR`);
 * ``replicate_spread``: with several SMC replicates, the ESS that the spread of their means
-  implies (:func:`~bayesdrive.inference.agreement.mcse_mean`) below :data:`ESS_MIN`;
+  implies (:func:`~bayesdrive.inference.diagnostics.agreement.mcse_mean`) below :data:`ESS_MIN`;
 * ``spread``, for every engine: a parameter whose draws are all equal has collapsed onto one
   value (a particle set descended from one particle that never moved, a chain that never
   accepted), which no posterior of these models is.
@@ -30,8 +30,8 @@ import arviz
 import numpy as np
 import xarray as xr
 
-from bayesdrive.inference.agreement import convergence_table
-from bayesdrive.inference.output import metadata
+from bayesdrive.inference.core.output import metadata
+from bayesdrive.inference.diagnostics.agreement import convergence_table
 
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",

@@ -1,0 +1,2 @@
+"""Checks of the engines: agreement between engines, convergence, simulation-based calibration and
+the synthetic followers they are run on."""

@@ -1,0 +1,1 @@
+"""Population estimators: the hierarchical model, the two-stage estimator and their summaries."""
