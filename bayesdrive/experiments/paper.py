@@ -906,11 +906,43 @@ def data_step() -> dict:
     return {name: summary(registry.load(name)) for name in registry.DATASETS}
 
 
+class StepClock:
+    """Each step's wall time in this invocation: a step ends where the next is announced, so a
+    step reused from an earlier invocation shows about 0 s and is marked reused."""
+
+    def __init__(self, out: Path, progress: Callable[[str], None]):
+        self.out = out
+        self.progress = progress
+        self.steps: list[dict[str, Any]] = []
+        self.started = time.perf_counter()
+        self.last = self.started
+
+    def __call__(self, step: str) -> None:
+        self._close()
+        self.steps.append({"step": step, "seconds": None})
+        self.progress(step)
+
+    def _close(self) -> None:
+        now = time.perf_counter()
+        if self.steps:
+            self.steps[-1]["seconds"] = round(now - self.last, 1)
+        self.last = now
+
+    def finish(self) -> list[dict[str, Any]]:
+        """Every step's time, and the total as the last row; saved beside the results."""
+        self._close()
+        rows = [*self.steps, {"step": "total", "seconds": round(self.last - self.started, 1)}]
+        _save_json(self.out / "step_times.json", rows)
+        return rows
+
+
 def run_all(
     out: Path, settings: Settings, *, force: bool = False, progress: Callable[[str], None] = print
 ) -> dict:
-    """Run every experiment into ``out`` (finished steps are reused unless ``force``)."""
+    """Run every experiment into ``out`` (finished steps are reused unless ``force``); each
+    step's time goes to ``out/step_times.json`` and the report (:class:`StepClock`)."""
     out.mkdir(parents=True, exist_ok=True)
+    progress = StepClock(out, progress)
     recorded = out / "settings.json"
     # As JSON reads them back (tuples become lists), so a folder's own settings compare equal.
     wanted = json.loads(json.dumps(settings.__dict__))
@@ -1025,6 +1057,8 @@ def run_all(
         MERGE_DATA,
         fit_paths(results["merge"], out / "merge")["cidm-smc"],
     )
+    progress("model export")
     results["models"] = export_models(out / "models", fitted, settings)
     results["trees"] = {"smc": smc_trees, "pf": pf_trees}
+    results["step_times"] = progress.finish()
     return results

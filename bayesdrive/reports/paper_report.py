@@ -638,6 +638,12 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         for path in found.get("figures", []):
             criticism.figure(Path(path), f"{label}: {Path(path).stem.replace('_', ' ')}")
 
+    if "step_times" in results:
+        report.section("Steps and their times").table(
+            pd.DataFrame(results["step_times"]),
+            caption="Wall seconds of each step in the invocation that finished this folder (a step "
+            "reused from an earlier invocation shows about 0 s); the last row is the total",
+        )
     return report.write(out / "report.html", command=command)
 
 

@@ -22,6 +22,7 @@ SECTIONS = (
     "Prior sensitivity",
     "Model criticism",
     "How this report was made",
+    "Steps and their times",
 )
 
 
@@ -39,6 +40,11 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
     for section in SECTIONS:
         assert html.escape(section) in page
     assert page.count("data:image/png;base64,") >= 6
+    # Every announced step has its time, and the total is their sum (to the rounding).
+    steps = json.loads((out / "step_times.json").read_text())
+    assert steps[-1]["step"] == "total" and "model export" in [s["step"] for s in steps]
+    assert all(s["seconds"] >= 0 for s in steps)
+    assert abs(sum(s["seconds"] for s in steps[:-1]) - steps[-1]["seconds"]) < 0.1 * len(steps)
     # The quick run evaluates one held-out set and criticises one data set, and names the others.
     holdout = json.loads((out / "holdout_evaluation.json").read_text())
     assert list(holdout["data_sets"]) == ["ngsim_i80_pairs_a"]
