@@ -85,14 +85,15 @@ MCMC_OPTIONS = {
 }
 
 
-# Engines that score each vehicle's whole series at once (a model with a state filter fits them).
-WHOLE_SERIES = frozenset({"nuts", "emcee", "hierarchical"})
+# Engines that score each vehicle's whole series at once (a model with a state filter fits them;
+# smc's optional sequential pass does not, and refuses such a model itself).
+WHOLE_SERIES = frozenset({"nuts", "emcee", "hierarchical", "smc"})
 
 
 def check_engine_model(engine: str, model: DriverModel) -> None:
     """Refuse, in one line and before any work, an engine-model pair that cannot work: pmmh needs
     a model with an observation model; the other engines need exactly observed states, and those
-    that score one step at a time (smc, pf, lm) need a model without a state filter."""
+    that score one step at a time (pf, lm) need a model without a state filter."""
     get_engine(engine)
     if engine == "pmmh":
         pmmh.check_model(model)

@@ -128,8 +128,8 @@ def check_model(model: DriverModel, engine: str, *, whole_series: bool = False) 
         if not whole_series:
             raise NotImplementedError(
                 f"engine {engine!r} cannot fit {model.name!r}: its density needs a state filter "
-                "over the whole series and the engine scores one step at a time (use 'nuts' or "
-                "'emcee')"
+                "over the whole series and the engine scores one step at a time (use 'smc' "
+                "without its sequential pass, 'nuts' or 'emcee')"
             )
     elif not model.observed_exactly:
         raise NotImplementedError(

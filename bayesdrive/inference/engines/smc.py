@@ -382,7 +382,9 @@ def run(
     a vehicle whose tempering has not reached the posterior after ``max_stages`` stages is an
     error.
     """
-    problem = prepare("smc", arrays, inputs, num_particles=1000)
+    # Tempering scores whole series, so a model with a state filter fits; the sequential pass
+    # scores one step at a time from lifted states, which such a model does not have.
+    problem = prepare("smc", arrays, inputs, num_particles=1000, whole_series=not sequential)
     model, num_particles = problem.model, problem.num_particles
     if not 0.0 < ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold must be in (0, 1], got {ess_threshold}")
