@@ -204,7 +204,11 @@ def _causes(result: CriticismResult, path: Path) -> Path:
         ax.axvline(0, color="k", lw=0.8)
         ax.set_yticks(y, [] if ax is not axes[0] else names)
         ax.set_xlabel(label + ", +-2 se")
-    axes[1].set_title(f"verdict: {report['verdict']} (green: significant after Holm)", fontsize=9)
+    adopted = ", ".join(report.get("adopted", [])) or "nothing"
+    axes[1].set_title(
+        f"verdict: {report['verdict']} (green: significant after Holm); adopted: {adopted}",
+        fontsize=8,
+    )
     return _save(fig, path)
 
 
