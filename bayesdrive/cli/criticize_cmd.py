@@ -59,7 +59,11 @@ def criticize_command(
         ),
     ] = None,
     rollouts: Annotated[
-        int, typer.Option("--rollouts", help="Rollouts per held-out window (0: skip them).")
+        int,
+        typer.Option(
+            "--rollouts",
+            help="Rollouts per held-out window (0: skip them; then nothing is adopted).",
+        ),
     ] = 32,
     causes: Annotated[
         str | None, typer.Option("--causes", help="Comma-separated causes (default: all).")
@@ -68,8 +72,8 @@ def criticize_command(
         int,
         typer.Option(
             "--max-rounds",
-            help="Rounds of extending the model by the cause found and looking for the next "
-            "(1: the first cause only).",
+            help="Rounds of extending the model by the cause adopted (named, with --rollouts 0) "
+            "and looking for the next (1: the first cause only).",
         ),
     ] = 3,
     final_particles: Annotated[
@@ -104,7 +108,8 @@ def criticize_command(
         ),
     ] = None,
 ) -> None:
-    """Fit the base model, run the checks, fit the extensions they point to, name the cause."""
+    """Fit the base model, run the checks, fit the extensions they point to, name the cause, and
+    adopt it when it simulates better."""
     # Imported here so `bayesdrive --help` stays fast (JAX is heavy to import).
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
