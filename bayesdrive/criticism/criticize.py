@@ -494,7 +494,7 @@ def adopt(
     better = named in forecast_better(forecasts, family, alpha)
     score = (
         f"energy score gain {found.mean:.3g} (se {found.se:.2g}, p = {found.p_value:.2g}, Holm at "
-        f"{alpha} over {len(family)} causes)"
+        f"{alpha} over {len(family)} causes; its rollouts from the {found.start} start)"
     )
     rmse = f"predictive-mean RMSE change {found.rmse_mean_change:+.3g} m"
     collisions = f"collisions {found.collisions_extension} against {found.collisions_current}"
@@ -525,6 +525,7 @@ def _forecast_entry(found: ForecastGain, significant: bool) -> dict[str, Any]:
         "rmse_mean_position_change_se": _finite_or_none(found.rmse_mean_change_se),
         "collisions": found.collisions_extension,
         "collisions_current": found.collisions_current,
+        "rollout_start": found.start,
     }
 
 

@@ -36,8 +36,9 @@ held-out windows (:mod:`bayesdrive.simulation.follower_rollout`), extension minu
 with its standard error across vehicles (negative: the extension simulates closer to the data).
 
 **Forecast gain** (what decides adoption, :func:`forecast_gain`). Per held-out window, the energy
-score of the rollouts' joint (gap, speed) path over the whole window (from the ``filtered``
-start; :func:`~bayesdrive.simulation.calibration.energy_score`, units 1 m and 1 m/s), averaged
+score of the rollouts' joint (gap, speed) path over the whole window (rollouts from the
+``filtered`` start, or ``stationary`` where the simulator cannot filter the model's hidden state,
+as recorded; :func:`~bayesdrive.simulation.calibration.energy_score`, units 1 m and 1 m/s), averaged
 over each vehicle's windows; the gain of vehicle n is the current model's score minus the
 extension's (positive: the extension forecasts better), tested by a one-sided paired t-test across
 vehicles (N - 1 df; vehicles independent, a vehicle's windows not). Beside it: the change of the
@@ -161,7 +162,9 @@ class ForecastGain(NamedTuple):
     per_vehicle: the current model's energy score minus the extension's, per vehicle (NaN: no
     window); mean, se, p_value: their mean over vehicles, its se and the one-sided paired test;
     rmse_mean_change, rmse_mean_change_se: the predictive-mean position RMSE change (m);
-    collisions_current, collisions_extension: rollouts whose simulated gap reached 0.
+    collisions_current, collisions_extension: rollouts whose simulated gap reached 0;
+    start: the extension's rollouts' start (``stationary`` where the simulator cannot filter its
+    hidden state).
     """
 
     per_vehicle: np.ndarray
@@ -172,6 +175,7 @@ class ForecastGain(NamedTuple):
     rmse_mean_change_se: float
     collisions_current: int
     collisions_extension: int
+    start: str
 
 
 def _per_vehicle(values: np.ndarray, row: np.ndarray, num_vehicles: int) -> np.ndarray:
@@ -207,6 +211,7 @@ def forecast_gain_from_scores(
     extension_rmse: np.ndarray,
     collisions_current: int,
     collisions_extension: int,
+    start: str,
 ) -> ForecastGain:
     """The forecast gain from per-vehicle energy scores and predictive-mean RMSEs (module
     docstring); vehicles where either model has no score are left out of the test."""
@@ -224,7 +229,15 @@ def forecast_gain_from_scores(
         np.asarray(current_rmse, np.float64), np.asarray(extension_rmse, np.float64)
     )
     return ForecastGain(
-        per_vehicle, mean, se, p, change, change_se, collisions_current, collisions_extension
+        per_vehicle,
+        mean,
+        se,
+        p,
+        change,
+        change_se,
+        collisions_current,
+        collisions_extension,
+        start,
     )
 
 
@@ -237,4 +250,5 @@ def forecast_gain(current: Rollouts, extension: Rollouts, num_vehicles: int) -> 
         vehicle_mean_rmse(extension, num_vehicles),
         int(current.collisions.sum()),
         int(extension.collisions.sum()),
+        extension.start,
     )

@@ -49,7 +49,7 @@ def _gain(seed, improvement, *, rmse_change=-0.1, collisions=(0, 0)):
     current, extension = _scores(seed, improvement)
     rmse = np.full(VEHICLES, 3.0)
     return forecast_gain_from_scores(
-        current, extension, rmse, rmse + rmse_change, collisions[0], collisions[1]
+        current, extension, rmse, rmse + rmse_change, collisions[0], collisions[1], "filtered"
     )
 
 
