@@ -624,6 +624,7 @@ def multistep_check(rollouts: Rollouts, dt: float) -> Check:
             "horizon over its value for a calibrated forecast (observations too often in the tails)",
             "t": t,
             "vehicles": int(per_vehicle.size),
+            "per_vehicle": "excess |PIT - 1/2| at the horizon",
         },
         figure={
             "time_s": np.arange(1, offsets.shape[2] + 1) * dt,
