@@ -59,7 +59,11 @@ def criticize_command(
         ),
     ] = None,
     rollouts: Annotated[
-        int, typer.Option("--rollouts", help="Rollouts per held-out window (0: skip them).")
+        int,
+        typer.Option(
+            "--rollouts",
+            help="Rollouts per held-out window (0: skip them; then nothing is adopted).",
+        ),
     ] = 32,
     causes: Annotated[
         str | None, typer.Option("--causes", help="Comma-separated causes (default: all).")
@@ -68,8 +72,8 @@ def criticize_command(
         int,
         typer.Option(
             "--max-rounds",
-            help="Rounds of extending the model by the cause found and looking for the next "
-            "(1: the first cause only).",
+            help="Rounds of extending the model by the cause adopted (named, with --rollouts 0) "
+            "and looking for the next (1: the first cause only).",
         ),
     ] = 3,
     final_particles: Annotated[
@@ -104,7 +108,8 @@ def criticize_command(
         ),
     ] = None,
 ) -> None:
-    """Fit the base model, run the checks, fit the extensions they point to, name the cause."""
+    """Fit the base model, run the checks, fit the extensions they point to, name the cause, and
+    adopt it when it simulates better."""
     # Imported here so `bayesdrive --help` stays fast (JAX is heavy to import).
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
@@ -260,11 +265,11 @@ def _write_final_model(
         remove_chunks(folder)
     path = save_result(tree, folder / "final_model.nc")
     gains = [
-        f"round {r['round']}: {r['model']} + {r['verdict']}, held-out gain "
-        f"{c['gain']['elpd']:.1f} +- {c['gain']['se']:.1f} nats (p = {c['gain']['p_value']:.2g})"
+        f"round {r['round']}: {r['model']} + {r['named']}, held-out gain "
+        f"{r['one_step_gain']['elpd']:.1f} +- {r['one_step_gain']['se']:.1f} nats "
+        f"(p = {r['one_step_gain']['p_value']:.2g}); {r['adoption']}"
         for r in report["rounds"]
-        for c in r["causes"]
-        if c["name"] == r["verdict"] and c["gain"] and c["gain"]["elpd"] is not None
+        if r["named"] and r["adopted"] is not False and r["one_step_gain"]["elpd"] is not None
     ]
     card = model_card(
         tree,
@@ -275,7 +280,7 @@ def _write_final_model(
         lines=[
             f"criticism: seed {seed}, verdict {report['verdict']}, rounds "
             f"{len(report['rounds'])} (settings in the criticism's JSON)",
-            *(gains or ["no cause gained significantly: the final model is the base model"]),
+            *(gains or ["no cause was adopted: the final model is the base model"]),
         ],
     )
     card_path = folder / "final_model.md"
@@ -317,6 +322,10 @@ def _fmt(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
+def _yes_no(significant: bool | None) -> str:
+    return {True: "[green]yes[/green]", False: "no"}.get(significant, "-")
+
+
 def print_report(report: dict[str, Any]) -> None:
     """The human-readable criticism: checks, candidate causes with their gains, the verdict."""
     data = report["data"]
@@ -350,22 +359,42 @@ def print_report(report: dict[str, Any]) -> None:
             "se",
             "p",
             "significant",
-            "RMSE change (m)",
+            "energy score gain",
+            "se",
+            "p",
+            "better",
+            "mean RMSE change (m)",
+            "collisions",
         ):
             causes.add_column(column)
         for cause in found["causes"]:
             gain = cause["gain"] or {}
+            scored = cause.get("forecast") or {}
             causes.add_row(
                 cause["name"],
                 "yes" if cause["screened_in"] else "no",
                 _fmt(gain.get("elpd"), 4),
                 _fmt(gain.get("se")),
                 _fmt(gain.get("p_value")),
-                {True: "[green]yes[/green]", False: "no"}.get(gain.get("significant"), "-"),
-                _fmt(gain.get("rmse_position_change")),
+                _yes_no(gain.get("significant")),
+                _fmt(scored.get("energy_score_gain")),
+                _fmt(scored.get("energy_score_gain_se")),
+                _fmt(scored.get("p_value")),
+                _yes_no(scored.get("significant")),
+                _fmt(scored.get("rmse_mean_position_change_m")),
+                _fmt(scored.get("collisions")),
             )
         console.print(causes)
+        misfit = ", ".join(m["check"] for m in found.get("misfit", [])) or "none found"
+        console.print(
+            escape(
+                f"Round {found['round']}: misfit {misfit}; verdict {found['verdict']}; "
+                f"{found.get('adoption', '')}; {found.get('outcome', '')}"
+            )
+        )
     console.print(f"[dim]{report['settings']['significance']}[/dim]")
+    if "adoption" in report["settings"]:
+        console.print(f"[dim]{escape(report['settings']['adoption'])}[/dim]")
     verdict = report["verdict"]
     console.print(f"[bold]Verdict:[/bold] {verdict}; final model: {report['model']}")
     if report.get("power_warning"):

@@ -1,41 +1,58 @@
-"""Name the cause of a misfit: fit the base model, check it, fit the extensions the checks point to,
-and keep the one whose held-out gain is largest, if it is significant.
+"""Name the cause of a misfit, adopt an extension only when it simulates better, and name a
+misfit no known cause explains.
 
-Steps (``criticize``):
+``criticize`` composes its steps, each a function of its own:
 
-1. Build the per-step arrays with the history the extensions need
-   (:func:`~bayesdrive.data.views.scored_series`; same split rule as every engine).
-2. Fit the base model to every vehicle's fitting window and continue over its held-out window
-   (:mod:`bayesdrive.inference.engines.heldout_evidence`).
-3. Run the checks on the held-out windows (:mod:`bayesdrive.criticism.checks`), including
-   closed-loop rollouts of the base model.
-4. **Screening**: a cause is a candidate when one of the screening checks that point to it (score
-   tests, per-vehicle autocorrelations and responses: p-values calibrated across vehicles) has
-   p < 0.2
-   (Bonferroni within the cause's checks); lenient on purpose, since the verdict is decided by the
-   gain, whose multiplicity correction covers every cause whether screened in or not.
-5. Fit each candidate extension, starting from the base posterior (the extension nests the base
-   model; see :func:`~bayesdrive.inference.engines.heldout_evidence.fit_model`), continue it over the held-out
-   window the same way, and compute its gain, significance (Holm over all causes) and rollout RMSE
-   change (:mod:`bayesdrive.criticism.gain`).
-6. Verdict: the significant cause with the largest gain, else "none".
-7. **The loop.** With a verdict, the model is extended by it and the next round asks what the
-   extended model still gets wrong: every cause screened in at step 4 that composes with it
-   (:func:`~bayesdrive.drivers.extensions.composition_problem`) is added to it, fitted from its
-   posterior, and its held-out gain over it tested as in step 5; the significant cause with the
-   largest gain extends the model again, until a round finds none or ``max_rounds`` rounds ran.
-   The residual checks describe the base model's misfit, so they run once; later rounds decide
-   by the held-out (leave-future-out) gain alone.
+1. **Data**: the per-step arrays with the history the extensions need (:func:`criticized_series`;
+   :func:`~bayesdrive.data.views.scored_series`, same split rule as every engine) and the held-out
+   windows of ``horizon_s`` the rollouts forecast.
+2. **Fit** (:func:`fit`): a model fitted to every vehicle's fitting window and continued over its
+   held-out window (:mod:`bayesdrive.inference.engines.heldout_evidence`).
+3. **Forecast** (:func:`forecast`): rollouts of the fitted model on the held-out windows, from the
+   ``filtered`` start (the model's state filtered from the window's observed history).
+4. **Check** (:func:`check`): the checks of the base model on the held-out windows
+   (:mod:`bayesdrive.criticism.checks`), the multistep check of its rollouts among them. The
+   **misfit** (:func:`misfit`) is what they find: every check whose p-value is calibrated across
+   vehicles (the screening checks and the multistep check) that Holm's procedure at ``alpha``
+   rejects over all of them (two-sided where a check tests both directions).
+5. **Screening** (:func:`screen`): a cause is a candidate when one of the screening checks that
+   point to it (score tests, per-vehicle autocorrelations and responses) has p < 0.2 (Bonferroni
+   within the cause's checks); lenient on purpose, since naming is decided by the gain, whose
+   multiplicity correction covers every cause whether screened in or not.
+6. **Name** (:func:`name_cause`): each candidate extension is fitted starting from the current
+   posterior (the extension nests the current model; see
+   :func:`~bayesdrive.inference.engines.heldout_evidence.fit_model`) and its one-step held-out
+   log-density gain tested (Holm over every cause that composes; :mod:`bayesdrive.criticism.gain`).
+   The named cause is the significant cause with the largest gain. Without one the verdict
+   (:func:`verdict_of`) is ``unexplained: <check>`` (the misfit's smallest-p check) when the checks
+   found a misfit, and ``none`` only for data the model fits.
+7. **Adopt** (:func:`adopt`): the named cause extends the next round's model only if (a) its
+   held-out forecast is better: the per-vehicle energy score of the joint (gap, speed) path over
+   each window (:func:`~bayesdrive.criticism.gain.forecast_gain`), one-sided paired t-test across
+   vehicles, Holm at ``alpha`` over the round's family; (b) its predictive mean is not worse: the
+   mean over vehicles of the change of the predictive mean's position RMSE at the window's end is
+   at most 0 m; (c) it adds no collisions: its rollouts collide (simulated gap <= 0) no more often
+   than the current model's, on the same windows, draws and noise.
+8. **The loop** (:func:`judge_round`): an adopted cause extends the model and the next round asks
+   what the extended model still gets wrong: every cause screened in at step 5 that composes with
+   it (:func:`~bayesdrive.drivers.extensions.composition_problem`) is added to it, fitted from its
+   posterior, named and judged as above, until a round adopts nothing or ``max_rounds`` rounds
+   ran. A cause named but not adopted stops the loop (its round says why). The residual checks
+   describe the base model's misfit, so they run once; a later round's misfit is the multistep
+   check of the model it starts from. **Without rollouts** (``num_rollouts = 0``, the detection
+   study's setting) nothing can be adopted: adoption is recorded as not judged and the named cause
+   extends the model, so the loop is then a naming study (the detection study scores its names).
 
 **Multiplicity across rounds.** Each round tests its family (every cause that still composes,
 unfitted ones counting as p = 1) with Holm at ``alpha``, and a round runs only after the round
-before named a cause: a fixed-sequence gate, so on data where no cause helps the loop's
+before extended the model: a fixed-sequence gate, so on data where no cause helps the loop's
 false-positive rate is the first round's, whatever ``max_rounds`` is.
 
 Randomness: one seed; each part draws from its own key, derived from the seed by name
-(``fold_in`` of a hash of the name), so adding a cause never changes another's draws. The rollouts
-of every model share one key on purpose (common random numbers: the same noise and the same draw
-indices), so RMSE differences between models are not swamped by simulation noise.
+(:func:`named_key`, ``fold_in`` of a hash of the name), so adding a cause never changes another's
+draws. The rollouts of every model share one key on purpose (common random numbers: the same noise
+and the same draw indices), so forecast and RMSE differences between models are not swamped by
+simulation noise.
 
 **Processing artefacts.** On real data a misfit can come from how the data were made rather than
 from drivers: the NGSIM I-80 chains were EMD-smoothed (smoothing alone makes residuals
@@ -48,14 +65,23 @@ from __future__ import annotations
 
 import time
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import jax
 import numpy as np
 
 from bayesdrive.criticism.checks import Check, Residuals, multistep_check, run_checks
-from bayesdrive.criticism.gain import ALPHA, Gain, elpd_gain, holm, rmse_change
+from bayesdrive.criticism.gain import (
+    ALPHA,
+    ForecastGain,
+    Gain,
+    elpd_gain,
+    forecast_gain,
+    holm,
+    rmse_change,
+    vehicle_energy_scores,
+)
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import SPLIT_RULE, FollowerArrays, follower_arrays, scored_series
@@ -69,23 +95,50 @@ from bayesdrive.drivers.extensions import (
     composition_problem,
     extend,
 )
+from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.drivers.idm import IDM
+from bayesdrive.inference.core.smc import TemperingConfig
 from bayesdrive.inference.engines.heldout_evidence import DEFAULT_CONFIG, FitResult, fit_model
-from bayesdrive.simulation.follower_rollout import Rollouts, heldout_windows, rollout
+from bayesdrive.simulation.calibration import ENERGY_UNITS
+from bayesdrive.simulation.follower_rollout import (
+    Rollouts,
+    RolloutWindows,
+    heldout_windows,
+    rollout,
+)
 
 __all__ = [
     "DETECTION_CONFIG",
     "PROCESSING_ARTEFACTS",
     "SCREEN_P",
+    "UNEXPLAINED",
+    "Adoption",
     "CriticismResult",
     "CriticizeConfig",
+    "Naming",
+    "Round",
+    "Run",
+    "adopt",
+    "check",
     "criticize",
     "criticized_series",
+    "extends_model",
+    "fit",
+    "forecast",
+    "forecast_better",
+    "judge_round",
+    "misfit",
+    "misfit_p",
+    "name_cause",
     "named_key",
     "power_warning",
+    "screen",
+    "verdict_of",
 ]
 
 SCREEN_P = 0.2
+# The verdict's prefix for a misfit the checks find and no known cause explains.
+UNEXPLAINED = "unexplained: "
 # The detection study (reports/criticism/detection.md) showed the checks' and the gain test's power
 # with this many vehicles; fewer is untested ground.
 # The detection study's vehicle count (two platoons of four followers: DETECTION_SCENARIO of the
@@ -123,7 +176,8 @@ class CriticizeConfig(NamedTuple):
     screen_p: float = SCREEN_P
     alpha: float = ALPHA
     horizon_s: float = 5.0
-    num_rollouts: int = 32  # per held-out window; 0 skips the rollouts (no RMSE, no multistep)
+    # Per held-out window; 0 skips the rollouts (no RMSE, no multistep, no adoption judged).
+    num_rollouts: int = 32
     causes: tuple[str, ...] = CAUSES
     vehicle_batch: int = 1  # see bayesdrive.inference.engines.heldout_evidence.fit_model
     max_rounds: int = 3  # rounds of the loop (module docstring, step 7); 1: the first cause only
@@ -156,7 +210,9 @@ def named_key(key: jax.Array, name: str) -> jax.Array:
     return jax.random.fold_in(key, zlib.crc32(name.encode()) & 0x7FFFFFFF)
 
 
-def _screen(checks: Sequence[Check], cause: str, screen_p: float) -> tuple[bool, dict[str, Any]]:
+def _screen_cause(
+    checks: Sequence[Check], cause: str, screen_p: float
+) -> tuple[bool, dict[str, Any]]:
     """Whether the screening checks point to ``cause`` (Bonferroni within them), and the evidence
     (every check that points to it, screening or descriptive)."""
     pointing = [c for c in checks if cause in c.points_to and c.p_value is not None]
@@ -268,6 +324,321 @@ def power_warning(num_vehicles: int) -> str | None:
     )
 
 
+class Run(NamedTuple):
+    """What every step of one criticism run reads, fixed before its first fit: the seed's key, the
+    base model, the criticized series and its held-out windows, the settings, where fits run (a
+    Dask ``client`` or here) and where progress goes."""
+
+    key: jax.Array
+    model: DriverModel
+    series: FollowerArrays
+    windows: RolloutWindows
+    config: CriticizeConfig
+    fit_config: TemperingConfig
+    client: Any
+    chunk_size: int | None
+    say: Callable[[str], None]
+
+
+class Naming(NamedTuple):
+    """The named cause (:data:`~bayesdrive.drivers.extensions.NO_CAUSE` when no gain is
+    significant), the causes significant after Holm, and the fitted causes by gain, largest first."""
+
+    cause: str
+    significant: set[str]
+    ranked: list[str]
+
+
+class Adoption(NamedTuple):
+    """Whether the named cause extends the next round's model (None: not judged) and why."""
+
+    adopted: bool | None
+    reason: str
+
+
+class Round(NamedTuple):
+    """One round of the loop: the extensions ``present`` in the model it starts from, its family
+    of causes, the misfit its checks found, the named cause, the verdict, the adoption, the report
+    entry of every cause, and by fitted cause its fit, rollouts, one-step and forecast gains."""
+
+    present: tuple[str, ...]
+    family: list[str]
+    misfit: list[Check]
+    naming: Naming
+    verdict: str
+    adoption: Adoption
+    entries: list[dict[str, Any]]
+    fits: dict[str, FitResult]
+    rollouts: dict[str, Rollouts]
+    gains: dict[str, Gain]
+    forecasts: dict[str, ForecastGain]
+
+
+def fit(
+    run: Run, extended: ExtendedModel, present: tuple[str, ...], start: FitResult | None
+) -> FitResult:
+    """``extended`` fitted to every vehicle's fitting window and continued over its held-out
+    window, from ``start``'s posterior where given. The key is named by the causes in the model,
+    so round one's draws do not depend on later rounds."""
+    causes_in = "+".join((*present, extended.cause)) if present else extended.cause
+    fit_key = named_key(run.key, f"fit:{causes_in}")
+    if run.client is None:
+        return fit_model(
+            fit_key,
+            run.series,
+            extended,
+            config=run.fit_config,
+            start=start,
+            vehicle_batch=run.config.vehicle_batch,
+        )
+    from bayesdrive.inference.distributed import DEFAULT_CHUNK_SIZE, fit_model_on_cluster
+
+    return fit_model_on_cluster(
+        run.client,
+        fit_key,
+        run.series,
+        extended,
+        config=run.fit_config,
+        start=start,
+        chunk_size=run.chunk_size or DEFAULT_CHUNK_SIZE,
+    )
+
+
+def forecast(run: Run, extended: ExtendedModel, fitted: FitResult) -> Rollouts:
+    """Rollouts of ``fitted`` on the run's held-out windows, from the ``filtered`` start where the
+    simulator filters the model's hidden state; every model shares one key (module docstring)."""
+    start = forecast_start(extended.model)
+    if start != FILTERED and run.windows.row.size:
+        run.say(f"{extended.name}: rollouts start {start} (its hidden state is not filtered)")
+    return rollout(
+        named_key(run.key, "rollouts"),
+        extended,
+        fitted.theta,
+        run.series,
+        run.windows,
+        num_rollouts=run.config.num_rollouts,
+        start=start,
+    )
+
+
+def check(run: Run, base: FitResult, base_rollouts: Rollouts) -> tuple[Residuals, list[Check]]:
+    """Every check of the base model on the held-out windows, the multistep check of its
+    rollouts last."""
+    residuals, checks = run_checks(
+        named_key(run.key, "checks"), base, run.series, causes=run.config.causes
+    )
+    return residuals, [*checks, multistep_check(base_rollouts, run.series.dt)]
+
+
+def misfit_p(found: Check) -> float:
+    """The p-value of a misfit in any direction: two-sided where the check tests both."""
+    if "p_positive" in found.summary and "p_negative" in found.summary:
+        return min(1.0, 2 * min(found.summary["p_positive"], found.summary["p_negative"]))
+    return float(found.p_value)
+
+
+def misfit(checks: Sequence[Check], alpha: float) -> list[Check]:
+    """The checks that find a misfit, smallest p first: Holm at ``alpha`` over every check whose
+    p-value is calibrated across vehicles (``screening``; pooled step-level checks describe)."""
+    calibrated = {c.name: c for c in checks if c.screening and c.p_value is not None}
+    p_values = {name: misfit_p(c) for name, c in calibrated.items()}
+    fired = holm(p_values, list(calibrated), alpha)
+    return sorted((calibrated[name] for name in fired), key=lambda c: p_values[c.name])
+
+
+def screen(
+    checks: Sequence[Check], causes: Sequence[str], screen_p: float
+) -> dict[str, tuple[bool, dict[str, Any]]]:
+    """By cause: whether the screening checks point to it (Bonferroni within them), and the
+    evidence (every check that points to it, screening or descriptive)."""
+    return {cause: _screen_cause(checks, cause, screen_p) for cause in causes}
+
+
+def name_cause(gains: Mapping[str, Gain], family: Sequence[str], alpha: float) -> Naming:
+    """The significant cause (Holm at ``alpha`` over ``family``) with the largest gain."""
+    significant = holm({c: g.p_value for c, g in gains.items()}, family, alpha)
+    ranked = sorted(
+        gains,
+        key=lambda c: gains[c].elpd if np.isfinite(gains[c].elpd) else -np.inf,
+        reverse=True,
+    )
+    return Naming(next((c for c in ranked if c in significant), NO_CAUSE), significant, ranked)
+
+
+def verdict_of(named: str, fired: Sequence[Check]) -> str:
+    """The named cause; without one, ``unexplained: <check>`` for a misfit the checks found (the
+    smallest-p check of ``fired``), else ``none``."""
+    if named != NO_CAUSE:
+        return named
+    return f"{UNEXPLAINED}{fired[0].name}" if fired else NO_CAUSE
+
+
+def forecast_better(
+    forecasts: Mapping[str, ForecastGain], family: Sequence[str], alpha: float
+) -> set[str]:
+    """The causes whose forecast gain is significant, Holm at ``alpha`` over ``family``."""
+    return holm({c: f.p_value for c, f in forecasts.items()}, family, alpha)
+
+
+def adopt(
+    named: str, forecasts: Mapping[str, ForecastGain], family: Sequence[str], alpha: float
+) -> Adoption:
+    """Whether the named cause extends the next round's model (module docstring, step 7): its
+    forecast gain significant (Holm at ``alpha`` over ``family``), the mean change of its
+    predictive-mean RMSE at most 0 m, and no more collisions than the current model."""
+    if named == NO_CAUSE:
+        return Adoption(False, "no cause named")
+    found = forecasts.get(named)
+    if found is None or not np.isfinite(found.per_vehicle).any():
+        return Adoption(None, "not judged: no rollouts")
+    better = named in forecast_better(forecasts, family, alpha)
+    score = (
+        f"energy score gain {found.mean:.3g} (se {found.se:.2g}, p = {found.p_value:.2g}, Holm at "
+        f"{alpha} over {len(family)} causes; its rollouts from the {found.start} start)"
+    )
+    rmse = f"predictive-mean RMSE change {found.rmse_mean_change:+.3g} m"
+    collisions = f"collisions {found.collisions_extension} against {found.collisions_current}"
+    reasons = [
+        *([] if better else [f"its forecast is not better: {score}"]),
+        # NaN (no vehicle scored by both) is not "not worse".
+        *([] if found.rmse_mean_change <= 0 else [f"its predictive mean is worse: {rmse}"]),
+        *(
+            [f"it adds collisions: {collisions}"]
+            if found.collisions_extension > found.collisions_current
+            else []
+        ),
+    ]
+    if reasons:
+        return Adoption(False, "not adopted: " + "; ".join(reasons))
+    return Adoption(True, f"adopted: {score}; {rmse}; {collisions}")
+
+
+def _forecast_entry(found: ForecastGain, significant: bool) -> dict[str, Any]:
+    """A forecast gain as the JSON report states it."""
+    return {
+        "energy_score_gain": _finite_or_none(found.mean),
+        "energy_score_gain_se": _finite_or_none(found.se),
+        "p_value": found.p_value,
+        "significant": significant,
+        "vehicles_better": int(np.sum(found.per_vehicle > 0)),
+        "rmse_mean_position_change_m": _finite_or_none(found.rmse_mean_change),
+        "rmse_mean_position_change_se": _finite_or_none(found.rmse_mean_change_se),
+        "collisions": found.collisions_extension,
+        "collisions_current": found.collisions_current,
+        "rollout_start": found.start,
+    }
+
+
+def judge_round(
+    run: Run,
+    present: tuple[str, ...],
+    current: FitResult,
+    current_rollouts: Rollouts,
+    screening: dict[str, tuple[bool, dict[str, Any]]],
+    fired: list[Check],
+    artefacts: dict[str, str],
+) -> Round:
+    """One round: extend the current model (its extensions ``present``) by each composable
+    screened cause; fit, forecast, name and adopt (module docstring, steps 6-8)."""
+    config, series = run.config, run.series
+    num_vehicles = len(series.vehicle_ids)
+    family = [c for c in config.causes if c not in present and composes(present, c)]
+    fits: dict[str, FitResult] = {}
+    rolled: dict[str, Rollouts] = {}
+    gains: dict[str, Gain] = {}
+    forecasts: dict[str, ForecastGain] = {}
+    for cause in (c for c in config.causes if screening[c][0] and c in family):
+        extended = extend(cause, run.model, present)
+        run.say(f"round {len(present) + 1}: fitting {extended.name}")
+        fits[cause] = fit(run, extended, present, current)
+        rolled[cause] = forecast(run, extended, fits[cause])
+        gains[cause] = elpd_gain(current, fits[cause])
+        if run.windows.row.size:
+            forecasts[cause] = forecast_gain(current_rollouts, rolled[cause], num_vehicles)
+    naming = name_cause(gains, family, config.alpha)
+    better = forecast_better(forecasts, family, config.alpha)
+    current_rmse = current_rollouts.rmse_per_vehicle(num_vehicles)
+    entries = []
+    for cause in [*naming.ranked, *(c for c in family if c not in gains)]:
+        extended = extend(cause, run.model, present)
+        entry: dict[str, Any] = {
+            "name": cause,
+            "extension": extended.name,
+            "new_params": list(extended.new_params),
+            "screened_in": screening[cause][0],
+            "evidence": screening[cause][1],
+            "possible_processing_artefact": artefacts.get(cause),
+            "gain": None,
+            "forecast": None,
+        }
+        if cause in gains:
+            change, change_se = rmse_change(
+                current_rmse, rolled[cause].rmse_per_vehicle(num_vehicles)
+            )
+            entry["gain"] = _gain_entry(gains[cause], series, cause in naming.significant)
+            entry["gain"]["rmse_position_change"] = _finite_or_none(change)
+            entry["gain"]["rmse_position_change_se"] = _finite_or_none(change_se)
+            entry["gain"]["rollout_start"] = rolled[cause].start
+            entry["posterior"] = _posterior_summary(fits[cause], extended.new_params)
+        if cause in forecasts:
+            entry["forecast"] = _forecast_entry(forecasts[cause], cause in better)
+        entries.append(entry)
+    return Round(
+        present=present,
+        family=family,
+        misfit=fired,
+        naming=naming,
+        verdict=verdict_of(naming.cause, fired),
+        adoption=adopt(naming.cause, forecasts, family, config.alpha),
+        entries=entries,
+        fits=fits,
+        rollouts=rolled,
+        gains=gains,
+        forecasts=forecasts,
+    )
+
+
+def extends_model(found: Round) -> bool:
+    """Whether the round's named cause extends the next round's model: adopted, or named where
+    adoption could not be judged (no rollouts: the loop names, module docstring)."""
+    return found.naming.cause != NO_CAUSE and found.adoption.adopted is not False
+
+
+def _outcome(found: Round) -> str:
+    """What the round did to the loop, in words."""
+    named = found.naming.cause
+    if named == NO_CAUSE:
+        return "no cause named: the loop stops"
+    if found.adoption.adopted:
+        return f"{named} adopted: it extends the model"
+    if found.adoption.adopted is None:
+        return (
+            f"{named} named; adoption not judged (no rollouts): it extends the model, the loop "
+            "names causes only"
+        )
+    return f"{named} named but not adopted: the loop stops"
+
+
+def _round_entry(run: Run, number: int, found: Round) -> dict[str, Any]:
+    """A round as the JSON report states it."""
+    by_name = {e["name"]: e for e in found.entries}
+    named = by_name.get(found.naming.cause, {})
+    return {
+        "round": number,
+        "model": compose(run.model, found.present).name,
+        "tested": found.family,
+        "misfit": [{"check": c.name, "p_value": misfit_p(c)} for c in found.misfit],
+        "verdict": found.verdict,
+        "named": found.naming.cause if named else None,
+        "one_step_gain": named.get("gain"),
+        "forecast_gain": named.get("forecast"),
+        "adopted": found.adoption.adopted,
+        "adoption": found.adoption.reason,
+        "outcome": _outcome(found),
+        "causes": found.entries,
+    }
+
+
 def criticize(
     traj: Trajectories,
     *,
@@ -279,175 +650,81 @@ def criticize(
     client: Any = None,
     chunk_size: int | None = None,
 ) -> CriticismResult:
-    """Name the cause of the base model's misfit on ``traj`` (module docstring); with
-    ``max_vehicles``, on its first N scored vehicles (:func:`criticized_series`). With a Dask
-    ``client``, every fit runs in chunks of ``chunk_size`` vehicles on its cluster
+    """Name the cause of the base model's misfit on ``traj`` and extend the model by what simulates
+    better (module docstring); with ``max_vehicles``, on its first N scored vehicles
+    (:func:`criticized_series`). With a Dask ``client``, every fit runs in chunks of
+    ``chunk_size`` vehicles on its cluster
     (:func:`~bayesdrive.inference.distributed.fit_model_on_cluster`): the same report."""
     unknown = [c for c in config.causes if c not in CAUSES]
     if unknown:
         raise KeyError(f"unknown cause(s) {unknown}; known: {list(CAUSES)}")
     if client is not None and config.vehicle_batch != 1:
         raise ValueError("on a cluster the criticism fits one vehicle at a time (vehicle_batch 1)")
-    say = progress or (lambda message: None)
-    key = jax.random.key(seed)
-    fit_config = DEFAULT_CONFIG._replace(
-        num_particles=config.num_particles,
-        num_moves=config.num_moves,
-        unmoved_tolerance=config.unmoved_tolerance,
-    )
     started = time.perf_counter()
-
     series = criticized_series(traj, max_vehicles)
     windows = heldout_windows(series, config.horizon_s)
     if config.num_rollouts == 0:
         windows = windows._replace(row=windows.row[:0], start=windows.start[:0])
-    rollout_key = named_key(key, "rollouts")
+    run = Run(
+        key=jax.random.key(seed),
+        model=model,
+        series=series,
+        windows=windows,
+        config=config,
+        fit_config=DEFAULT_CONFIG._replace(
+            num_particles=config.num_particles,
+            num_moves=config.num_moves,
+            unmoved_tolerance=config.unmoved_tolerance,
+        ),
+        client=client,
+        chunk_size=chunk_size,
+        say=progress or (lambda message: None),
+    )
+    num_vehicles = len(series.vehicle_ids)
+    artefacts = PROCESSING_ARTEFACTS.get(traj.format, {})
 
-    def fit_and_roll(extended, start: FitResult | None) -> tuple[FitResult, Rollouts]:
-        # Keys by the causes in the model, so round one's draws do not depend on later rounds.
-        causes_in = "+".join((*present, extended.cause)) if present else extended.cause
-        fit_key = named_key(key, f"fit:{causes_in}")
-        if client is None:
-            fit = fit_model(
-                fit_key,
-                series,
-                extended,
-                config=fit_config,
-                start=start,
-                vehicle_batch=config.vehicle_batch,
-            )
-        else:
-            from bayesdrive.inference.distributed import DEFAULT_CHUNK_SIZE, fit_model_on_cluster
-
-            fit = fit_model_on_cluster(
-                client,
-                fit_key,
-                series,
-                extended,
-                config=fit_config,
-                start=start,
-                chunk_size=chunk_size or DEFAULT_CHUNK_SIZE,
-            )
-        start_of_rollouts = forecast_start(extended.model)
-        if start_of_rollouts != FILTERED and windows.row.size:
-            say(
-                f"{extended.name}: rollouts start {start_of_rollouts} (its hidden state is not "
-                "filtered by the simulator)"
-            )
-        rolled = rollout(
-            rollout_key,
-            extended,
-            fit.theta,
-            series,
-            windows,
-            num_rollouts=config.num_rollouts,
-            start=start_of_rollouts,
-        )
-        return fit, rolled
+    run.say(f"fitting the base model ({model.name}) to {num_vehicles} vehicles")
+    base = fit(run, as_extended(model), (), None)
+    base_rollouts = forecast(run, as_extended(model), base)
+    run.say("running the checks")
+    residuals, checks = check(run, base, base_rollouts)
+    screening = screen(checks, config.causes, config.screen_p)
+    fired = misfit(checks, config.alpha)
 
     present: tuple[str, ...] = ()
-    say(f"fitting the base model ({model.name}) to {len(series.vehicle_ids)} vehicles")
-    base, base_rollouts = fit_and_roll(as_extended(model), None)
-    say("running the checks")
-    residuals, checks = run_checks(named_key(key, "checks"), base, series, causes=config.causes)
-    checks.append(multistep_check(base_rollouts, series.dt))
-    screening = {cause: _screen(checks, cause, config.screen_p) for cause in config.causes}
-    screened = [cause for cause in config.causes if screening[cause][0]]
-    artefacts = PROCESSING_ARTEFACTS.get(traj.format, {})
-    num_vehicles = len(series.vehicle_ids)
-
-    def one_round(current: FitResult, current_rollouts: Rollouts) -> dict[str, Any]:
-        """Extend the current model by each composable screened cause; test the gains."""
-        family = [c for c in config.causes if c not in present and composes(present, c)]
-        fits: dict[str, FitResult] = {}
-        rolled: dict[str, Rollouts] = {}
-        gains: dict[str, Gain] = {}
-        for cause in (c for c in screened if c in family):
-            say(f"round {len(present) + 1}: fitting {extend(cause, model, present).name}")
-            fits[cause], rolled[cause] = fit_and_roll(extend(cause, model, present), current)
-            gains[cause] = elpd_gain(current, fits[cause])
-        significant = holm({c: g.p_value for c, g in gains.items()}, family, config.alpha)
-        ranked = sorted(
-            gains,
-            key=lambda c: gains[c].elpd if np.isfinite(gains[c].elpd) else -np.inf,
-            reverse=True,
-        )
-        current_rmse = current_rollouts.rmse_per_vehicle(num_vehicles)
-        entries = []
-        for cause in [*ranked, *(c for c in family if c not in gains)]:
-            extended = extend(cause, model, present)
-            entry: dict[str, Any] = {
-                "name": cause,
-                "extension": extended.name,
-                "new_params": list(extended.new_params),
-                "screened_in": screening[cause][0],
-                "evidence": screening[cause][1],
-                "possible_processing_artefact": artefacts.get(cause),
-                "gain": None,
-            }
-            if cause in gains:
-                change, change_se = rmse_change(
-                    current_rmse, rolled[cause].rmse_per_vehicle(num_vehicles)
-                )
-                entry["gain"] = _gain_entry(gains[cause], series, cause in significant)
-                entry["gain"]["rmse_position_change"] = _finite_or_none(change)
-                entry["gain"]["rmse_position_change_se"] = _finite_or_none(change_se)
-                entry["gain"]["rollout_start"] = rolled[cause].start
-                entry["posterior"] = _posterior_summary(fits[cause], extended.new_params)
-            entries.append(entry)
-        return {
-            "verdict": next((c for c in ranked if c in significant), NO_CAUSE),
-            "family": family,
-            "entries": entries,
-            "fits": fits,
-            "gains": gains,
-            "rollouts": rolled,
-        }
-
     current, current_rollouts = base, base_rollouts
-    rounds: list[dict[str, Any]] = []
+    rounds: list[Round] = []
     while len(rounds) < config.max_rounds:
-        found = one_round(current, current_rollouts)
+        found = judge_round(run, present, current, current_rollouts, screening, fired, artefacts)
         rounds.append(found)
-        cause = found["verdict"]
-        if cause == NO_CAUSE:
+        if not extends_model(found):
             break
-        current, current_rollouts = found["fits"][cause], found["rollouts"][cause]
-        present = (*present, cause)
+        named = found.naming.cause
+        current, current_rollouts = found.fits[named], found.rollouts[named]
+        present = (*present, named)
+        # The residual checks ran on the base model; the extended model's misfit is its forecast's.
+        fired = misfit([multistep_check(current_rollouts, series.dt)], config.alpha)
     first = rounds[0]
-    verdict = first["verdict"]
-    final_model = compose(model, present)
-    fits = {NO_CAUSE: base, **first["fits"]}
-    rollouts = {NO_CAUSE: base_rollouts, **first["rollouts"]}
-    gains = first["gains"]
-    base_rmse = base_rollouts.rmse_per_vehicle(num_vehicles)
-    causes = first["entries"]
     every_fit = {"none": base}
     for number, found in enumerate(rounds, start=1):
-        for fit in found["fits"].values():
-            every_fit[f"round {number}: {fit.model.name}"] = fit
+        for fitted in found.fits.values():
+            every_fit[f"round {number}: {fitted.model.name}"] = fitted
+    base_rmse = base_rollouts.rmse_per_vehicle(num_vehicles)
+    judged = bool(windows.row.size)
 
     report = {
-        "verdict": verdict,
-        "verdict_is_possible_processing_artefact": artefacts.get(verdict),
-        "model": final_model.name,
-        "rounds": [
-            {
-                "round": number,
-                "model": compose(model, tuple(r["verdict"] for r in rounds[: number - 1])).name,
-                "tested": found["family"],
-                "verdict": found["verdict"],
-                "causes": found["entries"],
-            }
-            for number, found in enumerate(rounds, start=1)
-        ],
-        "power_warning": power_warning(len(series.vehicle_ids)),
+        "verdict": first.verdict,
+        "verdict_is_possible_processing_artefact": artefacts.get(first.verdict),
+        "model": compose(model, present).name,
+        "adopted": [f.naming.cause for f in rounds if f.adoption.adopted],
+        "rounds": [_round_entry(run, number, f) for number, f in enumerate(rounds, start=1)],
+        "power_warning": power_warning(num_vehicles),
         "seed": seed,
         "base_model": model.name,
         "data": {
             "source": str(traj.source),
             "format": traj.format,
-            "vehicles": len(series.vehicle_ids),
+            "vehicles": num_vehicles,
             "scored_steps_fit": int(series.windows.fit.sum()),
             "scored_steps_heldout": int(series.windows.heldout.sum()),
             "dt_s": series.dt,
@@ -464,15 +741,36 @@ def criticize(
             f"{len(config.causes)} causes considered (unfitted causes count as p = 1)",
             "screening": f"a cause is fitted when a screening check (calibrated across "
             f"vehicles) pointing to it has p < {config.screen_p} (Bonferroni within the cause)",
+            "misfit": f"Holm at {config.alpha} over every check whose p-value is calibrated "
+            "across vehicles (the screening checks and, with rollouts, the multistep check; "
+            "two-sided where a check tests both directions); without a named cause the verdict "
+            "is 'unexplained: <the smallest-p check found>', and 'none' only when no check finds "
+            "a misfit",
+            "forecast_score": "energy score of the joint (gap, speed) path over each "
+            f"{config.horizon_s:g} s held-out window (units {ENERGY_UNITS}), rollouts from the "
+            "filtered start, averaged over each vehicle's windows; gain = current model minus "
+            "extension, one-sided paired t-test across vehicles (N-1 df)",
+            "adoption": "the named cause extends the next round's model only if (a) its forecast "
+            f"gain is significant, Holm at {config.alpha} over the round's family; (b) the mean "
+            "over vehicles of its predictive-mean position RMSE change at the window's end is "
+            "<= 0 m; (c) its rollouts collide (simulated gap <= 0) no more often than the "
+            "current model's. Without rollouts adoption is not judged and the named cause "
+            "extends the model (a naming study)",
             "rounds": f"at most {config.max_rounds}; each extends the model by the round before's "
-            "verdict and tests every screened cause that composes with it, Holm at "
-            f"{config.alpha} over the causes that compose; a round runs only after a verdict "
-            "(fixed-sequence gate: on null data the first round's false-positive rate)",
+            "adopted cause (named, without rollouts) and tests every screened cause that "
+            f"composes with it, Holm at {config.alpha} over the causes that compose; a round "
+            "runs only after the model was extended (fixed-sequence gate: on null data the "
+            "first round's false-positive rate); a later round's misfit is the multistep check "
+            "of the model it starts from",
         },
         "base": {
             "elpd": float(base.log_z_held.sum()),
             "log_evidence_fit": float(base.log_z_fit.sum()),
-            "rmse_position_m": float(np.nanmean(base_rmse)) if windows.row.size else None,
+            "rmse_position_m": float(np.nanmean(base_rmse)) if judged else None,
+            "energy_score": float(np.nanmean(vehicle_energy_scores(base_rollouts, num_vehicles)))
+            if judged
+            else None,
+            "collisions": int(base_rollouts.collisions.sum()),
             "rollout_start": base_rollouts.start,
             "posterior": _posterior_summary(base, base.names),
         },
@@ -487,7 +785,7 @@ def criticize(
             }
             for c in checks
         ],
-        "causes": causes,
+        "causes": first.entries,
         "timing": {
             "total_s": time.perf_counter() - started,
             "compile_s": {c: f.compile_time_s for c, f in every_fit.items()},
@@ -503,4 +801,13 @@ def criticize(
             for c, f in every_fit.items()
         },
     }
-    return CriticismResult(report, checks, residuals, series, fits, gains, rollouts, current)
+    return CriticismResult(
+        report,
+        checks,
+        residuals,
+        series,
+        {NO_CAUSE: base, **first.fits},
+        first.gains,
+        {NO_CAUSE: base_rollouts, **first.rollouts},
+        current,
+    )

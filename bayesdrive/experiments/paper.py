@@ -862,7 +862,7 @@ def describe_model(name: str) -> str:
     if causes:
         words += (
             f" extended by {' and '.join(c.replace('_', ' ') for c in causes)}: what "
-            "`bayesdrive criticize` found on this data set (reports: the criticism section)"
+            "`bayesdrive criticize` adopted on this data set (reports: the criticism section)"
         )
     return words
 

@@ -146,6 +146,8 @@ def _per_vehicle_label(check: Check) -> str:
     """What a screening check's per-vehicle value is, for its y axis."""
     if "parameter" in check.summary:
         return f"held-out score in {check.summary['parameter']}"
+    if "per_vehicle" in check.summary:
+        return check.summary["per_vehicle"]
     return check.title.removeprefix("Per-vehicle ").removesuffix(", across vehicles")
 
 
@@ -184,18 +186,31 @@ def _causes(result: CriticismResult, path: Path) -> Path:
         c.name.removeprefix("score_"): c for c in result.checks if c.name.startswith("score_")
     }
     names = [c["name"] for c in report["causes"]]
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig, axes = plt.subplots(1, 4, figsize=(17, 3.8))
     y = np.arange(len(names))
     axes[0].barh(y, [scores[n].statistic if n in scores else 0.0 for n in names], color="#7a9cc6")
     axes[0].axvline(1.2816, color="k", ls="--", lw=1, label="one-sided 10%")
     axes[0].set_yticks(y, names, fontsize=8)
     axes[0].set_xlabel("score-test z (held-out)")
     axes[0].legend(fontsize=8)
-    gains = [c["gain"] for c in report["causes"]]
-    for ax, field, se_field, label in (
-        (axes[1], "elpd", "se", "held-out elpd gain (nats)"),
-        (axes[2], "rmse_position_change", "rmse_position_change_se", "rollout RMSE change (m)"),
+    for ax, part, field, se_field, label in (
+        (axes[1], "gain", "elpd", "se", "held-out elpd gain (nats)"),
+        (
+            axes[2],
+            "gain",
+            "rmse_position_change",
+            "rmse_position_change_se",
+            "rollout RMSE change (m)",
+        ),
+        (
+            axes[3],
+            "forecast",
+            "energy_score_gain",
+            "energy_score_gain_se",
+            "forecast gain: energy score, current - extension",
+        ),
     ):
+        gains = [c.get(part) for c in report["causes"]]
         # None: not fitted, or not computable (e.g. no rollouts, a non-finite density).
         values = [g[field] if g and g[field] is not None else np.nan for g in gains]
         errors = [2 * g[se_field] if g and g[se_field] is not None else 0.0 for g in gains]
@@ -205,6 +220,8 @@ def _causes(result: CriticismResult, path: Path) -> Path:
         ax.set_yticks(y, [] if ax is not axes[0] else names)
         ax.set_xlabel(label + ", +-2 se")
     axes[1].set_title(f"verdict: {report['verdict']} (green: significant after Holm)", fontsize=9)
+    adopted = ", ".join(report.get("adopted", [])) or "nothing"
+    axes[3].set_title(f"adopted: {adopted} (green: better after Holm)", fontsize=9)
     return _save(fig, path)
 
 

@@ -581,9 +581,13 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "bayesdrive criticize fits the base IDM, checks its held-out residuals and predictions, "
         "fits the extensions the checks point to, and names the cause whose extension gains most "
         "held-out log predictive density (leave-future-out), when significant after Holm's "
-        "correction over every cause considered; standard errors are across vehicles. Then it "
-        "extends the model by that cause and asks again, round after round, until no cause "
-        "that composes with the model gains significantly. The final model joins the highway "
+        "correction over every cause considered; standard errors are across vehicles. A misfit "
+        "the checks find that no cause explains is named as such ('unexplained: <check>'). The "
+        "named cause extends the model only if it simulates better: its held-out forecast (the "
+        "energy score of the 5 s gap and speed path from the filtered state) is better by a "
+        "paired test across vehicles, its predictive mean is not worse and it adds no "
+        "collisions; then it asks again, round after round, until a round adopts nothing. "
+        "The final model joins the highway "
         "tables, the Turing test and models/ beside the IDM, fitted by smc on the fitting windows "
         "and scored on the held-out windows. It was chosen on the held-out windows of the "
         "criticised vehicles (the first scenes of the same data set), so its held-out scores "
@@ -622,6 +626,13 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
                 caption=f"{label}, round {found_round['round']}: what extends "
                 f"{found_round['model']}, causes by gain",
             )
+            if "adoption" in found_round:
+                misfit = ", ".join(m["check"] for m in found_round["misfit"]) or "none found"
+                criticism.text(
+                    f"{label}, round {found_round['round']}: misfit {misfit}; verdict "
+                    f"'{found_round['verdict']}'; {found_round['adoption']}; "
+                    f"{found_round['outcome']}."
+                )
         criticism.table(
             pd.DataFrame(
                 [
@@ -651,6 +662,7 @@ def causes_table(causes: list[dict[str, Any]]) -> pd.DataFrame:
     rows = []
     for cause in causes:
         gain = cause.get("gain") or {}
+        scored = cause.get("forecast") or {}
         rows.append(
             {
                 "cause": cause["name"],
@@ -660,6 +672,12 @@ def causes_table(causes: list[dict[str, Any]]) -> pd.DataFrame:
                 "p (one-sided)": gain.get("p_value"),
                 "significant (Holm)": gain.get("significant"),
                 "RMSE position change (m)": gain.get("rmse_position_change"),
+                "energy score gain": scored.get("energy_score_gain"),
+                "its se": scored.get("energy_score_gain_se"),
+                "p (paired)": scored.get("p_value"),
+                "forecasts better (Holm)": scored.get("significant"),
+                "predictive-mean RMSE change (m)": scored.get("rmse_mean_position_change_m"),
+                "collisions (rollouts)": scored.get("collisions"),
                 "possible artefact": "yes" if cause.get("possible_processing_artefact") else "",
             }
         )

@@ -68,11 +68,24 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
     assert report["seed"] == 3
     assert report["settings"]["num_particles"] == 64
     assert report["settings"]["unmoved_tolerance"] == 0.05
-    assert report["verdict"] in ("reaction_delay", "none")
+    assert report["verdict"] in ("reaction_delay", "none") or report["verdict"].startswith(
+        "unexplained: "
+    )
     assert [c["name"] for c in report["causes"]] == ["reaction_delay"]
-    assert report["rounds"][0]["causes"] == report["causes"]
-    expected_model = "idm" if report["verdict"] == "none" else "idm+reaction_delay"
+    first = report["rounds"][0]
+    assert first["causes"] == report["causes"]
+    # Every round records its misfit, named cause, both gains and the adoption with its reason.
+    named = first["named"]
+    assert named == (None if report["verdict"] != "reaction_delay" else "reaction_delay")
+    assert (first["one_step_gain"] is None) == (named is None)
+    assert (first["forecast_gain"] is None) == (named is None)
+    assert first["adopted"] in (True, False) and first["adoption"].startswith(
+        ("adopted: ", "not adopted: ", "no cause named")
+    )
+    assert all(m["p_value"] <= 0.05 for m in first["misfit"])
+    expected_model = "idm+reaction_delay" if first["adopted"] else "idm"
     assert report["model"] == expected_model
+    assert report["adopted"] == expected_model.split("+")[1:]
     names = {p.name for p in out.iterdir()}
     assert {
         "calibration.png",

@@ -331,5 +331,7 @@ def test_criticize_runs_on_the_gipps_model(delayed_platoon):
     result = criticize(delayed_platoon, *extra, "--rollouts", "2", "--json", "-")
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
-    assert report["verdict"] in ("reaction_delay", "none")
+    assert report["verdict"] in ("reaction_delay", "none") or report["verdict"].startswith(
+        "unexplained: "
+    )
     assert set(report["base"]["posterior"]) == set(GIPPS.param_names)
