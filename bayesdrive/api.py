@@ -15,37 +15,29 @@ import pandas as pd
 import xarray as xr
 from jax import Array
 
+from bayesdrive import API
 from bayesdrive.criticism.criticize import CriticismResult, CriticizeConfig
 from bayesdrive.criticism.criticize import criticize as _criticize
 from bayesdrive.data import registry
 from bayesdrive.data.readers.columns import read_dataframe
-from bayesdrive.data.registry import load_any as load
-from bayesdrive.data.registry import resolve as data_path
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import MODELS, get_model
 from bayesdrive.inference import fit as _fit
-from bayesdrive.inference.core.output import load_result, save_result
-from bayesdrive.simulation.evaluation import evaluate
-from bayesdrive.simulation.posterior import posterior_predictive
+
+# Re-exported as they are (``name as name``: bayesdrive.API lists them).
+from bayesdrive.inference.core.output import load_result as load_result
+from bayesdrive.inference.core.output import save_result as save_result
+from bayesdrive.simulation.evaluation import evaluate as evaluate
+from bayesdrive.simulation.posterior import posterior_predictive as posterior_predictive
 from bayesdrive.simulation.scenarios import merge_fit_arrays
 
-__all__ = [
-    "criticize",
-    "data_path",
-    "evaluate",
-    "fit",
-    "from_dataframe",
-    "get_model",
-    "load",
-    "load_result",
-    "models",
-    "posterior_predictive",
-    "save_result",
-    "summary",
-]
+# The names are listed once, in the package, which loads this module on first use of one.
+__all__ = list(API)
 
 models = MODELS
+load = registry.load_any
+data_path = registry.resolve
 MERGE_FORMAT = "merge_episodes"
 
 
