@@ -155,14 +155,14 @@ def info(
     check_json_out(json_out, force)
     try:
         format, options = column_map_options(format, columns, units, headway)
-        if registry.is_holdout_name(path_or_name):
-            traj = registry.load_holdout(
-                path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options
-            )
-        else:
-            traj = registry.load(
-                path_or_name, format=format, data_dir=data_dir, strict=strict, **options
-            )
+        traj = registry.load_any(
+            path_or_name,
+            format=format,
+            data_dir=data_dir,
+            strict=strict,
+            note_held_out=False,
+            **options,
+        )
     except (DataError, OSError) as error:
         raise _error(error) from None
     result = summary(traj)
