@@ -30,7 +30,7 @@ from bayesdrive.inference.core.output import load_result as load_result
 from bayesdrive.inference.core.output import save_result as save_result
 from bayesdrive.simulation.evaluation import evaluate as evaluate
 from bayesdrive.simulation.posterior import posterior_predictive as posterior_predictive
-from bayesdrive.simulation.scenarios import merge_fit_arrays
+from bayesdrive.simulation.scenarios import fit_input
 
 # The names are listed once, in the package, which loads this module on first use of one.
 __all__ = list(API)
@@ -38,7 +38,6 @@ __all__ = list(API)
 models = MODELS
 load = registry.load_any
 data_path = registry.resolve
-MERGE_FORMAT = "merge_episodes"
 
 
 def from_dataframe(
@@ -87,10 +86,9 @@ def fit(
     """
     driver = get_model(model) if isinstance(model, str) else model
     traj = data if isinstance(data, Trajectories) else load(data, data_dir=data_dir)
-    fitted = merge_fit_arrays(traj, window) if traj.format == MERGE_FORMAT else traj
     return _fit.fit(
         key,
-        fitted,
+        fit_input(traj, window),
         source=traj.source,
         model=driver,
         engine=engine,

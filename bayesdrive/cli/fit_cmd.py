@@ -184,7 +184,7 @@ def fit(
     )
     from bayesdrive.inference.fit import fit as fit_model
     from bayesdrive.reports.filter_plots import write_filter_plots
-    from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
+    from bayesdrive.simulation.scenarios import fit_input
 
     if window not in ("fit", "all"):
         raise fail(
@@ -230,7 +230,7 @@ def fit(
         )
         format, reader_options = column_map_options(format, columns, units)
         traj = registry.load_any(data, format=format, data_dir=data_dir, **reader_options)
-        fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
+        fitted = fit_input(traj, window)
         with progress_bar() as bar:
             where = "" if cluster is None else f" on {cluster}"
             task = bar.add_task(f"{engine}{where}: compiling, then fitting vehicles", total=None)

@@ -51,6 +51,7 @@ from bayesdrive.simulation.metrics import (
 )
 from bayesdrive.simulation.posterior import posterior_policy
 from bayesdrive.simulation.scenarios import (
+    MERGE_FORMAT,
     Scenario,
     ScenarioSet,
     merge_scenarios,
@@ -68,7 +69,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MERGE_FORMAT = "merge_episodes"
 # progress(stage, done, total): stage "fit" (a baseline's per-vehicle fits) or "rollouts"
 # (scenarios rolled out); total is None while unknown.
 Progress = Callable[[str, int, int | None], None]
