@@ -15,38 +15,29 @@ import pandas as pd
 import xarray as xr
 from jax import Array
 
+from bayesdrive import API
 from bayesdrive.criticism.criticize import CriticismResult, CriticizeConfig
 from bayesdrive.criticism.criticize import criticize as _criticize
 from bayesdrive.data import registry
 from bayesdrive.data.readers.columns import read_dataframe
-from bayesdrive.data.registry import load_any as load
-from bayesdrive.data.registry import resolve as data_path
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.registry import MODELS, get_model
 from bayesdrive.inference import fit as _fit
-from bayesdrive.inference.core.output import load_result, save_result
-from bayesdrive.simulation.evaluation import evaluate
-from bayesdrive.simulation.posterior import posterior_predictive
-from bayesdrive.simulation.scenarios import merge_fit_arrays
 
-__all__ = [
-    "criticize",
-    "data_path",
-    "evaluate",
-    "fit",
-    "from_dataframe",
-    "get_model",
-    "load",
-    "load_result",
-    "models",
-    "posterior_predictive",
-    "save_result",
-    "summary",
-]
+# Re-exported as they are (``name as name``: bayesdrive.API lists them).
+from bayesdrive.inference.core.output import load_result as load_result
+from bayesdrive.inference.core.output import save_result as save_result
+from bayesdrive.simulation.evaluation import evaluate as evaluate
+from bayesdrive.simulation.posterior import posterior_predictive as posterior_predictive
+from bayesdrive.simulation.scenarios import fit_input
+
+# The names are listed once, in the package, which loads this module on first use of one.
+__all__ = list(API)
 
 models = MODELS
-MERGE_FORMAT = "merge_episodes"
+load = registry.load_any
+data_path = registry.resolve
 
 
 def from_dataframe(
@@ -95,10 +86,9 @@ def fit(
     """
     driver = get_model(model) if isinstance(model, str) else model
     traj = data if isinstance(data, Trajectories) else load(data, data_dir=data_dir)
-    fitted = merge_fit_arrays(traj, window) if traj.format == MERGE_FORMAT else traj
     return _fit.fit(
         key,
-        fitted,
+        fit_input(traj, window),
         source=traj.source,
         model=driver,
         engine=engine,

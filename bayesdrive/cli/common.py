@@ -12,7 +12,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from contextvars import ContextVar
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
@@ -79,6 +79,12 @@ def check_json_out(out: str | None, force: bool) -> None:
 NOT_IDENTITY = ("out", "force", "json_out", "cluster")
 FORCE_HELP = "Replace a complete result in OUT (or discard a partial one of other settings)."
 JSON_FORCE_HELP = "Replace an existing --json file."
+JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
+# The options most commands share, declared once (typer reads them from the annotation).
+JsonOut = Annotated[str | None, typer.Option("--json", metavar="OUT", help=JSON_HELP)]
+# --force of a command that writes a results folder, and of one whose only file is its --json.
+ForceResults = Annotated[bool, typer.Option("--force", help=FORCE_HELP)]
+ForceJson = Annotated[bool, typer.Option("--force", help=JSON_FORCE_HELP)]
 _scope: ContextVar[tuple[ExitStack, dict[str, Any]]] = ContextVar("results_scope")
 
 
@@ -149,15 +155,18 @@ def results_folder(
     command: str,
     *,
     force: bool,
+    json_out: str | None = None,
     resumable: bool = False,
     update: bool = False,
     arguments: dict[str, Any] | None = None,
 ) -> ResultsFolder:
-    """Check OUT before any work and open its staging folder (:mod:`bayesdrive.data.outputs`).
+    """Check OUT (and the command's ``json_out``, :func:`check_json_out`) before any work and open
+    its staging folder (:mod:`bayesdrive.data.outputs`).
 
     The arguments recorded are the command's own (less where the result goes) unless given.
     SIGTERM is handled as :func:`exit_cleanly_on_sigterm` says.
     """
+    check_json_out(json_out, force)
     stack, kwargs = _scope.get()
     if arguments is None:
         arguments = {k: v for k, v in kwargs.items() if k not in NOT_IDENTITY}
@@ -178,6 +187,17 @@ def results_folder(
     return folder
 
 
+def optional_results(
+    out: str | Path | None, command: str, *, json_out: str | None, force: bool
+) -> ResultsFolder | None:
+    """:func:`results_folder` of a command whose OUT is optional: without one, only its
+    ``json_out`` is checked (and None returned)."""
+    if out is None:
+        check_json_out(json_out, force)
+        return None
+    return results_folder(out, command, force=force, json_out=json_out)
+
+
 def _jsonable(value):
     if hasattr(value, "item"):
         return value.item()
@@ -192,6 +212,8 @@ COLUMNS_HELP = (
     "v=speed); implies --format columns (so do --units and --headway)."
 )
 UNITS_HELP = "Length unit of an arbitrary CSV: m, ft, or a factor to metres."
+ColumnMap = Annotated[str | None, typer.Option("--columns", help=COLUMNS_HELP)]
+LengthUnits = Annotated[str | None, typer.Option("--units", help=UNITS_HELP)]
 
 
 def column_map_options(

@@ -11,7 +11,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from bayesdrive.cli.common import (
-    FORCE_HELP,
+    ForceResults,
     check_cluster_options,
     check_json_out,
     console,
@@ -89,7 +89,7 @@ def criticize_command(
     json_out: Annotated[
         str | None, typer.Option("--json", help="Write the report as JSON (- = stdout).")
     ] = None,
-    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
+    force: ForceResults = False,
     cluster: Annotated[
         str | None,
         typer.Option(

@@ -15,9 +15,10 @@ from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TimeR
 from rich.table import Table
 
 from bayesdrive.cli.common import (
-    COLUMNS_HELP,
-    JSON_FORCE_HELP,
-    UNITS_HELP,
+    ColumnMap,
+    ForceJson,
+    JsonOut,
+    LengthUnits,
     check_json_out,
     column_map_options,
     console,
@@ -42,7 +43,6 @@ DATA_DIR_HELP = (
     "Folder holding the data sets (default: $BAYESDRIVE_DATA_DIR, else ../shared/data beside the "
     "repository); for a held-out data set, the holdout folder ($BAYESDRIVE_HOLDOUT_DIR)."
 )
-JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
 
 
 def _error(error: Exception) -> typer.Exit:
@@ -79,8 +79,8 @@ def list_datasets(
     holdout_dir: str | None = typer.Option(
         None, "--holdout-dir", help="Folder holding the held-out data sets."
     ),
-    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
-    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
+    json_out: JsonOut = None,
+    force: ForceJson = False,
 ) -> None:
     """The known data sets: format, role, whether present (and verified), licence."""
     from bayesdrive.data import registry
@@ -140,17 +140,13 @@ def info(
     strict: bool = typer.Option(
         False, "--strict", help="Refuse data that needs any repair instead of repairing it."
     ),
-    columns: str | None = typer.Option(
-        None,
-        "--columns",
-        help=COLUMNS_HELP,
-    ),
-    units: str | None = typer.Option(None, "--units", help=UNITS_HELP),
+    columns: ColumnMap = None,
+    units: LengthUnits = None,
     headway: str | None = typer.Option(
         None, "--headway", help="What the CSV's gap column measures: front (to front) or bumper."
     ),
-    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
-    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
+    json_out: JsonOut = None,
+    force: ForceJson = False,
 ) -> None:
     """Figures of a data set: scenes, vehicles, time, speeds, gaps, flags and notes."""
     from bayesdrive.data import registry
@@ -159,14 +155,14 @@ def info(
     check_json_out(json_out, force)
     try:
         format, options = column_map_options(format, columns, units, headway)
-        if registry.is_holdout_name(path_or_name):
-            traj = registry.load_holdout(
-                path_or_name, format=format, holdout_dir=data_dir, strict=strict, **options
-            )
-        else:
-            traj = registry.load(
-                path_or_name, format=format, data_dir=data_dir, strict=strict, **options
-            )
+        traj = registry.load_any(
+            path_or_name,
+            format=format,
+            data_dir=data_dir,
+            strict=strict,
+            note_held_out=False,
+            **options,
+        )
     except (DataError, OSError) as error:
         raise _error(error) from None
     result = summary(traj)
@@ -190,8 +186,8 @@ def info(
 def verify(
     name: str = typer.Argument(..., help="A data set name."),
     data_dir: str | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
-    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
-    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
+    json_out: JsonOut = None,
+    force: ForceJson = False,
 ) -> None:
     """Check every file of a data set against its pinned size and sha256 (exit 1 if any differ)."""
     from bayesdrive.data import registry
@@ -230,8 +226,8 @@ def fetch(
         "--mirror",
         help="Base URL of a mirror serving <URL>/<name>/<file> (default: the pinned origin).",
     ),
-    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
-    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
+    json_out: JsonOut = None,
+    force: ForceJson = False,
 ) -> None:
     """Download a data set, checking every sha256 before anything lands in the data folder."""
     from bayesdrive.data import registry

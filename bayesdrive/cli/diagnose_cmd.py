@@ -19,13 +19,13 @@ from rich.markup import escape
 from rich.table import Table
 
 from bayesdrive.cli.common import (
-    FORCE_HELP,
-    check_json_out,
+    ForceResults,
+    JsonOut,
     console,
     emit_json,
     fail,
+    optional_results,
     results_command,
-    results_folder,
 )
 from bayesdrive.data.atomic import write_text_atomic
 
@@ -33,8 +33,6 @@ if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["diagnose", "worst_convergence"]
-
-JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
 
 
 def worst_convergence(table: pd.DataFrame) -> dict[str, dict[str, float | None]]:
@@ -149,14 +147,14 @@ def _records(frame: pd.DataFrame) -> list[dict[str, Any]]:
 @results_command
 def diagnose(
     results: Annotated[list[Path], typer.Argument(help="Saved result files (netCDF) to diagnose.")],
-    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
+    json_out: JsonOut = None,
     out: Annotated[
         Path | None,
         typer.Option(
             "--out", help="Folder for CSV tables and pictures (marginals, agreement heat map)."
         ),
     ] = None,
-    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+    force: ForceResults = False,
 ) -> None:
     """Convergence of each result and, for several results on the same data, their agreement."""
     # Imported here so that `bayesdrive diagnose --help` does not import JAX and ArviZ.
@@ -174,8 +172,7 @@ def diagnose(
     missing = [str(p) for p in results if not p.is_file()]
     if missing:
         raise fail(f"no such result file(s): {', '.join(missing)}")
-    check_json_out(json_out, force)
-    results_dir = None if out is None else results_folder(out, "diagnose", force=force)
+    results_dir = optional_results(out, "diagnose", json_out=json_out, force=force)
     trees = []
     for path in results:
         try:

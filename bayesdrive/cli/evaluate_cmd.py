@@ -14,7 +14,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from bayesdrive.cli.common import (
-    JSON_FORCE_HELP,
+    ForceJson,
+    JsonOut,
     check_cluster_options,
     check_json_out,
     console,
@@ -25,8 +26,6 @@ from bayesdrive.cli.common import (
 from bayesdrive.cli.names import BASELINES, SCENARIO_CHUNK_SIZE
 
 __all__ = ["evaluate"]
-
-JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
 
 
 def _mean_sd(summary: dict[str, Any]) -> str:
@@ -110,8 +109,8 @@ def evaluate(
     data_dir: str | None = typer.Option(
         None, "--data-dir", help="Folder holding the data sets (held-out ones for a held-out name)."
     ),
-    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
-    force: bool = typer.Option(False, "--force", help=JSON_FORCE_HELP),
+    json_out: JsonOut = None,
+    force: ForceJson = False,
     cluster: str | None = typer.Option(
         None,
         "--cluster",

@@ -23,11 +23,10 @@ from rich.markup import escape
 from rich.table import Table
 
 from bayesdrive.cli.common import (
-    COLUMNS_HELP,
-    FORCE_HELP,
-    UNITS_HELP,
+    ColumnMap,
+    ForceResults,
+    LengthUnits,
     check_cluster_options,
-    check_json_out,
     column_map_options,
     console,
     emit_json,
@@ -156,8 +155,8 @@ def fit(
     data_dir: str | None = typer.Option(
         None, "--data-dir", help="Folder holding data sets (held-out ones for a held-out name)."
     ),
-    columns: str | None = typer.Option(None, "--columns", help=COLUMNS_HELP),
-    units: str | None = typer.Option(None, "--units", help=UNITS_HELP),
+    columns: ColumnMap = None,
+    units: LengthUnits = None,
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
     cluster: str | None = typer.Option(None, "--cluster", help=CLUSTER_HELP),
     chunk_size: int | None = typer.Option(
@@ -165,7 +164,7 @@ def fit(
         "--chunk-size",
         help=f"With --cluster: vehicles per task (default {FIT_CHUNK_SIZE}).",
     ),
-    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+    force: ForceResults = False,
 ) -> None:
     """Fit per-vehicle parameter distributions and write result.nc, summary.json and plots."""
     # Imported here so that `bayesdrive fit --help` does not import JAX.
@@ -185,7 +184,7 @@ def fit(
     )
     from bayesdrive.inference.fit import fit as fit_model
     from bayesdrive.reports.filter_plots import write_filter_plots
-    from bayesdrive.simulation.scenarios import merge_fit_arrays as merge_arrays
+    from bayesdrive.simulation.scenarios import fit_input
 
     if window not in ("fit", "all"):
         raise fail(
@@ -218,9 +217,10 @@ def fit(
         )
         if value is not None
     }
-    check_json_out(json_out, force)
     # A cluster run keeps its finished chunks when interrupted, for the next run to reuse.
-    results = results_folder(out, "fit", force=force, resumable=cluster is not None)
+    results = results_folder(
+        out, "fit", force=force, json_out=json_out, resumable=cluster is not None
+    )
     try:
         # Checked before reading any data, so a typo fails at once.
         driver = get_model(model)
@@ -230,7 +230,7 @@ def fit(
         )
         format, reader_options = column_map_options(format, columns, units)
         traj = registry.load_any(data, format=format, data_dir=data_dir, **reader_options)
-        fitted = traj if traj.format != "merge_episodes" else merge_arrays(traj, window)
+        fitted = fit_input(traj, window)
         with progress_bar() as bar:
             where = "" if cluster is None else f" on {cluster}"
             task = bar.add_task(f"{engine}{where}: compiling, then fitting vehicles", total=None)

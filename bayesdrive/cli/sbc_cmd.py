@@ -19,14 +19,14 @@ from rich.markup import escape
 from rich.table import Table
 
 from bayesdrive.cli.common import (
-    FORCE_HELP,
-    check_json_out,
+    ForceResults,
+    JsonOut,
     console,
     emit_json,
     fail,
+    optional_results,
     progress_bar,
     results_command,
-    results_folder,
 )
 from bayesdrive.cli.names import ENGINES as ENGINE_NAMES
 from bayesdrive.data.atomic import write_text_atomic
@@ -38,7 +38,6 @@ __all__ = ["sbc", "write_outcome"]
 
 # Engines whose prior is not the uniform box SBC draws from.
 POPULATION_ENGINES = ("hierarchical",)
-JSON_HELP = "Write the result as JSON to OUT ('-' for standard output, then nothing else there)."
 
 
 def write_outcome(outcome: SBCOutcome, out: Path, stem: str) -> list[Path]:
@@ -125,8 +124,8 @@ def sbc(
     out: Annotated[
         Path | None, typer.Option("--out", help="Folder for histograms, ranks, digest.")
     ] = None,
-    json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
-    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+    json_out: JsonOut = None,
+    force: ForceResults = False,
 ) -> None:
     """Simulation-based calibration: are the engine's posteriors calibrated on the model?"""
     # Imported here so that `bayesdrive sbc --help` does not import JAX.
@@ -153,8 +152,7 @@ def sbc(
         raise fail(str(error)) from error
     names = None if params is None else [p.strip() for p in params.split(",") if p.strip()]
     options: dict[str, Any] = {} if particles is None else {"num_particles": particles}
-    check_json_out(json_out, force)
-    results = None if out is None else results_folder(out, "sbc", force=force)
+    results = optional_results(out, "sbc", json_out=json_out, force=force)
     with progress_bar() as bar:
         task = bar.add_task(f"SBC {engine}: fitting replications", total=replications)
         try:

@@ -8,7 +8,7 @@ from pathlib import Path
 import typer
 
 from bayesdrive.cli.common import (
-    FORCE_HELP,
+    ForceResults,
     check_json_out,
     console,
     emit_json,
@@ -58,7 +58,7 @@ def simulate(
     dt: float = typer.Option(0.1, help="Step length (s)."),
     out: Path = typer.Option(..., help="Output directory."),
     json_out: str | None = typer.Option(None, "--json", help="Summary as JSON to a file or '-'."),
-    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+    force: ForceResults = False,
 ) -> None:
     """Generate scenes of VEHICLES cars for DURATION seconds; write trajectories, figures, summary."""
     # Imported here so that `bayesdrive simulate --help` does not import JAX.

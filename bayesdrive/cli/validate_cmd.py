@@ -15,8 +15,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from bayesdrive.cli.common import (
-    FORCE_HELP,
-    check_json_out,
+    ForceResults,
     console,
     emit_json,
     fail,
@@ -68,7 +67,7 @@ def sumo(
     ),
     seed: int = typer.Option(0, "--seed", help="Seed of the draws and the bootstrap (recorded)."),
     json_out: str | None = typer.Option(None, "--json", metavar="OUT", help=JSON_HELP),
-    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+    force: ForceResults = False,
 ) -> None:
     """Run the fitted drivers in SUMO behind the data's recorded leaders; compare with the data.
 
@@ -80,8 +79,7 @@ def sumo(
         raise fail(f"--window {window!r}: choose heldout, fit or all")
     if not result.exists():
         raise fail(f"{result}: no such result file")
-    check_json_out(json_out, force)
-    folder = results_folder(out, "validate sumo", force=force)
+    folder = results_folder(out, "validate sumo", force=force, json_out=json_out)
     # The libraries load here, not at import: `--help` answers without them.
     import jax
 

@@ -214,13 +214,16 @@ def load_any(
     format: str | None = None,
     data_dir: str | os.PathLike | None = None,
     strict: bool = False,
+    note_held_out: bool = True,
     **options,
 ) -> Trajectories:
     """:func:`load`, or for a held-out name :func:`load_holdout` (``data_dir`` then names the
-    held-out folder) with :data:`HELD_OUT_NOTE` logged: what users call, where fitting a held-out
+    held-out folder) with :data:`HELD_OUT_NOTE` logged (unless not ``note_held_out``: a caller
+    that only looks at the data or evaluates on it): what users call, where fitting a held-out
     set's vehicles with fixed settings is evaluation."""
     if is_holdout_name(name_or_path):
-        log.warning(HELD_OUT_NOTE, name_or_path)
+        if note_held_out:
+            log.warning(HELD_OUT_NOTE, name_or_path)
         return load_holdout(str(name_or_path), format, data_dir, strict, **options)
     return load(name_or_path, format, data_dir, strict, **options)
 

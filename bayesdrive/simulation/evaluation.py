@@ -51,6 +51,7 @@ from bayesdrive.simulation.metrics import (
 )
 from bayesdrive.simulation.posterior import posterior_policy
 from bayesdrive.simulation.scenarios import (
+    MERGE_FORMAT,
     Scenario,
     ScenarioSet,
     merge_scenarios,
@@ -68,7 +69,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MERGE_FORMAT = "merge_episodes"
 # progress(stage, done, total): stage "fit" (a baseline's per-vehicle fits) or "rollouts"
 # (scenarios rolled out); total is None while unknown.
 Progress = Callable[[str, int, int | None], None]
@@ -82,9 +82,8 @@ def evaluation_data(
     """The trajectories, and whether they are a held-out data set."""
     if isinstance(data, Trajectories):
         return data, False
-    if registry.is_holdout_name(data):
-        return registry.load_holdout(str(data), holdout_dir=data_dir), True
-    return registry.load(data, data_dir=data_dir), False
+    held_out = registry.is_holdout_name(data)
+    return registry.load_any(data, data_dir=data_dir, note_held_out=False), held_out
 
 
 def _sizes_allowed(traj: Trajectories, horizon: float) -> tuple[int | None, str]:

@@ -27,7 +27,13 @@ from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, fill_params
 from bayesdrive.drivers.registry import base_model
-from bayesdrive.simulation.rollout import Rollout, SceneArrays, broadcast_params, rollout
+from bayesdrive.simulation.rollout import (
+    Rollout,
+    SceneArrays,
+    broadcast_params,
+    platoon_scene,
+    rollout,
+)
 
 __all__ = [
     "CAR_LENGTH_M",
@@ -166,26 +172,15 @@ def _steady_platoon(model: DriverModel, params: Any, num_steps: int, dt: float) 
     # Car k starts behind car k-1 by its own equilibrium gap plus one car length.
     spacing = gaps[1:] + CAR_LENGTH_M
     x0 = -jnp.concatenate([jnp.zeros(1), jnp.cumsum(spacing)])
-    num_vehicles = x0.shape[0]
-    no_lane = jnp.zeros((0, num_steps + 1), jnp.float32)
-    return SceneArrays(
-        head_x=jnp.zeros(num_steps + 1, jnp.float32),
-        head_v=jnp.zeros(num_steps + 1, jnp.float32),
-        head_present=jnp.zeros(num_steps + 1, jnp.float32),
-        head_gap=jnp.zeros(num_steps + 1, jnp.float32),
-        head_lead_v=jnp.zeros(num_steps + 1, jnp.float32),
-        head_has_leader=jnp.zeros(num_steps + 1, jnp.float32),
-        x0=x0.astype(jnp.float32),
-        v0=jnp.full(num_vehicles, start_speed, jnp.float32),
-        lead_length=jnp.full(num_vehicles, CAR_LENGTH_M, jnp.float32),
-        road_end=jnp.full(num_vehicles, jnp.inf, jnp.float32),
-        step_mask=jnp.ones(num_steps, jnp.float32),
-        merge_x=no_lane,
-        merge_v=no_lane,
-        merge_present=no_lane,
-        merge_length=jnp.zeros(0, jnp.float32),
-        dt=jnp.asarray(dt, jnp.float32),
+    # The platoon of the shared scene builder with its head absent: the first car drives alone.
+    scene = platoon_scene(
+        jnp.zeros(num_steps + 1, jnp.float32),
+        x0,
+        jnp.full(x0.shape[0], start_speed, jnp.float32),
+        length=CAR_LENGTH_M,
+        dt=dt,
     )
+    return scene._replace(head_present=jnp.zeros(num_steps + 1, jnp.float32))
 
 
 @partial(jax.jit, static_argnames=("model", "num_steps", "dt"))

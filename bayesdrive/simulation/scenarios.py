@@ -42,6 +42,7 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 
 from bayesdrive.data.errors import DataError
+from bayesdrive.data.readers.merge_episodes import FORMAT as MERGE_FORMAT
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import (
     FIT_FRACTION,
@@ -57,12 +58,14 @@ from bayesdrive.drivers.base import Series
 
 __all__ = [
     "MERGE_FIT_STAY_S",
+    "MERGE_FORMAT",
     "MERGE_SELECTION_RULE",
     "MERGE_SPLIT_RULE",
     "MIN_MERGE_WINDOW_S",
     "SELECTION_RULE",
     "Scenario",
     "ScenarioSet",
+    "fit_input",
     "fitting_episodes",
     "heldout_episodes",
     "merge_fit_arrays",
@@ -680,6 +683,12 @@ def merge_follower_arrays(scenarios: ScenarioSet) -> FollowerArrays:
             merge_present=rows(lambda s: s.merge_present[:, :-1].T),
         ),
     )
+
+
+def fit_input(traj: Trajectories, window: str) -> Trajectories | FollowerArrays:
+    """What ``fit`` is given for ``traj``: merge episodes as :func:`merge_fit_arrays`, other
+    trajectories as they are."""
+    return merge_fit_arrays(traj, window) if traj.format == MERGE_FORMAT else traj
 
 
 def merge_fit_arrays(traj: Trajectories, window: str) -> FollowerArrays:

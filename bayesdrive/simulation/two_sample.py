@@ -91,6 +91,36 @@ class TwoSampleResult(NamedTuple):
     # Distinct groups the folds were grouped by; None where rows were split one by one.
     groups: int | None = None
 
+    @classmethod
+    def from_scores(
+        cls,
+        scores: np.ndarray,
+        interval: tuple[float, float],
+        sizes: tuple[int, int],
+        *,
+        folds: int,
+        permutations: int,
+        seed: int,
+        groups: int | None = None,
+    ) -> TwoSampleResult:
+        """The result of a permutation test from its correct predictions (``scores``: the
+        observed labelling's first, then each permuted one's), the accuracy's ``interval`` and
+        the (real, generated) row counts ``sizes``."""
+        observed, null = int(scores[0]), scores[1:]
+        n_real, n_generated = sizes
+        return cls(
+            accuracy=observed / (n_real + n_generated),
+            ci_low=interval[0],
+            ci_high=interval[1],
+            p_value=float((1 + np.sum(null >= observed)) / (1 + permutations)),
+            n_real=n_real,
+            n_generated=n_generated,
+            folds=folds,
+            permutations=permutations,
+            seed=seed,
+            groups=groups,
+        )
+
 
 def segment_features(speed: np.ndarray, gap: np.ndarray, dt: float) -> np.ndarray:
     """Features of segments: ``speed`` and ``gap`` shaped (segments, steps); returns (segments, 6)."""
@@ -208,16 +238,10 @@ def classifier_two_sample_test(
         weights = _fit_logistic((features[train] - mean) / scale, labellings[:, train], l2)
         logits = weights[:, :1] + weights[:, 1:] @ ((features[test] - mean) / scale).T
         correct += np.sum((logits > 0) == (labellings[:, test] == 1), axis=1)
-    observed, null = int(correct[0]), correct[1:]
-    total = len(labels)
-    low, high = _wilson(observed, total)
-    return TwoSampleResult(
-        accuracy=observed / total,
-        ci_low=low,
-        ci_high=high,
-        p_value=float((1 + np.sum(null >= observed)) / (1 + permutations)),
-        n_real=len(real),
-        n_generated=len(generated),
+    return TwoSampleResult.from_scores(
+        correct,
+        _wilson(int(correct[0]), len(labels)),
+        (len(real), len(generated)),
         folds=folds,
         permutations=permutations,
         seed=seed,
@@ -314,16 +338,10 @@ def boosted_two_sample_test(
                 classifier = HistGradientBoostingClassifier(**BOOSTING, random_state=seed)
                 classifier.fit(features[train], labelling[train])
                 hits[test] = classifier.predict(features[test]) == labelling[test]
-    scores = correct.sum(axis=1)
-    observed, null = int(scores[0]), scores[1:]
-    low, high = _cluster_interval(correct[0], groups)
-    return TwoSampleResult(
-        accuracy=observed / len(labels),
-        ci_low=low,
-        ci_high=high,
-        p_value=float((1 + np.sum(null >= observed)) / (1 + permutations)),
-        n_real=len(real),
-        n_generated=len(generated),
+    return TwoSampleResult.from_scores(
+        correct.sum(axis=1),
+        _cluster_interval(correct[0], groups),
+        (len(real), len(generated)),
         groups=distinct,
         folds=folds,
         permutations=permutations,

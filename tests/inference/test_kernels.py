@@ -12,6 +12,7 @@ from scipy import stats
 from bayesdrive.inference.core.kernels import (
     Box,
     Independent,
+    Target,
     WalkState,
     alternating,
     fixed_moves,
@@ -78,7 +79,7 @@ def test_independent_moves_leave_their_target_invariant():
     start = WalkState(theta, box_logpdf(theta), anchor, tempered, jnp.float32(np.log(1.7)))
     free = to_free(theta, BOX)
     chol = 1.3 * jnp.linalg.cholesky(jnp.cov(free, rowvar=False))
-    target = dict(loglik=target_loglik, prior_logpdf=box_logpdf, power=1.0, box=BOX)
+    target = dict(target=Target(target_loglik, box_logpdf, BOX), power=1.0)
 
     def moved(kind):
         proposal = kind.of(free.mean(axis=0) + 1.0, chol, 5)
@@ -110,11 +111,9 @@ def test_the_walk_leaves_its_target_invariant():
     def moved(power):
         move = functools.partial(
             walk_step,
-            loglik=loglik,
-            prior_logpdf=prior_logpdf,
+            target=Target(loglik, prior_logpdf, BOX),
             power=power,
             chol=chol,
-            box=BOX,
             target_acceptance=0.234,
         )
         state, rate = fixed_moves(key_move, start, move, 60)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from bayesdrive.inference.core.kernels import Box, WalkState
+from bayesdrive.inference.core.kernels import Box, Target, WalkState
 from bayesdrive.inference.core.smc import (
     SMCState,
     TemperingConfig,
@@ -105,9 +105,7 @@ def tempered_gaussian(key, max_stages):
     return adaptive_tempering(
         key_run,
         start,
-        loglik=loglik,
-        prior_logpdf=box_logpdf,
-        box=BOX,
+        target=Target(loglik, box_logpdf, BOX),
         config=config,
         max_stages=max_stages,
     )

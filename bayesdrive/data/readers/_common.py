@@ -23,7 +23,7 @@ import re
 import stat
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO
 
 import numpy as np
 import pandas as pd
@@ -49,6 +49,7 @@ __all__ = [
     "merge_copies",
     "numeric_columns",
     "open_text",
+    "read_checked_table",
     "read_table",
     "require_columns",
     "require_regular_file",
@@ -249,6 +250,24 @@ def require_columns(
             f"Expected columns: {', '.join(required)}; found: {', '.join(map(str, seen[:20]))}"
             + (" ..." if len(seen) > 20 else "")
         )
+
+
+def read_checked_table(
+    path: Path,
+    required: Sequence[str],
+    numeric: Iterable[str] | None = None,
+    *,
+    fmt: str,
+    notes: Notes,
+    **options: Any,
+) -> pd.DataFrame:
+    """:func:`read_table` (``options`` go to it) of a table that must hold the ``required``
+    columns (:func:`require_columns`), the ``numeric`` ones (default: all required) numbers
+    (:func:`numeric_columns`)."""
+    frame = read_table(path, fmt=fmt, notes=notes, **options)
+    require_columns(frame, required, source=path, fmt=fmt)
+    numeric_columns(frame, required if numeric is None else numeric)
+    return frame
 
 
 def _first_bad(frame: pd.DataFrame, bad: np.ndarray) -> tuple[object, object]:

@@ -41,9 +41,7 @@ from bayesdrive.data.readers._common import (
     integer_ids,
     leader_values,
     make_tracks,
-    numeric_columns,
-    read_table,
-    require_columns,
+    read_checked_table,
     require_regular_file,
     time_steps,
 )
@@ -141,28 +139,37 @@ def _read_recording(folder: Path, prefix: str, notes: Notes):
         if not needed.exists():
             raise DataError(f"{tracks_path}: its companion file {needed.name} is missing")
 
-    recording = read_table(recording_path, fmt="highD recordingMeta", notes=notes)
-    require_columns(recording, RECORDING_COLUMNS, source=recording_path, fmt="highD recordingMeta")
-    numeric_columns(recording, RECORDING_COLUMNS)
+    recording = read_checked_table(
+        recording_path, RECORDING_COLUMNS, fmt="highD recordingMeta", notes=notes
+    )
     rate = float(recording["frameRate"].iloc[0])
     if rate <= 0:
         raise DataError(f"{recording_path}, row 2, column 'frameRate': must be positive")
     dt = 1.0 / rate
 
-    meta = read_table(meta_path, fmt="highD tracksMeta", notes=notes, text_columns=["id"])
-    require_columns(meta, META_COLUMNS, source=meta_path, fmt="highD tracksMeta")
-    numeric_columns(meta, [c for c in META_COLUMNS if c != "id"])
+    meta = read_checked_table(
+        meta_path,
+        META_COLUMNS,
+        [c for c in META_COLUMNS if c != "id"],
+        fmt="highD tracksMeta",
+        notes=notes,
+        text_columns=["id"],
+    )
     bad = ~meta["drivingDirection"].isin([1, 2])
     if bad.any():
         row = meta["_row"].iloc[int(np.argmax(bad.to_numpy()))]
         raise DataError(f"{meta_path}, row {row}, column 'drivingDirection': must be 1 or 2")
     direction_of = dict(zip(integer_ids(meta, "id"), meta["drivingDirection"], strict=True))
 
-    frame = read_table(
-        tracks_path, fmt="highD tracks", notes=notes, text_columns=["id", "precedingId"]
+    ids = ["id", "precedingId"]
+    frame = read_checked_table(
+        tracks_path,
+        TRACK_COLUMNS,
+        [c for c in TRACK_COLUMNS if c not in ids],
+        fmt="highD tracks",
+        notes=notes,
+        text_columns=ids,
     )
-    require_columns(frame, TRACK_COLUMNS, source=tracks_path, fmt="highD tracks")
-    numeric_columns(frame, [c for c in TRACK_COLUMNS if c not in ("id", "precedingId")])
     ids = pd.Series(integer_ids(frame, "id"))
     direction = ids.map(direction_of)
     unknown = direction.isna().to_numpy()

@@ -44,9 +44,7 @@ from bayesdrive.data.readers._common import (
     finish,
     integer_ids,
     make_tracks,
-    numeric_columns,
-    read_table,
-    require_columns,
+    read_checked_table,
     require_regular_file,
     snap_to_grid,
     time_steps,
@@ -307,11 +305,14 @@ def read_interaction(
 
 
 def _read_file(path: Path, lanelets: list[Lanelet], map_path: Path, notes: Notes):
-    frame = read_table(
-        path, fmt="INTERACTION vehicle_tracks", notes=notes, text_columns=["track_id"]
+    frame = read_checked_table(
+        path,
+        COLUMNS,
+        NUMERIC,
+        fmt="INTERACTION vehicle_tracks",
+        notes=notes,
+        text_columns=["track_id"],
     )
-    require_columns(frame, COLUMNS, source=path, fmt="INTERACTION vehicle_tracks")
-    numeric_columns(frame, NUMERIC)
     steps = snap_to_grid(frame["timestamp_ms"] / 1000.0, DT, frame, column="timestamp_ms")
     xy = frame[["x", "y"]].to_numpy()
     lane, s, lateral, half = _project(lanelets, xy, frame["psi_rad"].to_numpy())

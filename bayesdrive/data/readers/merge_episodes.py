@@ -43,8 +43,7 @@ from bayesdrive.data.readers._common import (
     integer_column,
     make_tracks,
     numeric_columns,
-    read_table,
-    require_columns,
+    read_checked_table,
     require_regular_file,
     snap_to_grid,
     sort_rows,
@@ -209,9 +208,7 @@ def _seen_before(here: np.ndarray, episode: np.ndarray) -> np.ndarray:
 
 
 def _read_csv(path: Path, notes: Notes) -> pd.DataFrame:
-    frame = read_table(path, fmt="merge-episode", notes=notes)
-    require_columns(frame, CSV_COLUMNS, source=path, fmt="merge-episode")
-    numeric_columns(frame, CSV_COLUMNS)
+    frame = read_checked_table(path, CSV_COLUMNS, fmt="merge-episode", notes=notes)
     return sort_rows(frame, ["episode", "t_s"], notes=notes, path=path, what="episode and time")
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "Box",
     "Independent",
     "Move",
+    "Target",
     "WalkInfo",
     "WalkState",
     "alternating",
@@ -103,6 +104,16 @@ def next_temperature(log_lik: Array, lam: Array, ess_fraction: float, iterations
     )
 
 
+class Target(NamedTuple):
+    """What every move is invariant for, p(theta) exp(anchor(theta) + power * tempered(theta))
+    less its ``power``: ``loglik(theta) -> (anchor, tempered)`` and ``prior_logpdf(theta) -> log p``
+    take (N, d); the moves walk on the logit scale of ``box``."""
+
+    loglik: Callable[[Array], tuple[Array, Array]]
+    prior_logpdf: Callable[[Array], Array]
+    box: Box
+
+
 class WalkState(NamedTuple):
     """A particle cloud under a random walk: theta (N, d), its log prior, anchor and tempered
     log-likelihoods (N,), and the log of the proposal scale ()."""
@@ -133,17 +144,16 @@ def _metropolis(
     prop_free: Array,
     log_proposal_ratio: Array,
     *,
-    loglik: Callable[[Array], tuple[Array, Array]],
-    prior_logpdf: Callable[[Array], Array],
+    target: Target,
     power: Array,
-    box: Box,
 ) -> tuple[WalkState, Array]:
     """Accept or reject every particle's proposal ``prop_free`` (free scale) for the target
     p(theta) exp(anchor + power * tempered); ``log_proposal_ratio`` is log q(u | u') - log q(u' | u)
     (0 for a symmetric proposal). Returns the state (log_scale unchanged) and the acceptance rate."""
+    box = target.box
     proposal = from_free(prop_free, box)
-    prop_prior = prior_logpdf(proposal)
-    prop_anchor, prop_tempered = loglik(proposal)
+    prop_prior = target.prior_logpdf(proposal)
+    prop_anchor, prop_tempered = target.loglik(proposal)
     log_ratio = (
         prop_prior
         + prop_anchor
@@ -170,31 +180,19 @@ def walk_step(
     key: Array,
     state: WalkState,
     *,
-    loglik: Callable[[Array], tuple[Array, Array]],
-    prior_logpdf: Callable[[Array], Array],
+    target: Target,
     power: Array,
     chol: Array,
-    box: Box,
     target_acceptance: float,
 ) -> tuple[WalkState, WalkInfo]:
-    """One random-walk MH move of every particle, invariant for
-    p(theta) exp(anchor(theta) + power * tempered(theta)) (module docstring).
-
-    ``loglik(theta) -> (anchor, tempered)`` and ``prior_logpdf(theta) -> log p`` take (N, d)."""
+    """One random-walk MH move of every particle, invariant for ``target`` at ``power`` (module
+    docstring)."""
     key_step, key_accept = jax.random.split(key)
     noise = _normal(key_step, state.theta.shape, state.theta.dtype) @ chol.T
-    free = to_free(state.theta, box)
+    free = to_free(state.theta, target.box)
     prop_free = free + jnp.exp(state.log_scale) * noise
     moved, rate = _metropolis(
-        key_accept,
-        state,
-        free,
-        prop_free,
-        jnp.zeros(()),
-        loglik=loglik,
-        prior_logpdf=prior_logpdf,
-        power=power,
-        box=box,
+        key_accept, state, free, prop_free, jnp.zeros(()), target=target, power=power
     )
     moved = moved._replace(log_scale=state.log_scale + rate - target_acceptance)
     return moved, WalkInfo(acceptance=rate)
@@ -228,11 +226,9 @@ def independent_step(
     key: Array,
     state: WalkState,
     *,
-    loglik: Callable[[Array], tuple[Array, Array]],
-    prior_logpdf: Callable[[Array], Array],
+    target: Target,
     power: Array,
     proposal: Independent,
-    box: Box,
 ) -> tuple[WalkState, WalkInfo]:
     """One independent MH move of every particle: the proposal ignores where the particle is
     (South, Pettitt & Drovandi 2019), so an accepted move forgets the start at once. Invariant for
@@ -242,17 +238,15 @@ def independent_step(
     normal = _normal(key_normal, theta.shape, theta.dtype) @ proposal.chol.T
     mix = jnp.sum(_normal(key_mix, (theta.shape[0], proposal.df), theta.dtype) ** 2, axis=1)
     prop_free = proposal.mean + normal * jnp.sqrt(proposal.df / mix)[:, None]
-    free = to_free(theta, box)
+    free = to_free(theta, target.box)
     moved, rate = _metropolis(
         key_accept,
         state,
         free,
         prop_free,
         proposal.log_density(free) - proposal.log_density(prop_free),
-        loglik=loglik,
-        prior_logpdf=prior_logpdf,
+        target=target,
         power=power,
-        box=box,
     )
     return moved, WalkInfo(acceptance=rate)
 

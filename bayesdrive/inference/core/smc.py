@@ -42,6 +42,7 @@ from bayesdrive.inference.core.kernels import (
     Box,
     Independent,
     Move,
+    Target,
     WalkState,
     alternating,
     independent_step,
@@ -183,26 +184,22 @@ def fit_cloud(theta: Array, log_weights: Array, box: Box) -> Cloud:
     return Cloud(mean, jnp.linalg.cholesky(cov + jitter))
 
 
-def cloud_move(
-    cloud: Cloud,
-    *,
-    loglik: Callable[[Array], tuple[Array, Array]],
-    prior_logpdf: Callable[[Array], Array],
-    power: Array,
-    box: Box,
-    config: TemperingConfig,
-) -> Move:
-    """One move invariant for p(theta) exp(anchor + power * tempered): a random walk with the
-    cloud's covariance, paired (``config.independent``) with an independent move from a
-    Student-t with the cloud's mean and covariance."""
-    target = dict(loglik=loglik, prior_logpdf=prior_logpdf, power=power, box=box)
+def cloud_move(cloud: Cloud, *, target: Target, power: Array, config: TemperingConfig) -> Move:
+    """One move invariant for ``target`` at ``power``: a random walk with the cloud's covariance,
+    paired (``config.independent``) with an independent move from a Student-t with the cloud's
+    mean and covariance."""
     walk = functools.partial(
-        walk_step, chol=cloud.chol, target_acceptance=config.target_acceptance, **target
+        walk_step,
+        target=target,
+        power=power,
+        chol=cloud.chol,
+        target_acceptance=config.target_acceptance,
     )
     if not config.independent:
         return walk
     proposal = Independent.of(cloud.mean, cloud.chol, config.independent_df)
-    return alternating(functools.partial(independent_step, proposal=proposal, **target), walk)
+    independent = functools.partial(independent_step, target=target, power=power, proposal=proposal)
+    return alternating(independent, walk)
 
 
 class StageMoves(NamedTuple):
@@ -250,9 +247,7 @@ def tempering_step(
     key: Array,
     state: TemperingState,
     *,
-    loglik: Callable[[Array], tuple[Array, Array]],
-    prior_logpdf: Callable[[Array], Array],
-    box: Box,
+    target: Target,
     config: TemperingConfig,
 ) -> tuple[TemperingState, SMCInfo]:
     """One stage: the next temperature by bisection, the proposal fitted to the reweighted cloud,
@@ -265,10 +260,8 @@ def tempering_step(
     def potential(walk: WalkState) -> Array:
         return (temperature - state.temperature) * walk.tempered
 
-    cloud = fit_cloud(particles.theta, state.log_weights + potential(particles), box)
-    move = cloud_move(
-        cloud, loglik=loglik, prior_logpdf=prior_logpdf, power=temperature, box=box, config=config
-    )
+    cloud = fit_cloud(particles.theta, state.log_weights + potential(particles), target.box)
+    move = cloud_move(cloud, target=target, power=temperature, config=config)
     kernel = stage_moves(
         move,
         num_moves=config.num_moves,
@@ -297,17 +290,14 @@ def adaptive_tempering(
     key: Array,
     particles: WalkState,
     *,
-    loglik: Callable[[Array], tuple[Array, Array]],
-    prior_logpdf: Callable[[Array], Array],
-    box: Box,
+    target: Target,
     config: TemperingConfig,
     max_stages: Array | int | None = None,
 ) -> TemperingState:
     """Temper ``particles.tempered`` in from temperature 0 to 1 on top of ``particles.anchor``,
     stage after stage (:func:`tempering_step`, stage s on ``fold_in(key, s)``), until the
     temperature is 1 or after ``max_stages`` stages (default ``config.max_stages``; an array
-    lets one compiled program serve several limits). ``loglik(theta) -> (anchor, tempered)`` and
-    ``prior_logpdf(theta)`` take (N, d); ``particles`` are equally weighted."""
+    lets one compiled program serve several limits); ``particles`` are equally weighted."""
     limit = config.max_stages if max_stages is None else max_stages
     dtype = particles.theta.dtype
     zero = jnp.zeros((), dtype)
@@ -328,9 +318,7 @@ def adaptive_tempering(
         state, _ = tempering_step(
             jax.random.fold_in(key, state.stages),
             state,
-            loglik=loglik,
-            prior_logpdf=prior_logpdf,
-            box=box,
+            target=target,
             config=config,
         )
         return state

@@ -73,7 +73,7 @@ from jax import Array
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import fill_params
 from bayesdrive.drivers.extensions.compose import ExtendedModel
-from bayesdrive.inference.core.kernels import Box, WalkState
+from bayesdrive.inference.core.kernels import Box, Target, WalkState
 from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_logpdfs
 from bayesdrive.inference.core.smc import TemperingConfig, adaptive_tempering, check_finished
 from bayesdrive.inference.core.vehicles import map_vehicles, vehicle_keys
@@ -240,9 +240,9 @@ def _fit_vehicle(
         run = adaptive_tempering(
             key,
             walk._replace(anchor=anchor, tempered=tempered),
-            loglik=functools.partial(split, phase),
-            prior_logpdf=log_prior_of,
-            box=Box(prior.lower, prior.upper),
+            target=Target(
+                functools.partial(split, phase), log_prior_of, Box(prior.lower, prior.upper)
+            ),
             config=config,
             max_stages=jnp.where(phase > 0, config.max_stages, fit_limit),
         )

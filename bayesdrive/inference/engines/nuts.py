@@ -57,7 +57,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
-from typing import Any, NamedTuple, Unpack
+from typing import Any, NamedTuple, TypedDict, Unpack
 
 import jax
 import jax.numpy as jnp
@@ -116,6 +116,35 @@ class NUTSConfig(NamedTuple):
     dense_mass: bool = False
     # Keep every thin-th post-warm-up draw (an extended run stores as many draws as the first).
     thin: int = 1
+
+    def with_draws(self, num_particles: int) -> NUTSConfig:
+        """These settings with ``num_particles`` draws in all over the chains (rounded up per
+        chain)."""
+        return self._replace(num_samples=-(-num_particles // max(self.num_chains, 1)))
+
+
+class NUTSOptions(TypedDict, total=False):
+    """The sampler's options that nuts and the hierarchical engine take (defaults:
+    :class:`NUTSConfig`'s; the draws per chain follow from ``num_particles``)."""
+
+    num_chains: int
+    num_warmup: int
+    target_accept_prob: float
+    max_tree_depth: int
+    dense_mass: bool
+
+
+class NUTSInputs(EngineInputs, NUTSOptions, total=False):
+    """What an engine on NUTS takes beside its own options: every engine's inputs and the
+    sampler's options."""
+
+
+def sampler_settings(inputs: NUTSInputs) -> tuple[NUTSConfig, EngineInputs]:
+    """The sampler's options given in ``inputs`` as settings (:class:`NUTSConfig`'s defaults for
+    the others; :meth:`NUTSConfig.with_draws` sets the draws per chain) and the engine inputs
+    left."""
+    given = {k: v for k, v in inputs.items() if k in NUTSOptions.__annotations__}
+    return NUTSConfig(**given), {k: v for k, v in inputs.items() if k not in given}
 
 
 class NUTSDraws(NamedTuple):
@@ -261,18 +290,14 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    num_chains: int = 4,
-    num_warmup: int = 500,
-    target_accept_prob: float = 0.95,
-    max_tree_depth: int = 10,
-    dense_mass: bool = False,
     vehicle_chunk: int = 32,
     vehicle_batch: int = 1,
     max_extension: int | None = None,
     first_extension: int | None = None,
-    **inputs: Unpack[EngineInputs],
+    **inputs: Unpack[NUTSInputs],
 ) -> EngineResult:
-    """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring).
+    """NUTS for every vehicle of ``arrays`` with the model's uniform prior box (module docstring),
+    with the sampler's options :class:`NUTSOptions`.
 
     Posterior draws are (chain, draw, vehicle): ``num_particles`` draws in all, ``num_particles /
     num_chains`` (rounded up) per chain after ``num_warmup`` warm-up iterations. ``prior`` (default:
@@ -286,9 +311,11 @@ def run(
     the factor of the first run (default :data:`FIRST_EXTENSION`, at most ``max_extension``, 1
     where ``max_extension`` is).
     """
+    sampler, inputs = sampler_settings(inputs)
     problem = prepare("nuts", arrays, inputs, num_particles=2000, whole_series=True)
     num_particles = problem.num_particles
-    num_samples = -(-num_particles // max(num_chains, 1))
+    config = sampler.with_draws(num_particles)
+    num_chains, num_warmup, num_samples = config.num_chains, config.num_warmup, config.num_samples
     if num_chains < 1 or num_warmup < 1 or num_samples < 2:
         raise ValueError(
             "need num_chains >= 1, num_warmup >= 1 and at least 2 draws per chain, got "
@@ -305,16 +332,8 @@ def run(
         raise ValueError(
             f"first_extension must be in [1, max_extension={max_extension}], got {first_extension}"
         )
-    if not 0.0 < target_accept_prob < 1.0:
-        raise ValueError(f"target_accept_prob must be in (0, 1), got {target_accept_prob}")
-    config = NUTSConfig(
-        num_chains=num_chains,
-        num_warmup=num_warmup,
-        num_samples=num_samples,
-        target_accept_prob=target_accept_prob,
-        max_tree_depth=max_tree_depth,
-        dense_mass=dense_mass,
-    )
+    if not 0.0 < config.target_accept_prob < 1.0:
+        raise ValueError(f"target_accept_prob must be in (0, 1), got {config.target_accept_prob}")
     out, compile_time, run_time = _run_vehicles(
         problem,
         key,

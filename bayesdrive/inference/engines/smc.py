@@ -81,7 +81,7 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.core.kernels import Box, WalkState, moves_until_decorrelated
+from bayesdrive.inference.core.kernels import Box, Target, WalkState, moves_until_decorrelated
 from bayesdrive.inference.core.likelihood import StepInputs, particles_loglik, series_loglik
 from bayesdrive.inference.core.output import EngineInputs, EngineResult
 from bayesdrive.inference.core.resampling import count_distinct_sorted
@@ -257,13 +257,9 @@ def _smc_vehicle(
         seen = state.particles._replace(tempered=state.particles.tempered + increment)
         log_weights = state.log_weights + increment
         mean, _ = weighted_mean_cov(seen.theta, log_weights)
+        so_far = Target(tempered(functools.partial(log_lik_up_to, last_step=t)), log_prior_of, box)
         move = cloud_move(
-            fit_cloud(seen.theta, log_weights, box),
-            loglik=tempered(functools.partial(log_lik_up_to, last_step=t)),
-            prior_logpdf=log_prior_of,
-            power=1.0,
-            box=box,
-            config=tempering,
+            fit_cloud(seen.theta, log_weights, box), target=so_far, power=1.0, config=tempering
         )
         kernel = stage_moves(
             move, num_moves=config.num_moves, unmoved_tolerance=0.0, max_moves=config.num_moves
@@ -305,14 +301,9 @@ def _smc_vehicle(
         )
 
     key_prior, key_temper, key_closing = jax.random.split(key_final, 3)
-    whole = tempered(log_lik_whole)
+    posterior = Target(tempered(log_lik_whole), log_prior_of, box)
     run = adaptive_tempering(
-        key_temper,
-        prior_cloud(key_prior, log_lik_whole),
-        loglik=whole,
-        prior_logpdf=log_prior_of,
-        box=box,
-        config=tempering,
+        key_temper, prior_cloud(key_prior, log_lik_whole), target=posterior, config=tempering
     )
     # Closing moves under the full posterior until the draws decorrelate from their start (module
     # docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess mass in
@@ -320,10 +311,8 @@ def _smc_vehicle(
     # noise, not mixing.
     closing = cloud_move(
         fit_cloud(run.particles.theta, run.log_weights, box),
-        loglik=whole,
-        prior_logpdf=log_prior_of,
+        target=posterior,
         power=1.0,
-        box=box,
         config=tempering,
     )
     final, final_acceptance, final_moves, final_correlation = moves_until_decorrelated(

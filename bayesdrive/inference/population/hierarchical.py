@@ -44,12 +44,9 @@ from numpyro.infer.util import constrain_fn, potential_energy
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.inference.core.likelihood import series_loglik
-from bayesdrive.inference.core.output import (
-    EngineInputs,
-    EngineResult,
-)
+from bayesdrive.inference.core.output import EngineResult
 from bayesdrive.inference.core.vehicles import prepare
-from bayesdrive.inference.engines.nuts import INIT_RADIUS, NUTSConfig, sample_nuts
+from bayesdrive.inference.engines.nuts import INIT_RADIUS, NUTSInputs, sample_nuts, sampler_settings
 
 __all__ = ["MU_PRIOR_SD", "POPULATION_PRIORS", "TAU_PRIOR_SCALE", "natural_units", "run"]
 
@@ -95,14 +92,11 @@ def run(
     key: Array,
     arrays: FollowerArrays,
     *,
-    num_chains: int = 4,
-    num_warmup: int = 500,
-    target_accept_prob: float = 0.95,
-    max_tree_depth: int = 10,
     centred: bool = False,
-    **inputs: Unpack[EngineInputs],
+    **inputs: Unpack[NUTSInputs],
 ) -> EngineResult:
-    """Fit the hierarchical population model (module docstring) jointly to all vehicles.
+    """Fit the hierarchical population model (module docstring) jointly to all vehicles, with
+    the sampler's options :class:`~bayesdrive.inference.engines.nuts.NUTSOptions`.
 
     One joint NUTS run of ``num_chains`` vectorised chains (each with its own warm-up) and
     ``num_particles`` draws in all: unlike the per-vehicle engines the vehicles are coupled
@@ -111,19 +105,14 @@ def run(
     """
     if inputs.get("prior") is not None:
         raise ValueError("the hierarchical model has its own population prior; prior must be None")
+    sampler, inputs = sampler_settings(inputs)
     problem = prepare("hierarchical", arrays, inputs, num_particles=2000, whole_series=True)
     model, names, box, fixed_values = problem.model, problem.names, problem.box, problem.fixed
-    series, num_samples = problem.series, -(-problem.num_particles // max(num_chains, 1))
-    num_vehicles = problem.num_vehicles
+    series, num_vehicles = problem.series, problem.num_vehicles
     if num_vehicles < 2:
         raise ValueError("a population model needs at least 2 vehicles")
-    config = NUTSConfig(
-        num_chains=num_chains,
-        num_warmup=num_warmup,
-        num_samples=num_samples,
-        target_accept_prob=target_accept_prob,
-        max_tree_depth=max_tree_depth,
-    )
+    config = sampler.with_draws(problem.num_particles)
+    num_chains = config.num_chains
 
     def log_lik(theta: Array, vehicle: Any) -> Array:
         return series_loglik(model, names, fixed_values, theta, vehicle).sum()
