@@ -376,12 +376,8 @@ def leader_cross_correlation_check(res: Residuals, series: FollowerArrays) -> tu
         ]
         if per_lag[0][1] > 3 * len(lags):
             excess.append(sum(n * r**2 for r, n in per_lag) - len(lags))
-    excess = np.asarray(excess)
-    if excess.size > 1 and excess.std(ddof=1) > 0:
-        t_excess = float(excess.mean() / (excess.std(ddof=1) / np.sqrt(excess.size)))
-        p_excess = float(stats.t.sf(t_excess, df=excess.size - 1))
-    else:
-        t_excess, p_excess = 0.0, 1.0
+    excess = np.asarray(excess, np.float64)
+    t_excess, p_excess, _ = _t_across_vehicles(excess)
     by_vehicle = Check(
         name="leader_response_by_vehicle",
         title="Per-vehicle response to the leader's past accelerations, across vehicles",

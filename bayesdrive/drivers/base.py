@@ -65,6 +65,7 @@ __all__ = [
     "PriorBox",
     "Series",
     "car_following_at",
+    "car_following_part",
     "device_series",
     "fill_params",
     "observed_lift",
@@ -135,6 +136,12 @@ def device_series(arrays: FollowerArrays, dtype: Any = float) -> Series:
         merge=part(arrays.merge),
         ahead=part(arrays.ahead),
     )
+
+
+def car_following_part(inputs: Any) -> CarFollowingInputs:
+    """The car-following part of a model's richer inputs (any with gap, lead_v, has_leader, dt):
+    what a base model reads of them. Inputs types expose it as their ``car_following``."""
+    return CarFollowingInputs(inputs.gap, inputs.lead_v, inputs.has_leader, inputs.dt)
 
 
 def car_following_at(series: Series, j: Array, history: int) -> CarFollowingInputs:

@@ -67,7 +67,12 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
-from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec, Series
+from bayesdrive.drivers.base import (
+    EgoState,
+    ParamSpec,
+    Series,
+    car_following_part,
+)
 from bayesdrive.drivers.execution_noise import execution_noise_model
 from bayesdrive.drivers.idm import IDM, idm_acceleration
 
@@ -127,10 +132,7 @@ class MergeInputs(NamedTuple):
     merge_length: Array
     merge_present: Array
 
-    @property
-    def car_following(self) -> CarFollowingInputs:
-        """The real-leader part, as the IDM sees it."""
-        return CarFollowingInputs(self.gap, self.lead_v, self.has_leader, self.dt)
+    car_following = property(car_following_part)
 
 
 def time_to_merge(distance: Array, speed: Array) -> Array:

@@ -363,11 +363,15 @@ def _one_rollout(
     )
 
 
-def _layout(model: DriverModel, dt: float, start: str, scene: SceneArrays) -> tuple[int, int]:
-    """The history a model reads and the buffer's past (steps before t0), after the start's check."""
+def _static_arguments(
+    model: DriverModel, dt: float, start: str, scene: SceneArrays, num_rollouts: int
+) -> dict[str, Any]:
+    """The compiled rollouts' static arguments, after the start's check: the history a model
+    reads and the buffer's past (steps before t0)."""
     check_start(model, start, scene.past is not None)
     past = history_steps(dt)
-    return (past if model.reads_history else 0), past
+    history = past if model.reads_history else 0
+    return {"num_rollouts": num_rollouts, "history": history, "past": past, "start": start}
 
 
 def _scene_rollouts(key, model, params, scene, num_rollouts, history, past, start):
@@ -407,17 +411,8 @@ def rollout(
     traced (inside ``jit``): it sets the buffer's past and the history a model reads.
     """
     step_s = float(scene.dt) if dt is None else dt
-    history, past = _layout(model, step_s, start, scene)
-    return _rollouts(
-        key,
-        model,
-        params,
-        scene,
-        num_rollouts=num_rollouts,
-        history=history,
-        past=past,
-        start=start,
-    )
+    static = _static_arguments(model, step_s, start, scene, num_rollouts)
+    return _rollouts(key, model, params, scene, **static)
 
 
 def rollout_scenes(
@@ -433,14 +428,5 @@ def rollout_scenes(
     """:func:`rollout` of each of a batch of scenes of one shape (every leaf of ``scenes`` with a
     leading scene axis S), scene s with ``keys[s]`` and ``params`` leaves (S, R, N); the result's
     leaves lead with (S, R, N)."""
-    history, past = _layout(model, dt, start, scenes)
-    return _rollouts_per_scene(
-        keys,
-        model,
-        params,
-        scenes,
-        num_rollouts=num_rollouts,
-        history=history,
-        past=past,
-        start=start,
-    )
+    static = _static_arguments(model, dt, start, scenes, num_rollouts)
+    return _rollouts_per_scene(keys, model, params, scenes, **static)

@@ -38,6 +38,7 @@ __all__ = [
     "Notes",
     "exact_ids",
     "finish",
+    "finish_parts",
     "gaps_from_positions",
     "harmonise_lengths",
     "input_files",
@@ -502,6 +503,21 @@ def harmonise_lengths(
             f"{what}: no length for {count} vehicle(s); assumed {default} m (a passenger car)"
         )
     return lengths.fillna(default)
+
+
+def finish_parts(
+    parts: Sequence[tuple[Any, ...]],
+    fmt: str,
+    source: str | Path,
+    dt: float,
+    notes: Notes,
+    **options,
+) -> Trajectories:
+    """:func:`finish` of a reader's files read one by one: each part starts with its tracks and
+    scenes tables (anything after them is the reader's own), concatenated in order."""
+    tracks = pd.concat([part[0] for part in parts], ignore_index=True)
+    scenes = pd.concat([part[1] for part in parts], ignore_index=True)
+    return finish(tracks, fmt=fmt, source=source, dt=dt, scenes=scenes, notes=notes, **options)
 
 
 def finish(

@@ -35,7 +35,7 @@ import pandas as pd
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     Notes,
-    finish,
+    finish_parts,
     gaps_from_positions,
     integer_column,
     integer_ids,
@@ -113,16 +113,12 @@ def read_highd(path: str | Path) -> Trajectories:
     rates = {dt for _, _, dt in parts}
     if len(rates) > 1:
         raise DataError(f"{path}: recordings have different frame rates ({sorted(rates)})")
-    tracks = pd.concat([p for p, _, _ in parts], ignore_index=True)
-    scenes = pd.concat([s for _, s, _ in parts], ignore_index=True)
-    dt = rates.pop()
-    return finish(
-        tracks,
-        fmt=FORMAT,
-        source=path,
-        dt=dt,
-        scenes=scenes,
-        notes=notes,
+    return finish_parts(
+        parts,
+        FORMAT,
+        path,
+        rates.pop(),
+        notes,
         column_names=SCHEMA_NAMES,
         extra_inputs=[p for folder, prefix in recordings for p in _companions(folder, prefix)],
     )

@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     Notes,
-    finish,
+    finish_parts,
     integer_ids,
     make_tracks,
     read_checked_table,
@@ -289,16 +289,13 @@ def read_interaction(
         "lanelet successors not followed (x restarts in each lanelet); no acceleration in format"
     )
     parts = [_read_file(f, lanelets, Path(map_path), notes) for f in files]
-    tracks = pd.concat([p for p, _ in parts], ignore_index=True)
-    scenes = pd.concat([s for _, s in parts], ignore_index=True)
     names = {"vehicle_id": "track_id", "t": "timestamp_ms", "x": "x/y", "v": "vx/vy"}
-    return finish(
-        tracks,
-        fmt=FORMAT,
-        source=path,
-        dt=DT,
-        scenes=scenes,
-        notes=notes,
+    return finish_parts(
+        parts,
+        FORMAT,
+        path,
+        DT,
+        notes,
         column_names=names,
         extra_inputs=[Path(map_path)],
     )

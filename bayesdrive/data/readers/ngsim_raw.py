@@ -30,7 +30,7 @@ import pandas as pd
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     Notes,
-    finish,
+    finish_parts,
     input_files,
     integer_column,
     integer_ids,
@@ -120,15 +120,12 @@ def read_ngsim_raw(
         "gap = Space_Headway (front to front) - leader length; t = Frame_ID * 0.1 s"
     )
     parts = [_read_file(f, missing_leaders=missing_leaders, notes=notes) for f in files]
-    tracks = pd.concat([p for p, _ in parts], ignore_index=True)
-    scenes = pd.concat([s for _, s in parts], ignore_index=True)
-    return finish(
-        tracks,
-        fmt=FORMAT,
-        source=path,
-        dt=DT,
-        scenes=scenes,
-        notes=notes,
+    return finish_parts(
+        parts,
+        FORMAT,
+        path,
+        DT,
+        notes,
         column_names=SCHEMA_NAMES,
         file_units=FILE_UNITS,
         measured_gap=True,

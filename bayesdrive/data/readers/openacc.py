@@ -57,7 +57,7 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     DEFAULT_LENGTH_M,
     Notes,
-    finish,
+    finish_parts,
     integrate_speed,
     make_tracks,
     numeric_columns,
@@ -135,16 +135,13 @@ def read_openacc(path: str | Path, *, lengths: Mapping[str, float] | None = None
         spec, spec_lengths = _spec_lengths(file.parent, notes)
         specs.update([spec] if spec else [])
         parts.append(_read_file(file, scene, {**spec_lengths, **(lengths or {})}, notes))
-    tracks = pd.concat([p for p, _, _ in parts], ignore_index=True)
-    scenes = pd.concat([s for _, s, _ in parts], ignore_index=True)
     jumps = [f for _, _, f in parts if f is not None and len(f)]
-    return finish(
-        tracks,
-        fmt=FORMAT,
-        source=path,
-        dt=DT,
-        scenes=scenes,
-        notes=notes,
+    return finish_parts(
+        parts,
+        FORMAT,
+        path,
+        DT,
+        notes,
         column_names=SCHEMA_NAMES,
         measured_gap=False,  # x is integrated speed placed by IVS itself: not independent of it
         extra_flags=pd.concat(jumps, ignore_index=True) if jumps else None,

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.data.views import HISTORY_SECONDS, history_steps
-from bayesdrive.drivers.base import CarFollowingInputs, Series
+from bayesdrive.drivers.base import Series, car_following_at, car_following_part
 
 __all__ = ["HISTORY_SECONDS", "ExtendedInputs", "history_steps", "inputs_at"]
 
@@ -54,10 +54,7 @@ class ExtendedInputs(NamedTuple):
     lag_gap: Array
     lag_lead_v: Array
 
-    @property
-    def car_following(self) -> CarFollowingInputs:
-        """The current-step part, as the base models see it."""
-        return CarFollowingInputs(self.gap, self.lead_v, self.has_leader, self.dt)
+    car_following = property(car_following_part)
 
 
 def inputs_at(series: Series, j: Array, history: int) -> ExtendedInputs:
@@ -74,15 +71,8 @@ def inputs_at(series: Series, j: Array, history: int) -> ExtendedInputs:
     lags = jnp.maximum(j - jnp.arange(history + 1), 0)
     ahead = series.ahead
     return ExtendedInputs(
-        gap=series.gap[j],
-        lead_v=series.lead_v[j],
-        has_leader=series.has_leader[j],
-        dt=series.dt[j],
-        lead_acc=ahead.lead_acc[j],
-        gap2=ahead.gap2[j],
-        lead2_v=ahead.lead2_v[j],
-        has_leader2=ahead.has_leader2[j],
-        lead_age=ahead.lead_age[j],
+        **car_following_at(series, j, history)._asdict(),
+        **{name: values[j] for name, values in ahead._asdict().items()},
         lag_v=series.v[lags],
         lag_gap=series.gap[lags],
         lag_lead_v=series.lead_v[lags],
