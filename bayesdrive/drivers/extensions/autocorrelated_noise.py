@@ -1,14 +1,25 @@
-r"""Autocorrelated execution noise: the acceleration error follows a stationary AR(1) process.
+r"""Autocorrelated execution noise: the acceleration error is an Ornstein-Uhlenbeck process.
 
-With :math:`e_t` the deviation of the applied acceleration from the base rule,
+With :math:`e_t` the deviation of the applied acceleration from the base rule and :math:`T_e`
+(``noise_time_s``) its correlation time in seconds, sampled every :math:`\Delta t`,
 
 .. math::
 
     e_t = \rho\, e_{t-1} + \sqrt{1 - \rho^2}\,\sigma\, z_t, \quad z_t \sim N(0, 1), \qquad
-    a_t = a_{base,t} + e_t,
+    \rho = \exp(-\Delta t / T_e), \qquad a_t = a_{base,t} + e_t,
 
-so each :math:`e_t` has the base model's marginal sd :math:`\sigma` and lag-k correlation
-:math:`\rho^k` (per step: :math:`\rho` depends on the sampling interval; the data's dt is fixed).
+the exact discretisation of a stationary Ornstein-Uhlenbeck process: each :math:`e_t` has the base
+model's marginal sd :math:`\sigma` and the error's correlation after :math:`k` seconds is
+:math:`\exp(-k / T_e)` whatever the sampling rate. The per-step :math:`\rho` is derived from each
+step's own :math:`\Delta t`, so a fit at 10 Hz and one at 2 Hz estimate the same parameter.
+:math:`T_e = 0` is white noise (the base model, nested).
+
+**Bounds and prior.** :math:`T_e` is uniform on [0, 5] s. An execution error (the foot off the
+intended pedal position) is a motor deviation drivers correct within seconds; one that persists
+longer is no execution error but a changed intention (a drifting parameter), and a residual that
+persists for tens of seconds carries the last observed error through a whole forecast, which then
+forecasts like constant acceleration. At 5 s the error's memory is :math:`e^{-1}` after the 5 s
+forecast horizon, and :math:`\rho \le 0.980` at 10 Hz.
 
 **Exact likelihood with observed states.** The state carries the last residual
 (:class:`NoiseMemoryState`). With exactly observed positions and speeds, the previous step's
@@ -25,11 +36,12 @@ residual is unknown afterwards; the process then restarts from its stationary di
 (``known = 0``: mean :math:`a_{base}`, sd :math:`\sigma`). Simulation does the same, so sampler and
 density describe one process.
 
-========  ====  =======  ============  ==================================================
-name      unit  default  prior bounds  meaning
-========  ====  =======  ============  ==================================================
-rho       --    0.0      [0, 0.99]     lag-one-step correlation of the acceleration error
-========  ====  =======  ============  ==================================================
+============  ====  =======  ============  =================================================
+name          unit  default  prior bounds  meaning
+============  ====  =======  ============  =================================================
+noise_time_s  s     0.0      [0, 5]        correlation time of the acceleration error (0:
+                                           white noise, the base model)
+============  ====  =======  ============  =================================================
 """
 
 from __future__ import annotations
@@ -53,24 +65,36 @@ from bayesdrive.drivers.extensions.compose import (
 __all__ = [
     "AR_SPECS",
     "CAUSE",
+    "MAX_NOISE_TIME_S",
     "NoiseMemoryInputs",
     "NoiseMemoryState",
     "implied_acceleration",
+    "step_correlation",
     "with_autocorrelated_noise",
 ]
 
 CAUSE = "autocorrelated_noise"
+# Upper bound of the correlation time (module docstring: why 5 s).
+MAX_NOISE_TIME_S = 5.0
 AR_SPECS = (
     ParamSpec(
-        "rho",
-        "--",
+        "noise_time_s",
+        "s",
         0.0,
         0.0,
-        0.99,
-        "lag-one correlation of the acceleration error",
-        grid_step=0.03,
+        MAX_NOISE_TIME_S,
+        "correlation time of the acceleration error",
+        grid_step=0.1,
     ),
 )
+# Below this correlation time the per-step correlation exp(-dt / T) is below 1e-40 at any data
+# rate (dt >= 0.01 s); flooring T there keeps its gradient finite at T = 0.
+_WHITE_NOISE_TIME_S = 1e-4
+
+
+def step_correlation(noise_time_s: Array, dt: Array) -> Array:
+    """The lag-one-step correlation exp(-dt / T) of an error with correlation time T seconds."""
+    return jnp.exp(-dt / jnp.maximum(noise_time_s, _WHITE_NOISE_TIME_S))
 
 
 class NoiseMemoryState(NamedTuple):
@@ -106,8 +130,8 @@ def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:
 @functools.cache
 def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
     """``base`` (any exactly observed model with white noise of sd ``sigma``, its ``noise_sd``, a
-    ``mean`` extension included) with AR(1) execution noise of correlation ``rho`` (module
-    docstring)."""
+    ``mean`` extension included) with Ornstein-Uhlenbeck execution noise of correlation time
+    ``noise_time_s`` (module docstring)."""
     check_white_noise(base, CAUSE)
     specs = extended_specs(base, AR_SPECS)
 
@@ -118,10 +142,10 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
 
     def conditional(params, state: NoiseMemoryState, inputs: NoiseMemoryInputs):
         """Mean and sd of this step's acceleration given the last residual."""
-        memory = state.known * params.rho
+        memory = state.known * step_correlation(params.noise_time_s, inputs.dt)
         mean_acc = base_mean(params, state.v, inputs.now) + memory * state.residual
         sigma = base.noise_sd(base_params(base, params), EgoState(state.x, state.v))
-        sd = sigma * jnp.sqrt(1.0 - state.known * params.rho**2)
+        sd = sigma * jnp.sqrt(1.0 - memory**2)
         return mean_acc, sd
 
     def mean_acceleration(params, state: NoiseMemoryState, inputs: NoiseMemoryInputs) -> Array:
