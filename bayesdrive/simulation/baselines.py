@@ -41,6 +41,7 @@ from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.cidm import CIDM, CIDMParams
 from bayesdrive.drivers.execution_noise import (
+    acceleration_ceiling,
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
@@ -90,12 +91,15 @@ def _constant_mean(
 
 
 def _constant_sample(key, params, state, inputs) -> EgoState:
-    return noisy_step(key, state, _constant_mean(params, state, inputs), params.sigma, inputs.dt)
+    mean_acc = _constant_mean(params, state, inputs)
+    ceiling = acceleration_ceiling(state.v, inputs)
+    return noisy_step(key, state, mean_acc, params.sigma, inputs.dt, ceiling)
 
 
 def _constant_logpdf(params, state, next_state, inputs) -> Array:
     mean_acc = _constant_mean(params, state, inputs)
-    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt)
+    ceiling = acceleration_ceiling(state.v, inputs)
+    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt, ceiling)
 
 
 CONSTANT_ACCELERATION = DriverModel(

@@ -283,12 +283,13 @@ def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt):
 
 
 def test_speed_dependent_noise_sd_grows_with_speed():
-    """The density's sd in acceleration units is sigma (1 + k v)."""
+    """The density's sd in acceleration units is sigma (1 + k v); the leader 80 m ahead keeps
+    every speed's step inside the physical limits, where the density is Gaussian."""
     extended = extend("speed_dependent_noise", IDM)
     params = params_for(extended, 0.15)
     for v in (2.0, 12.0, 25.0):
         state = EgoState(jnp.float32(0.0), jnp.float32(v))
-        inputs = read_by(extended.model, make_inputs())
+        inputs = read_by(extended.model, make_inputs(gap=jnp.float32(80.0)))
 
         def logpdf_of_dx(dx, state=state, inputs=inputs):
             nxt = EgoState(jnp.float32(dx), state.v)

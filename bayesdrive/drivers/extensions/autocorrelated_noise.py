@@ -31,10 +31,11 @@ step and the one before, so any exactly observed model with white noise can be w
 reaction delay included). :func:`with_autocorrelated_noise`'s ``lift`` recovers it, so each step
 is scored exactly given the observed past.
 
-**Stops.** A step that ends in a stop censors its acceleration (the speed is clipped at 0), so the
-residual is unknown afterwards; the process then restarts from its stationary distribution
-(``known = 0``: mean :math:`a_{base}`, sd :math:`\sigma`). Simulation does the same, so sampler and
-density describe one process.
+**Stops and limits.** A step that ends in a stop or at a physical limit censors its acceleration
+(the speed is clipped at 0, the acceleration at the floor or the ceiling:
+:mod:`bayesdrive.drivers.execution_noise`), so the residual is unknown afterwards; the process
+then restarts from its stationary distribution (``known = 0``: mean :math:`a_{base}`, sd
+:math:`\sigma`). Simulation does the same, so sampler and density describe one process.
 
 ============  ====  =======  ============  =================================================
 name          unit  default  prior bounds  meaning
@@ -53,7 +54,13 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, Series
-from bayesdrive.drivers.execution_noise import STOP_SPEED, noisy_step, step_logpdf
+from bayesdrive.drivers.execution_noise import (
+    acceleration_ceiling,
+    censored_step,
+    implied_acceleration,
+    noisy_step,
+    step_logpdf,
+)
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
     base_params,
@@ -122,11 +129,6 @@ class NoiseMemoryInputs(NamedTuple):
         return self.now.dt
 
 
-def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:
-    """The acceleration that turns speed ``v`` into position increment ``dx`` over ``dt``."""
-    return 2.0 * (dx - v * dt) / dt**2
-
-
 @functools.cache
 def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
     """``base`` (any exactly observed model with white noise of sd ``sigma``, its ``noise_sd``, a
@@ -153,20 +155,29 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
 
     def transition_sample(key: Array, params, state: NoiseMemoryState, inputs: NoiseMemoryInputs):
         mean_acc, sd = conditional(params, state, inputs)
-        moved = noisy_step(key, EgoState(state.x, state.v), mean_acc, sd, inputs.dt)
-        applied = implied_acceleration(state.v, moved.x - state.x, inputs.dt)
-        residual = applied - base_mean(params, state.v, inputs.now)
-        known = (moved.v > STOP_SPEED).astype(moved.v.dtype)
+        ceiling = acceleration_ceiling(state.v, inputs.now)
+        moved = noisy_step(key, EgoState(state.x, state.v), mean_acc, sd, inputs.dt, ceiling)
+        dx = moved.x - state.x
+        residual = implied_acceleration(state.v, dx, inputs.dt) - base_mean(
+            params, state.v, inputs.now
+        )
+        censored = censored_step(state.v, moved.v, dx, inputs.dt, ceiling)
+        known = (~censored).astype(moved.v.dtype)
         return NoiseMemoryState(moved.x, moved.v, known * residual, known)
 
     def transition_logpdf(params, state: NoiseMemoryState, next_state, inputs) -> Array:
         mean_acc, sd = conditional(params, state, inputs)
-        return step_logpdf(EgoState(state.x, state.v), next_state, mean_acc, sd, inputs.dt)
+        ceiling = acceleration_ceiling(state.v, inputs.now)
+        ego = EgoState(state.x, state.v)
+        return step_logpdf(ego, next_state, mean_acc, sd, inputs.dt, ceiling)
 
     def lift(params, state: EgoState, inputs: NoiseMemoryInputs) -> NoiseMemoryState:
-        applied = implied_acceleration(inputs.previous_v, inputs.previous_dx, inputs.dt)
-        residual = applied - base_mean(params, inputs.previous_v, inputs.previous)
-        known = (state.v > STOP_SPEED).astype(state.v.dtype)
+        before = inputs.previous_v
+        applied = implied_acceleration(before, inputs.previous_dx, inputs.dt)
+        residual = applied - base_mean(params, before, inputs.previous)
+        ceiling = acceleration_ceiling(before, inputs.previous)
+        censored = censored_step(before, state.v, inputs.previous_dx, inputs.dt, ceiling)
+        known = (~censored).astype(state.v.dtype)
         return NoiseMemoryState(state.x, state.v, known * residual, known)
 
     def initial_sample(key: Array, params, obs: EgoState) -> NoiseMemoryState:
