@@ -257,9 +257,9 @@ def test_autocorrelated_noise_lift_recovers_the_drawn_residual():
 
 @pytest.mark.parametrize("dt", [0.1, 0.5])
 def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt):
-    """A long simulated residual chain has sd sigma and lag-one-step correlation exp(-dt / T): the
+    """A long simulated residual chain has sd sigma and lag-one-step correlation T / (T + dt): the
     correlation time T = 0.5 s is in seconds, the per-step correlation follows the data's step
-    (0.82 at 10 Hz, 0.37 at 2 Hz).
+    (0.83 at 10 Hz, 0.5 at 2 Hz).
 
     20000 steps (seed 3), sigma = 0.3, constant inputs: the lag-1 sample correlation has sd about
     (1 - rho^2) / sqrt(n) < 0.01, we allow 0.03; the sd is allowed 5%.
@@ -278,7 +278,7 @@ def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt):
     _, residuals = jax.lax.scan(step, start, jax.random.split(jax.random.key(3), 20000))
     residuals = np.asarray(residuals, np.float64)[100:]
     assert abs(residuals.std() - 0.3) < 0.05 * 0.3
-    expected = math.exp(-dt / 0.5)
+    expected = 0.5 / (0.5 + dt)
     assert abs(np.corrcoef(residuals[1:], residuals[:-1])[0, 1] - expected) < 0.03
 
 

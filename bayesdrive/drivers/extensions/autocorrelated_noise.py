@@ -1,4 +1,4 @@
-r"""Autocorrelated execution noise: the acceleration error is an Ornstein-Uhlenbeck process.
+r"""Autocorrelated execution noise: the acceleration error, a sampled Ornstein-Uhlenbeck process.
 
 With :math:`e_t` the deviation of the applied acceleration from the base rule and :math:`T_e`
 (``noise_time_s``) its correlation time in seconds, sampled every :math:`\Delta t`,
@@ -6,13 +6,17 @@ With :math:`e_t` the deviation of the applied acceleration from the base rule an
 .. math::
 
     e_t = \rho\, e_{t-1} + \sqrt{1 - \rho^2}\,\sigma\, z_t, \quad z_t \sim N(0, 1), \qquad
-    \rho = \exp(-\Delta t / T_e), \qquad a_t = a_{base,t} + e_t,
+    \rho = \frac{T_e}{T_e + \Delta t}, \qquad a_t = a_{base,t} + e_t,
 
-the exact discretisation of a stationary Ornstein-Uhlenbeck process: each :math:`e_t` has the base
-model's marginal sd :math:`\sigma` and the error's correlation after :math:`k` seconds is
-:math:`\exp(-k / T_e)` whatever the sampling rate. The per-step :math:`\rho` is derived from each
-step's own :math:`\Delta t`, so a fit at 10 Hz and one at 2 Hz estimate the same parameter.
-:math:`T_e = 0` is white noise (the base model, nested).
+a stationary AR(1) with the base model's marginal sd :math:`\sigma`: the implicit (backward
+Euler) discretisation of the Ornstein-Uhlenbeck process :math:`de = -e/T_e\,dt + \ldots`, so the
+error's correlation after :math:`k` seconds, :math:`(1 + \Delta t/T_e)^{-k/\Delta t}`, tends to
+:math:`\exp(-k / T_e)` as the sampling gets finer. The per-step :math:`\rho` is derived from each step's own
+:math:`\Delta t`, so fits at 10 Hz and at 2 Hz estimate the same parameter. :math:`T_e = 0` is
+white noise (the base model, nested). The exact discretisation :math:`\exp(-\Delta t/T_e)` is
+flat to every order at :math:`T_e = 0`: the criticism's score test of the extension at its off
+value (:func:`bayesdrive.criticism.checks.score_check`) would have no power, whereas this slope
+there is :math:`1/\Delta t`, so the test is the one in :math:`\rho`.
 
 **Bounds and prior.** :math:`T_e` is uniform on [0, 5] s. An execution error (the foot off the
 intended pedal position) is a motor deviation drivers correct within seconds; one that persists
@@ -94,14 +98,11 @@ AR_SPECS = (
         grid_step=0.1,
     ),
 )
-# Below this correlation time the per-step correlation exp(-dt / T) is below 1e-40 at any data
-# rate (dt >= 0.01 s); flooring T there keeps its gradient finite at T = 0.
-_WHITE_NOISE_TIME_S = 1e-4
 
 
 def step_correlation(noise_time_s: Array, dt: Array) -> Array:
-    """The lag-one-step correlation exp(-dt / T) of an error with correlation time T seconds."""
-    return jnp.exp(-dt / jnp.maximum(noise_time_s, _WHITE_NOISE_TIME_S))
+    """The lag-one-step correlation T / (T + dt) of an error with correlation time T seconds."""
+    return noise_time_s / (noise_time_s + dt)
 
 
 class NoiseMemoryState(NamedTuple):
