@@ -13,8 +13,9 @@ of :math:`d_{des}` is floored at 0 as in Treiber's formulation, so a fast-recedi
 pulls the ego closer than :math:`d_{min}`.
 
 Stochastic IDM: :math:`a \sim \mathcal N(a_{IDM}, \sigma^2)`, the Gaussian execution noise of
-:mod:`bayesdrive.drivers.execution_noise` (sigma = the paper's :math:`\sigma_{IDM}`; that module
-says what the likelihood scores).
+:mod:`bayesdrive.drivers.execution_noise` (sigma = the paper's :math:`\sigma_{IDM}`), censored at
+the vehicle's physical limits and the collision-free ceiling; that module says what the
+likelihood scores.
 
 Parameters, units, bounds of the uniform priors (the same for every engine) and defaults
 (Treiber's textbook values where the paper lists them):

@@ -65,7 +65,12 @@ from jax import Array
 from jax.scipy.stats import norm
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, observed_lift
-from bayesdrive.drivers.execution_noise import STOP_SPEED, increment_law, step_logpdf
+from bayesdrive.drivers.execution_noise import (
+    STOP_SPEED,
+    acceleration_ceiling,
+    increment_law,
+    step_logpdf,
+)
 
 __all__ = [
     "CAUSE",
@@ -135,7 +140,8 @@ def _noise_filter(base: DriverModel, base_params, params, steps: Any) -> Array:
         sigma = base.noise_sd(own, state)
         law = increment_law(v, rule, sigma, dt)
         moving = norm.logpdf(dx, law.mean - mean, jnp.sqrt(law.sd**2 + noise_var + var))
-        stopped = step_logpdf(state, EgoState(dx, next_v), rule, sigma, dt)
+        ceiling = acceleration_ceiling(v, inputs)
+        stopped = step_logpdf(state, EgoState(dx, next_v), rule, sigma, dt, ceiling)
         return jnp.where(next_v <= STOP_SPEED, stopped, moving)
 
     return jax.vmap(one)(steps.inputs, steps.v, steps.next_v, steps.dx, mean, var)

@@ -41,6 +41,7 @@ from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.cidm import CIDM, CIDMParams
 from bayesdrive.drivers.execution_noise import (
+    MAX_ACCELERATION,
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
@@ -89,13 +90,16 @@ def _constant_mean(
     return jnp.broadcast_to(params.acc, jnp.shape(state.v))
 
 
+# A baseline that does not react to its leader does not brake to avoid it either (the paper's
+# constant-velocity baseline collides): the physical limits only, no collision-free ceiling.
 def _constant_sample(key, params, state, inputs) -> EgoState:
-    return noisy_step(key, state, _constant_mean(params, state, inputs), params.sigma, inputs.dt)
+    mean_acc = _constant_mean(params, state, inputs)
+    return noisy_step(key, state, mean_acc, params.sigma, inputs.dt, MAX_ACCELERATION)
 
 
 def _constant_logpdf(params, state, next_state, inputs) -> Array:
     mean_acc = _constant_mean(params, state, inputs)
-    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt)
+    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt, MAX_ACCELERATION)
 
 
 CONSTANT_ACCELERATION = DriverModel(

@@ -26,6 +26,7 @@ from jax import Array
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState
 from bayesdrive.drivers.execution_noise import (
+    acceleration_ceiling,
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
@@ -101,12 +102,13 @@ def blackbox_model(net: MLP) -> DriverModel:
     def transition_sample(key, params, state: EgoState, inputs: CarFollowingInputs) -> EgoState:
         del params
         mean, sd = mlp_outputs(net, state.v, inputs.gap, inputs.lead_v)
-        return noisy_step(key, state, mean, sd, inputs.dt)
+        return noisy_step(key, state, mean, sd, inputs.dt, acceleration_ceiling(state.v, inputs))
 
     def transition_logpdf(params, state, next_state, inputs: CarFollowingInputs) -> Array:
         del params
         mean, sd = mlp_outputs(net, state.v, inputs.gap, inputs.lead_v)
-        return step_logpdf(state, next_state, mean, sd, inputs.dt)
+        ceiling = acceleration_ceiling(state.v, inputs)
+        return step_logpdf(state, next_state, mean, sd, inputs.dt, ceiling)
 
     return DriverModel(
         name="blackbox",

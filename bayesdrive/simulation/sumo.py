@@ -41,7 +41,7 @@ on a model with other changes to the IDM; the driverstate device's Ornstein-Uhle
 enters at the perception stage only, as errors of the perceived gap and speed difference in
 proportion to the gap (SUMO's Driver State documentation, ``MSSimpleDriverState``), not as an
 acceleration error. So ``sigma`` is written as a ``<param>`` and refused as a simulated
-quantity in one line naming it; the extensions' driver parameters (autocorrelation ``rho``,
+quantity in one line naming it; the extensions' driver parameters (``noise_time_s``,
 ``reaction_time``, ...) have no carrier either, and a result of such a model is refused in one
 line naming the parameter. Parameters of the observation (``sigma_obs``) describe the data, not
 the driver, and are kept as ``<param>`` entries.
@@ -189,8 +189,9 @@ SIGMA_NOT_CARRIED = (
     "are deterministic and sigma is kept as a <param>"
 )
 NO_SUMO_CARRIER = {
-    "rho": "the autocorrelation of the execution noise: SUMO's only Ornstein-Uhlenbeck error "
-    "(driverstate device) perturbs the perceived gap and speed difference, not the acceleration",
+    "noise_time_s": "the correlation time of the execution noise: SUMO's only Ornstein-Uhlenbeck "
+    "error (driverstate device) perturbs the perceived gap and speed difference, not the "
+    "acceleration",
     "reaction_time": "a delay of the driver's inputs: SUMO's actionStepLength holds decisions "
     "between action points, and the EIDM's treaction sits in a model that is not the IDM",
     "noise_speed_slope": "execution noise growing with speed: SUMO carries no execution noise",

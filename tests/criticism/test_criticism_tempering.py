@@ -19,6 +19,7 @@ import pytest
 from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
 from bayesdrive.drivers.base import DriverModel, ParamSpec
 from bayesdrive.drivers.execution_noise import (
+    MAX_ACCELERATION,
     exact_initial_sample,
     exact_observation_logpdf,
     noisy_step,
@@ -53,8 +54,12 @@ LINEAR = DriverModel(
         ParamSpec("theta1", "1/s", 0.0, LOWER[1], UPPER[1], "relative-speed gain"),
     ),
     mean_acceleration=_mean,
-    transition_sample=lambda key, p, s, i: noisy_step(key, s, _mean(p, s, i), SIGMA, i.dt),
-    transition_logpdf=lambda p, s, n, i: step_logpdf(s, n, _mean(p, s, i), SIGMA, i.dt),
+    transition_sample=lambda key, p, s, i: noisy_step(
+        key, s, _mean(p, s, i), SIGMA, i.dt, MAX_ACCELERATION
+    ),
+    transition_logpdf=lambda p, s, n, i: step_logpdf(
+        s, n, _mean(p, s, i), SIGMA, i.dt, MAX_ACCELERATION
+    ),
     observation_logpdf=exact_observation_logpdf,
     initial_sample=exact_initial_sample,
 )

@@ -55,7 +55,7 @@ def _first_acceleration(rolled: Rollouts, series) -> np.ndarray:
 
 
 def test_filtered_start_recovers_the_delay_buffer_and_the_ar_residual(generated):
-    """Reaction delay 0.8 s and AR noise rho 0.9 with a negligible sd (1e-6 m/s^2, so a rollout's
+    """Reaction delay 0.8 s and AR noise of correlation time 1 s with a negligible sd (1e-6 m/s^2, so a rollout's
     first step is its mean): from ``filtered`` that first acceleration is the model's mean on the
     data's own series at the window's start, the delayed perception and the last residual read
     from the observed history (the engines' view of the data), within 1e-3 m/s^2 (float32
@@ -65,7 +65,7 @@ def test_filtered_start_recovers_the_delay_buffer_and_the_ar_residual(generated)
     windows = heldout_windows(series, 1.0)
     assert len(windows.row) >= 4
     model = get_model(DELAY_AR)
-    values = {"reaction_time": 0.8, "rho": 0.9, "sigma": 1e-6}
+    values = {"reaction_time": 0.8, "noise_time_s": 1.0, "sigma": 1e-6}
     theta = _theta(model, series, **values)
     key = jax.random.key(3)
     filtered, stationary = (

@@ -10,7 +10,7 @@ import pytest
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
 from bayesdrive.drivers.cidm import CIDM, MergeInputs, cidm_acceleration, yield_target
-from bayesdrive.drivers.execution_noise import noisy_step
+from bayesdrive.drivers.execution_noise import acceleration_ceiling, noisy_step
 from bayesdrive.drivers.idm import IDM, idm_acceleration
 
 DT = 0.1
@@ -255,7 +255,8 @@ def test_yielding_moves_the_noise_and_the_density_with_the_cidm_mean():
 
     key = jax.random.key(9)
     sampled = CIDM.transition_sample(key, params, state, inputs)
-    expected = noisy_step(key, state, a_cidm, params.sigma, DT)
+    ceiling = acceleration_ceiling(state.v, inputs)
+    expected = noisy_step(key, state, a_cidm, params.sigma, DT, ceiling)
     assert float(sampled.x) == float(expected.x) and float(sampled.v) == float(expected.v)
 
     def logp(acc):

@@ -12,7 +12,12 @@ import pytest
 from scipy import stats
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState
-from bayesdrive.drivers.execution_noise import STOP_SPEED
+from bayesdrive.drivers.execution_noise import (
+    LIMIT_TOLERANCE,
+    MAX_BRAKING,
+    STOP_SPEED,
+    acceleration_ceiling,
+)
 from bayesdrive.drivers.idm import IDM, idm_acceleration
 from bayesdrive.inference.core.likelihood import StepInputs
 
@@ -99,26 +104,55 @@ def _mean_acc(params, v, inputs):
     return np.asarray(_model_mean(params, jnp.asarray(v, dtype=float), inputs), dtype=np.float64)
 
 
+def _censored_logpdf(v, dx, next_v, a, sigma, ceiling):
+    """The censored step law (drivers/execution_noise.py) written again with scipy in float64:
+    the Gaussian increment density inside the limits, else the log-probability of the observed
+    class under the clipped acceleration (none below the floor, all of it from the ceiling on)."""
+    acc = 2.0 * (dx - v * DT) / DT**2
+    raw = stats.norm(a, sigma)
+    stop_at = (STOP_SPEED - v) / DT
+    floor_at, ceiling_at = -MAX_BRAKING + LIMIT_TOLERANCE, ceiling - LIMIT_TOLERANCE
+    stopped = next_v <= STOP_SPEED
+    floor = ~stopped & (acc <= floor_at)
+    top = ~stopped & ~floor & (acc >= ceiling_at)
+    reachable, forced = stop_at >= -MAX_BRAKING, stop_at >= ceiling
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_stop = np.where(reachable, raw.logcdf(stop_at), -np.inf)
+        log_stop = np.where(forced, 0.0, log_stop)
+        log_floor = raw.logcdf(floor_at) + np.log1p(-np.exp(log_stop - raw.logcdf(floor_at)))
+        log_floor = np.where(forced | (stop_at >= floor_at), -np.inf, log_floor)
+        log_top = np.where(forced, -np.inf, raw.logsf(np.maximum(ceiling_at, stop_at)))
+    censored = np.where(stopped, log_stop, np.where(floor, log_floor, log_top))
+    inside = stats.norm.logpdf(dx, v * DT + 0.5 * a * DT**2, sigma * DT**2 / 2)
+    return np.where(stopped | floor | top, censored, inside)
+
+
 def _scipy_case(n: int = 400):
-    """Steps with observed increments within +-3 sd of the prediction, every 4th an observed
-    stop, and their log-densities by scipy (an independent formula)."""
+    """Steps with observed increments within +-3 sd of the unbounded prediction (some beyond the
+    floor or the ceiling), every 4th an observed stop from 0-1.2 m/s (beyond 0.9 m/s no car stops
+    in one step), and their log-densities by scipy (an independent formula)."""
     rng = np.random.default_rng(20240611)
     params = IDM.defaults()
     sigma = float(params.sigma)
-    v = rng.uniform(0.0, 30.0, n)
+    stopped = np.arange(n) % 4 == 0
+    v = np.where(stopped, rng.uniform(0.0, 1.2, n), rng.uniform(0.0, 30.0, n))
     inputs = _step_inputs(rng.uniform(2.0, 60.0, n), rng.uniform(0.0, 30.0, n))
     a = _mean_acc(params, v, inputs)
     predicted = v * DT + 0.5 * a * DT**2
     dx = predicted + rng.uniform(-3, 3, n) * sigma * DT**2 / 2
-    stopped = np.arange(n) % 4 == 0
     next_v = np.where(stopped, 0.0, np.maximum(v + a * DT, 1.0))
-    expected = np.where(
-        stopped,
-        # P(v + a' dt <= STOP_SPEED) for a' ~ N(a, sigma^2)
-        stats.norm.logcdf((STOP_SPEED - v - a * DT) / (sigma * DT)),
-        stats.norm.logpdf(dx, loc=predicted, scale=sigma * DT**2 / 2),
+    ceiling = np.asarray(
+        jax.vmap(acceleration_ceiling)(jnp.asarray(v, dtype=float), inputs), np.float64
     )
+    expected = _censored_logpdf(v, dx, next_v, a, sigma, ceiling)
     return params, v, dx, next_v, inputs, stopped, expected
+
+
+def assert_matches_scipy(got, expected):
+    """Equal within SCIPY_TOL, -inf (an impossible observation) where scipy says so."""
+    np.testing.assert_array_equal(np.isneginf(got), np.isneginf(expected))
+    possible = np.isfinite(expected)
+    np.testing.assert_allclose(got[possible], expected[possible], **SCIPY_TOL)
 
 
 # float32 increments of ~3 m carry ~2e-7 m rounding = 1e-4 sd: well under 2e-3 nats.
@@ -126,9 +160,13 @@ SCIPY_TOL = {"atol": 2e-3, "rtol": 1e-5}
 
 
 def test_step_logpdf_matches_an_independent_scipy_formula():
-    params, v, dx, next_v, inputs, _, expected = _scipy_case()
+    params, v, dx, next_v, inputs, stopped, expected = _scipy_case()
     got = _logpdf(params, v, dx, next_v, inputs)
-    np.testing.assert_allclose(got, expected, **SCIPY_TOL)
+    assert_matches_scipy(got, expected)
+    # The case reaches every class: possible and impossible stops, the floor, the ceiling.
+    acc = 2.0 * (dx - v * DT) / DT**2
+    assert np.isneginf(expected[stopped]).any() and np.isfinite(expected[stopped]).any()
+    assert (acc[~stopped] <= -MAX_BRAKING).sum() >= 5
 
 
 def test_series_logpdf_matches_the_scipy_formula_with_and_without_stops():
@@ -150,9 +188,10 @@ def test_series_logpdf_matches_the_scipy_formula_with_and_without_stops():
         return np.asarray(jax.jit(IDM.series_logpdf)(params, steps), dtype=np.float64)
 
     everything = np.arange(len(v))
-    np.testing.assert_allclose(series(everything), expected, **SCIPY_TOL)
-    moving = np.flatnonzero(~stopped)
-    np.testing.assert_allclose(series(moving), expected[moving], **SCIPY_TOL)
+    assert_matches_scipy(series(everything), expected)
+    acc = 2.0 * (dx - v * DT) / DT**2
+    inside = np.flatnonzero(~stopped & (acc > -MAX_BRAKING + 0.1) & (acc < 5.0))
+    assert_matches_scipy(series(inside), expected[inside])
     # Negative control: the stop steps scored as moving ones are far from their stop mass.
     as_moving = _logpdf(params, v, dx, np.where(stopped, 1.0, next_v), inputs)
     assert np.min(np.abs(as_moving[stopped] - expected[stopped])) > 1.0
@@ -250,14 +289,18 @@ def test_float32_increments_keep_the_density_where_absolute_positions_lose_it():
     x_start = rng.uniform(300.0, 800.0, n)
     x_next = x_start + dx
     exact = stats.norm.logpdf(dx, predicted, sd)  # float64 throughout
+    # The Gaussian density holds inside the physical limits (steps well inside them here).
+    ceiling = np.asarray(jax.vmap(acceleration_ceiling)(jnp.asarray(v, dtype=float), inputs))
+    inside = (a > -MAX_BRAKING + 1.0) & (a < ceiling - 1.0)
+    assert inside.sum() > n / 2
 
     from_increments = _logpdf(params, v, dx.astype(np.float32), np.ones(n), inputs)
-    assert np.max(np.abs(from_increments - exact)) < 1e-3
+    assert np.max(np.abs(from_increments - exact)[inside]) < 1e-3
 
     # What the increments avoid: subtracting two float32 positions of hundreds of metres.
     dx_from_positions = x_next.astype(np.float32) - x_start.astype(np.float32)
     from_positions = _logpdf(params, v, dx_from_positions, np.ones(n), inputs)
-    assert np.median(np.abs(from_positions - exact)) > 1e-3
+    assert np.median(np.abs(from_positions - exact)[inside]) > 1e-3
 
 
 def _leader_speed_profiles(rng, cases, steps):

@@ -152,42 +152,68 @@ def test_sampler_agrees_with_density(cause):
     assert stats.kstest(wrong, stats.norm(mean, sd).cdf).pvalue < 1e-6
 
 
+def perceived_idm(gap, own_then, lead_then) -> jax.Array:
+    """The IDM at the ego's current speed, perceiving ``gap`` and the closing speed
+    ``own_then - lead_then`` (the ego's and the leader's speeds as they were)."""
+    return idm_acceleration(IDM.defaults(), STATE.v, gap, STATE.v - (own_then - lead_then), 1.0)
+
+
 @pytest.mark.parametrize("steps_back", [0, 3, 7])
 def test_reaction_delay_at_whole_steps_reads_the_lagged_inputs(steps_back):
-    """A delay of exactly k steps evaluates the IDM on the inputs k steps ago."""
+    """A delay of exactly k steps perceives the gap and the closing speed of k steps ago; the own
+    speed in the free-road and time-gap terms is the current one."""
     extended = extend("reaction_delay", IDM)
     params = params_for(extended, steps_back * DT)
     inputs = make_inputs()
     got = extended.model.mean_acceleration(params, STATE, inputs)
-    expected = idm_acceleration(
-        IDM.defaults(),
-        inputs.lag_v[steps_back],
+    expected = perceived_idm(
         inputs.lag_gap[steps_back],
+        inputs.lag_v[steps_back],
         inputs.lag_lead_v[steps_back],
-        1.0,
     )
     np.testing.assert_allclose(got, expected, rtol=2e-5)
 
 
+def test_reaction_delay_keeps_the_own_speed_current():
+    """The ego's speed history rises 1 m/s per step (12 m/s now, 19 m/s 7 steps ago). On free
+    road nothing of a leader is perceived, so a delay of 0.7 s changes nothing: the free-road term
+    reads the current speed. Behind a leader whose gap and speed histories are flat, the result is
+    the IDM at the current speed with the closing speed of 0.7 s ago."""
+    extended = extend("reaction_delay", IDM)
+    params = params_for(extended, 0.7)
+    rising = 12.0 + jnp.arange(K + 1, dtype=jnp.float32)
+    free_road = make_inputs(has_leader=jnp.float32(0.0), lag_v=rising)
+    got = extended.model.mean_acceleration(params, STATE, free_road)
+    current = idm_acceleration(IDM.defaults(), STATE.v, 18.0, 11.0, 0.0)
+    np.testing.assert_allclose(got, current, rtol=1e-6)
+    then = idm_acceleration(IDM.defaults(), rising[7], 18.0, 11.0, 0.0)
+    assert abs(float(then) - float(current)) > 0.3
+    flat = make_inputs(
+        lag_v=rising,
+        lag_gap=jnp.full(K + 1, 18.0, jnp.float32),
+        lag_lead_v=jnp.full(K + 1, 11.0, jnp.float32),
+    )
+    got = extended.model.mean_acceleration(params, STATE, flat)
+    np.testing.assert_allclose(got, perceived_idm(18.0, rising[7], 11.0), rtol=2e-5)
+    whole_rule_delayed = idm_acceleration(IDM.defaults(), rising[7], 18.0, 11.0, 1.0)
+    assert abs(float(got) - float(whole_rule_delayed)) > 0.3
+
+
 def test_a_leader_that_cut_in_is_perceived_from_its_entry_on():
-    """0.7 s of delay, but the leader cut in 2 steps ago: its gap and speed are perceived as on
-    entry (lag 2), the driver's own speed as 7 steps ago; an old leader would be lag 7."""
+    """0.7 s of delay, but the leader cut in 2 steps ago: its gap and the closing speed are
+    perceived as on entry (lag 2); an old leader would be lag 7."""
     extended = extend("reaction_delay", IDM)
     params = params_for(extended, 0.7)
     inputs = make_inputs(lead_age=jnp.float32(2.0))
     got = extended.model.mean_acceleration(params, STATE, inputs)
-    expected = idm_acceleration(
-        IDM.defaults(), inputs.lag_v[7], inputs.lag_gap[2], inputs.lag_lead_v[2], 1.0
-    )
+    expected = perceived_idm(inputs.lag_gap[2], inputs.lag_v[2], inputs.lag_lead_v[2])
     np.testing.assert_allclose(got, expected, rtol=2e-5)
-    old_leader = idm_acceleration(
-        IDM.defaults(), inputs.lag_v[7], inputs.lag_gap[7], inputs.lag_lead_v[7], 1.0
-    )
+    old_leader = perceived_idm(inputs.lag_gap[7], inputs.lag_v[7], inputs.lag_lead_v[7])
     assert abs(float(got) - float(old_leader)) > 0.05
 
 
 def test_reaction_delay_interpolates_between_samples():
-    """0.25 s at 10 Hz is a quarter of the way from lag 2 to lag 3, for every delayed input."""
+    """0.25 s at 10 Hz is half way from lag 2 to lag 3, for every delayed input."""
     extended = extend("reaction_delay", IDM)
     params = params_for(extended, 0.25)
     inputs = make_inputs()
@@ -197,12 +223,8 @@ def test_reaction_delay_interpolates_between_samples():
         return 0.5 * lagged[2] + 0.5 * lagged[3]
 
     # float32: 0.25 / 0.1 = 2.5 exactly enough; the interpolation weight is 0.5.
-    expected = idm_acceleration(
-        IDM.defaults(),
-        between(inputs.lag_v),
-        between(inputs.lag_gap),
-        between(inputs.lag_lead_v),
-        1.0,
+    expected = perceived_idm(
+        between(inputs.lag_gap), between(inputs.lag_v), between(inputs.lag_lead_v)
     )
     np.testing.assert_allclose(got, expected, rtol=2e-5)
 
@@ -233,15 +255,18 @@ def test_autocorrelated_noise_lift_recovers_the_drawn_residual():
     np.testing.assert_allclose(first.residual, applied - base, atol=2e-4)
 
 
-def test_autocorrelated_noise_is_a_stationary_ar1():
-    """A long simulated residual chain has sd sigma and lag-1 correlation rho.
+@pytest.mark.parametrize("dt", [0.1, 0.5])
+def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt):
+    """A long simulated residual chain has sd sigma and lag-one-step correlation T / (T + dt): the
+    correlation time T = 0.5 s is in seconds, the per-step correlation follows the data's step
+    (0.83 at 10 Hz, 0.5 at 2 Hz).
 
-    20000 steps (seed 3) at rho = 0.8, sigma = 0.3, constant inputs: the lag-1 sample correlation
-    has sd about sqrt((1 - rho^2)^2 / n)... we allow 0.03; the sd is allowed 5%.
+    20000 steps (seed 3), sigma = 0.3, constant inputs: the lag-1 sample correlation has sd about
+    (1 - rho^2) / sqrt(n) < 0.01, we allow 0.03; the sd is allowed 5%.
     """
     extended = extend("autocorrelated_noise", IDM)
-    params = params_for(extended, 0.8)
-    inputs = read_by(extended.model, make_inputs())
+    params = params_for(extended, 0.5)
+    inputs = read_by(extended.model, make_inputs(dt=jnp.float32(dt)))
     start = extended.model.initial_sample(jax.random.key(0), params, STATE)
 
     def step(state, key):
@@ -253,16 +278,18 @@ def test_autocorrelated_noise_is_a_stationary_ar1():
     _, residuals = jax.lax.scan(step, start, jax.random.split(jax.random.key(3), 20000))
     residuals = np.asarray(residuals, np.float64)[100:]
     assert abs(residuals.std() - 0.3) < 0.05 * 0.3
-    assert abs(np.corrcoef(residuals[1:], residuals[:-1])[0, 1] - 0.8) < 0.03
+    expected = 0.5 / (0.5 + dt)
+    assert abs(np.corrcoef(residuals[1:], residuals[:-1])[0, 1] - expected) < 0.03
 
 
 def test_speed_dependent_noise_sd_grows_with_speed():
-    """The density's sd in acceleration units is sigma (1 + k v)."""
+    """The density's sd in acceleration units is sigma (1 + k v); the leader 80 m ahead keeps
+    every speed's step inside the physical limits, where the density is Gaussian."""
     extended = extend("speed_dependent_noise", IDM)
     params = params_for(extended, 0.15)
     for v in (2.0, 12.0, 25.0):
         state = EgoState(jnp.float32(0.0), jnp.float32(v))
-        inputs = read_by(extended.model, make_inputs())
+        inputs = read_by(extended.model, make_inputs(gap=jnp.float32(80.0)))
 
         def logpdf_of_dx(dx, state=state, inputs=inputs):
             nxt = EgoState(jnp.float32(dx), state.v)
@@ -502,7 +529,7 @@ def test_drift_filter_prefers_the_true_drift():
 @pytest.mark.parametrize(
     ("composite", "off", "equals"),
     [
-        ("idm+reaction_delay+autocorrelated_noise", {"rho": 0.0}, "idm+reaction_delay"),
+        ("idm+reaction_delay+autocorrelated_noise", {"noise_time_s": 0.0}, "idm+reaction_delay"),
         (
             "idm+reaction_delay+autocorrelated_noise",
             {"reaction_time": 0.0},
@@ -522,7 +549,7 @@ def test_a_composite_with_one_extension_off_scores_like_the_other(composite, off
 
     series = scored_series(three_car_platoon())
     joined, single = get_model(composite), get_model(equals)
-    on = {"reaction_time": 0.37, "rho": 0.6, "anticipation": 0.5, "noise_speed_slope": 0.1}
+    on = {"reaction_time": 0.37, "noise_time_s": 0.2, "anticipation": 0.5, "noise_speed_slope": 0.1}
     values = {name: on.get(name, getattr(joined.defaults(), name)) for name in joined.param_names}
     values.update(off)
     joined_params = joined.params_type(*(jnp.float32(values[n]) for n in joined.param_names))

@@ -1,7 +1,8 @@
 """A model owns its inputs: model names, engine-model pairs, and an extension fitted by an engine.
 
-The engine test simulates its data here, with numpy and the IDM formula written out again (not the
-package's samplers), so the engine is never graded on data made by the code under test.
+The engine test fits data of the independent generator (``trafficgen``), so the engine is never
+graded on data made by the code under test; the inputs tests simulate a follower here with numpy
+and the IDM formula written out again.
 """
 
 from __future__ import annotations
@@ -81,12 +82,10 @@ def test_possible_pairs_pass(engine, name):
     check_engine_model(engine, get_model(name))
 
 
-def delayed_follower(
-    seed: int, delay_steps: int, num_steps: int = 400, time_gap_walk: float = 0.0
-) -> FollowerArrays:
-    """One IDM follower reacting ``delay_steps`` steps late to a leader whose speed wanders
-    (10-16 m/s), simulated with numpy; its time gap takes a random walk of sd ``time_gap_walk``
-    per sqrt(s) (kept within 0.5-2.5 s). The arrays carry an (empty) scene ahead of the leader."""
+def idm_follower(seed: int, num_steps: int, time_gap_walk: float = 0.0) -> FollowerArrays:
+    """One IDM follower behind a leader whose speed wanders (10-16 m/s), simulated with numpy;
+    its time gap takes a random walk of sd ``time_gap_walk`` per sqrt(s) (kept within 0.5-2.5 s).
+    The arrays carry an (empty) scene ahead of the leader."""
     rng = np.random.default_rng(seed)
     p = dict(TRUTH)
     time = np.arange(num_steps + 1) * DT
@@ -97,13 +96,12 @@ def delayed_follower(
     v[0] = 13.0
     for t in range(num_steps):
         p["tau"] = np.clip(p["tau"] + time_gap_walk * np.sqrt(DT) * rng.normal(), 0.5, 2.5)
-        k = max(t - delay_steps, 0)
-        seen_gap = lead_x[k] - length - x[k]
-        dynamic = v[k] * p["tau"] + v[k] * (v[k] - lead_v[k]) / (
+        gap = lead_x[t] - length - x[t]
+        dynamic = v[t] * p["tau"] + v[t] * (v[t] - lead_v[t]) / (
             2 * np.sqrt(p["a_max"] * p["b_pref"])
         )
         desired = p["d_min"] + max(0.0, dynamic)
-        rule = p["a_max"] * (1 - (v[k] / p["v_des"]) ** 4 - (desired / seen_gap) ** 2)
+        rule = p["a_max"] * (1 - (v[t] / p["v_des"]) ** 4 - (desired / gap) ** 2)
         acc = rule + p["sigma"] * rng.normal()
         v[t + 1] = max(0.0, v[t] + acc * DT)
         x[t + 1] = x[t] + 0.5 * (v[t] + v[t + 1]) * DT
@@ -132,7 +130,7 @@ def delayed_follower(
 
 
 def test_a_model_that_reads_its_past_is_scored_only_with_a_full_history():
-    arrays = delayed_follower(seed=1, delay_steps=0, num_steps=64)
+    arrays = idm_follower(seed=1, num_steps=64)
     delay = get_model("idm+reaction_delay")
     history = arrays.history
     steps = step_inputs(arrays, delay)
@@ -155,31 +153,55 @@ def test_a_model_that_reads_its_past_is_scored_only_with_a_full_history():
 
 
 def test_an_extension_without_its_inputs_is_refused_in_one_line():
-    arrays = delayed_follower(seed=1, delay_steps=0, num_steps=64)._replace(ahead=None)
+    arrays = idm_follower(seed=1, num_steps=64)._replace(ahead=None)
     with pytest.raises(ValueError, match="vehicle ahead of the leader"):
         step_inputs(arrays, extend("reaction_delay", IDM).model)
 
 
-def test_the_smc_engine_fits_a_reaction_delay():
-    """Data with a 0.6 s delay (seed 3, 40 s) and without (seed 4, the negative control), all IDM
-    parameters fixed at the truth: the smc posterior of the delay has its mean within 0.1 s of 0.6,
-    and on the control its mean is below 0.15 s with 0.6 s above its 99th percentile."""
+# trafficgen's parameter names and bayesdrive's.
+GENERATOR_NAMES = {"v0": "v_des", "s0": "d_min", "T": "tau", "a": "a_max", "b": "b_pref"}
+
+
+def test_the_smc_engine_fits_a_perception_delay_of_the_independent_generator(tmp_path):
+    """One follower of trafficgen (40 s, no cut-in) perceiving gap and closing speed 0.9 s late,
+    seed 3, and one without the delay (seed 4, the negative control); the IDM parameters and sigma
+    fixed at the generator's truth for that driver, 256 particles: the smc posterior of the delay
+    has its mean within 0.05 s of 0.9 and 0.9 inside its 1-99% interval (a delay of the own speed
+    too, a different mechanism, misses it); on the control its mean is below 0.15 s with 0.9 s
+    above its 99th percentile."""
+    from bayesdrive.data.readers import read
+    from bayesdrive.data.views import scored_series
+    from trafficgen import generate
+
     model = get_model("idm+reaction_delay")
     posterior = {}
-    for name, seed, delay in (("delayed", 3, 6), ("control", 4, 0)):
+    for name, seed, mechanisms in (
+        ("delayed", 3, {"perception_delay": (0.9, 0.9)}),
+        ("control", 4, None),
+    ):
+        path = tmp_path / f"{name}.csv"
+        recording = generate(
+            seed, path, mechanisms, platoons=1, followers=1, duration_s=40.0, cut_ins=0
+        )
+        truth = {
+            ours: float(recording.params[theirs][1]) for theirs, ours in GENERATOR_NAMES.items()
+        }
+        truth["sigma"] = float(recording.params["sigma"][1])
         tree = fit(
             jax.random.key(seed),
-            delayed_follower(seed, delay),
+            scored_series(read(path, format="ngsim_raw")),
             model=model,
             params=("reaction_time",),
-            fixed=TRUTH,
+            fixed=truth,
             num_particles=256,
             seed=seed,
         )
         posterior[name] = tree["posterior"]["reaction_time"].values.ravel()
-    assert abs(posterior["delayed"].mean() - 0.6) < 0.1
+    low, high = np.quantile(posterior["delayed"], [0.01, 0.99])
+    assert abs(posterior["delayed"].mean() - 0.9) < 0.05
+    assert low < 0.9 < high
     assert posterior["control"].mean() < 0.15
-    assert np.quantile(posterior["control"], 0.99) < 0.6
+    assert np.quantile(posterior["control"], 0.99) < 0.9
 
 
 @pytest.mark.extended
@@ -195,7 +217,7 @@ def test_the_smc_engine_fits_a_drifting_time_gap_through_its_filter():
     for name, seed, walk in (("drift", 5, 0.1), ("control", 6, 0.0)):
         tree = fit(
             jax.random.key(seed),
-            delayed_follower(seed, 0, num_steps=600, time_gap_walk=walk),
+            idm_follower(seed, num_steps=600, time_gap_walk=walk),
             model=model,
             params=("tau_drift",),
             fixed=TRUTH,
@@ -218,7 +240,7 @@ def test_smc_sequential_pass_refuses_a_model_with_a_state_filter():
     with pytest.raises(NotImplementedError, match="state filter"):
         fit(
             jax.random.key(0),
-            delayed_follower(0, 0, num_steps=64),
+            idm_follower(0, num_steps=64),
             model=get_model("idm+drifting_parameters"),
             sequential=True,
         )
@@ -248,12 +270,12 @@ def test_the_simulator_runs_an_extension_through_its_own_inputs():
     np.testing.assert_array_equal(np.asarray(off.x), np.asarray(base.x))
     late = run(delay, reaction_time=np.float32(1.0))
     assert float(late.gap[:, 0].min()) < float(base.gap[:, 0].min()) - 0.5
-    noisy = run(get_model("idm+autocorrelated_noise"), rho=np.float32(0.9))
+    noisy = run(get_model("idm+autocorrelated_noise"), noise_time_s=np.float32(1.0))
     assert np.isfinite(np.asarray(noisy.x)).all()
     composite = get_model("idm+reaction_delay+autocorrelated_noise")
     both_off = run(composite)
     np.testing.assert_allclose(np.asarray(both_off.x), np.asarray(base.x), atol=1e-4)
-    late_and_noisy = run(composite, reaction_time=np.float32(1.0), rho=np.float32(0.9))
+    late_and_noisy = run(composite, reaction_time=np.float32(1.0), noise_time_s=np.float32(1.0))
     assert float(late_and_noisy.gap[:, 0].min()) < float(base.gap[:, 0].min()) - 0.5
 
 
@@ -266,7 +288,7 @@ def test_generated_platoons_of_a_composite_model_start_in_equilibrium():
 
     composite = get_model("idm+reaction_delay+autocorrelated_noise")
     params = composite.defaults()._replace(
-        sigma=np.float32(0.0), reaction_time=np.float32(0.6), rho=np.float32(0.5)
+        sigma=np.float32(0.0), reaction_time=np.float32(0.6), noise_time_s=np.float32(0.15)
     )
     scenes = generate_scenes(
         jax.random.key(2), composite, broadcast_params(params, 2, 4), num_steps=20, dt=DT
@@ -291,7 +313,7 @@ def test_synthetic_followers_read_their_inputs_through_the_model():
     off = simulate_following(key, composite, params_of(composite), num_steps=60)
     np.testing.assert_allclose(off.dx, idm.dx, atol=1e-4)
     on = simulate_following(
-        key, composite, params_of(composite, reaction_time=0.8, rho=0.9), num_steps=60
+        key, composite, params_of(composite, reaction_time=0.8, noise_time_s=1.0), num_steps=60
     )
     assert np.abs(on.dx - idm.dx).max() > 1e-2
     gipps = simulate_following(key, get_model("gipps"), params_of(get_model("gipps")), num_steps=60)

@@ -15,6 +15,7 @@ from scipy.stats import multivariate_normal
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import CarFollowingInputs, DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.execution_noise import (
+    MAX_ACCELERATION,
     STOP_SPEED,
     exact_initial_sample,
     exact_observation_logpdf,
@@ -42,13 +43,13 @@ def linear_mean(params, state, inputs):
 
 
 def linear_sample(key, params, state, inputs):
-    return noisy_step(key, state, linear_mean(params, state, inputs), params.sigma, inputs.dt)
+    mean_acc = linear_mean(params, state, inputs)
+    return noisy_step(key, state, mean_acc, params.sigma, inputs.dt, MAX_ACCELERATION)
 
 
 def linear_logpdf(params, state, next_state, inputs):
-    return step_logpdf(
-        state, next_state, linear_mean(params, state, inputs), params.sigma, inputs.dt
-    )
+    mean_acc = linear_mean(params, state, inputs)
+    return step_logpdf(state, next_state, mean_acc, params.sigma, inputs.dt, MAX_ACCELERATION)
 
 
 SIGMA = 0.5

@@ -105,7 +105,7 @@ def test_population_drivers_are_rows_of_the_population_new_driver_draws():
 @pytest.mark.parametrize(
     ("model", "named"),
     [
-        ("idm+autocorrelated_noise", "rho has no SUMO carrier"),
+        ("idm+autocorrelated_noise", "noise_time_s has no SUMO carrier"),
         ("idm+reaction_delay", "reaction_time has no SUMO carrier"),
         ("idm+drifting_parameters", "tau_drift has no SUMO carrier"),
     ],

@@ -32,7 +32,7 @@ execution noise); a ``mean`` extension of a base that reads more than car follow
 Cooperative IDM's merge scene has no history window to delay, and the extensions would drop it).
 The priors stay those of each extension. Confounded pairs keep them too: a reaction delay and
 autocorrelated noise both make consecutive residuals of the undelayed white-noise model
-correlated, so with both the posterior of (reaction_time, rho) is often a ridge; the held-out
+correlated, so with both the posterior of (reaction_time, noise_time_s) is often a ridge; the held-out
 gain of the composite over either alone is what tells them apart (``bayesdrive criticize``).
 """
 

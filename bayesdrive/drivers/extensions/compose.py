@@ -1,7 +1,8 @@
 """How an extension wraps a driver model: extra parameters, and lifting observed data to states.
 
 Every extension wraps a model whose step is "mean acceleration plus Gaussian execution noise of
-the sd its ``noise_sd`` declares" (:mod:`bayesdrive.drivers.execution_noise`). The wrapped model's parameters are the inner
+the sd its ``noise_sd`` declares, within the physical limits and the collision-free ceiling"
+(:mod:`bayesdrive.drivers.execution_noise`). The wrapped model's parameters are the inner
 model's, in the same order, followed by the extension's own (with defaults that switch the
 extension off, so the inner model is nested in every extension).
 

@@ -37,8 +37,13 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
-from bayesdrive.drivers.execution_noise import STOP_SPEED, noisy_step, step_logpdf
-from bayesdrive.drivers.extensions.autocorrelated_noise import implied_acceleration
+from bayesdrive.drivers.execution_noise import (
+    STOP_SPEED,
+    acceleration_ceiling,
+    implied_acceleration,
+    noisy_step,
+    step_logpdf,
+)
 from bayesdrive.drivers.extensions.compose import (
     ExtendedModel,
     base_params,
@@ -95,7 +100,8 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         mean_acc = rule(params, offset, state.v, inputs)
         ego = EgoState(state.x, state.v)
         sigma = base.noise_sd(base_params(base, params), ego)
-        moved = noisy_step(key_step, ego, mean_acc, sigma, inputs.dt)
+        ceiling = acceleration_ceiling(state.v, inputs)
+        moved = noisy_step(key_step, ego, mean_acc, sigma, inputs.dt, ceiling)
         return DriftState(moved.x, moved.v, offset)
 
     def transition_logpdf(params, state: DriftState, next_state: DriftState, inputs) -> Array:
@@ -104,7 +110,8 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         mean_acc = rule(params, next_state.tau_offset, state.v, inputs)
         ego = EgoState(state.x, state.v)
         sigma = base.noise_sd(base_params(base, params), ego)
-        move = step_logpdf(ego, next_state, mean_acc, sigma, inputs.dt)
+        ceiling = acceleration_ceiling(state.v, inputs)
+        move = step_logpdf(ego, next_state, mean_acc, sigma, inputs.dt, ceiling)
         return drift + move
 
     def lift(params, state: EgoState, inputs: ExtendedInputs) -> DriftState:
@@ -133,7 +140,9 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
             state = EgoState(jnp.zeros_like(v), v)
             sigma = base.noise_sd(base_params(base, params), state)
             innovation_var = slope**2 * var + sigma**2
-            logp = step_logpdf(state, EgoState(dx, next_v), rule_at, jnp.sqrt(innovation_var), dt)
+            ceiling = acceleration_ceiling(v, inputs)
+            innovation_sd = jnp.sqrt(innovation_var)
+            logp = step_logpdf(state, EgoState(dx, next_v), rule_at, innovation_sd, dt, ceiling)
             gain = var * slope / innovation_var
             moving = (usable > 0) & (next_v > STOP_SPEED)
             surprise = implied_acceleration(v, dx, dt) - rule_at

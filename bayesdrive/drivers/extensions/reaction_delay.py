@@ -1,14 +1,27 @@
-r"""Reaction delay: the driver responds to the situation as it was ``reaction_time`` seconds ago.
+r"""Reaction delay: the driver perceives its leader as it was ``reaction_time`` seconds ago.
 
-The base rule is evaluated on delayed perceptions (as in Treiber, Kesting & Helbing's Human Driver
-Model, 2006): with :math:`T_r` the reaction time,
+What the driver perceives of the leader relative to itself, the bumper gap :math:`s` and the
+closing speed :math:`c = v - v_l` (read off the leader's looming), is delayed; its own speed
+:math:`v`, felt and read off the speedometer, is current in the free-road and time-gap terms. With
+:math:`T_r` the reaction time, the base rule is evaluated on
 
 .. math::
 
-    a(t) \sim N\big(a_{base}(v(t - T_r),\ s(t - T_r),\ v_l(t - T_r)),\ \sigma^2\big),
+    \tilde s(t) = s(t - T_r), \qquad
+    \tilde v_l(t) = v(t) - \big(v(t - T_r) - v_l(t - T_r)\big),
 
-while the kinematics use the current speed. The delay is continuous: the delayed values are
-linearly interpolated between the samples of the history window carried by
+the perceived gap and the perceived leader speed (own current speed minus the delayed closing
+speed), so for the IDM
+
+.. math::
+
+    a(t) \sim N\Big(a_{max}\big[1 - (v/v_{des})^\delta - (d^*/\tilde s)^2\big],\ \sigma^2\Big),
+    \quad d^* = d_{min} + \max\big(0,\ \tau v + v\,\tilde c / (2\sqrt{a_{max} b_{pref}})\big),
+
+with :math:`v = v(t)` and :math:`\tilde c = v(t - T_r) - v_l(t - T_r)`. A delay of the whole rule,
+the own speed included (the Human Driver Model's form), would make a driver on free road
+accelerate on the speed it had a second ago, which no driver does. The delay is continuous: the
+delayed values are linearly interpolated between the samples of the history window carried by
 :class:`~bayesdrive.drivers.extensions.inputs.ExtendedInputs` (``lag_v``, ``lag_gap``,
 ``lag_lead_v``). A leader that cuts in (or appears) less than :math:`T_r` ago is perceived as it
 was on entry (``lead_age``): the driver cannot perceive the new leader's past, and reacting to
@@ -18,7 +31,7 @@ applies to the new leader's motion from its entry on.
 =============  ====  =======  ============  ===========================================
 name           unit  default  prior bounds  meaning
 =============  ====  =======  ============  ===========================================
-reaction_time  s     0.0      [0, 1.5]      delay of the response (0: the base model)
+reaction_time  s     0.0      [0, 1.5]      delay of the perception (0: base model)
 =============  ====  =======  ============  ===========================================
 
 The upper bound is :data:`~bayesdrive.drivers.extensions.inputs.HISTORY_SECONDS`, the length of
@@ -51,7 +64,7 @@ DELAY_SPECS = (
         0.0,
         0.0,
         HISTORY_SECONDS,
-        "delay of the response to the situation",
+        "delay of the perceived gap and closing speed",
         grid_step=0.1,
     ),
 )
@@ -70,19 +83,18 @@ def delayed(lagged: Array, delay_steps: Array) -> Array:
 
 @functools.cache
 def with_reaction_delay(base: DriverModel) -> ExtendedModel:
-    """``base`` responding to its inputs ``reaction_time`` seconds late (module docstring)."""
+    """``base`` perceiving its leader ``reaction_time`` seconds late (module docstring)."""
 
     def mean_acceleration(params, state: EgoState, inputs: ExtendedInputs) -> Array:
-        steps = params.reaction_time / inputs.dt
-        leader_steps = jnp.minimum(steps, inputs.lead_age)
+        steps = jnp.minimum(params.reaction_time / inputs.dt, inputs.lead_age)
+        closing = delayed(inputs.lag_v, steps) - delayed(inputs.lag_lead_v, steps)
         perceived = CarFollowingInputs(
-            gap=delayed(inputs.lag_gap, leader_steps),
-            lead_v=delayed(inputs.lag_lead_v, leader_steps),
+            gap=delayed(inputs.lag_gap, steps),
+            lead_v=state.v - closing,
             has_leader=inputs.has_leader,
             dt=inputs.dt,
         )
-        past_self = EgoState(x=state.x, v=delayed(inputs.lag_v, steps))
-        return base.mean_acceleration(base_params(base, params), past_self, perceived)
+        return base.mean_acceleration(base_params(base, params), state, perceived)
 
     check_base(base, CAUSE)
     return gaussian_extension(base, CAUSE, DELAY_SPECS, mean_acceleration, reads_history=True)
