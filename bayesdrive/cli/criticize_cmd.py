@@ -108,8 +108,9 @@ def criticize_command(
         ),
     ] = None,
 ) -> None:
-    """Fit the base model, run the checks, fit the extensions they point to, name the cause, and
-    adopt it when it simulates better."""
+    """Fit the model, check it, name the cause of its misfit, adopt it if it simulates better.
+
+    The extensions fitted are those the checks point to."""
     # Imported here so `bayesdrive --help` stays fast (JAX is heavy to import).
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 

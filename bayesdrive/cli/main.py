@@ -75,7 +75,7 @@ COMMANDS: dict[str, LazyCommand] = {
     "criticize": LazyCommand(
         "bayesdrive.cli.criticize_cmd",
         "criticize_command",
-        "Fit the base model, run the checks, fit the extensions they point to, name the cause.",
+        "Fit the model, check it, name the cause of its misfit, adopt it if it simulates better.",
     ),
 }
 
