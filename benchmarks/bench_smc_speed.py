@@ -133,6 +133,9 @@ def main(argv: list[str] | None = None) -> None:
         + ", ".join(f"{r:.2f}x" for r in ratios)
         + ".",
         "",
+        "The levers weighed before choosing the defaults, with their agreement counts: "
+        "`smc_levers.md`.",
+        "",
     ]
     write_text_atomic(args.out / "smc_speed.md", "\n".join(lines))
     print("\n".join(lines))
