@@ -25,22 +25,23 @@ freely. By default a move is a random walk with the covariance of u of the rewei
 Gelman & Gilks 1997) and adapted towards an acceptance rate of ``target_acceptance`` (log s moves
 by acceptance - target after every move).
 
-``independent=True`` pairs each random-walk move with an independent Metropolis-Hastings move
-from a multivariate Student-t (``independent_df`` degrees of freedom) with the cloud's mean and
-covariance of u, which forgets the start whenever it is accepted. With ``temper_moves=10,
-final_moves=5, max_final_moves=1000, num_moves=3`` it agrees with the NUTS reference as the
-random walk does (``benchmarks/bench_smc_moves.py``; fewer moves a stage left a tempering-path
-bias that closing moves do not remove). The random walk stays the default: with a cheap
-likelihood its moves cost less than the paired ones, so the paired moves' fewer closing moves do
-not pay (``reports/agreement/smc_moves.md``).
+A paired move is a random-walk move followed by an independent Metropolis-Hastings move from a
+multivariate Student-t (``independent_df`` degrees of freedom) with the cloud's mean and
+covariance of u, which forgets the start whenever it is accepted. The closing moves are paired
+(``paired_closing=False``: the random walk alone, the earlier default); ``independent=True`` pairs the tempering stages' moves too, which left a tempering-path
+bias at 10 moves a stage (``reports/agreement/smc_moves.md``), so the stages' random walk stays
+the default.
 
-**Closing moves.** After the last stage, moves under the full posterior run in blocks of
+**Closing moves.** After the last stage, paired moves under the full posterior run in blocks of
 ``final_moves`` until every parameter's draws correlate with their values at the start of this
 closing phase by at most ``decorrelation`` (or the noise level 3.5 / sqrt(N) of that correlation,
 if larger; at most ``max_final_moves``): the correlation across particles is the kernel's
 autocorrelation at that lag, measured on the target. A fixed count was not enough: on a long
 posterior tail the tempering path's excess mass outlived a fixed number of closing moves
 (``reports/agreement/reference.md`` holds the long NUTS references this was judged against).
+Paired rather than random-walk closing moves: where the posterior is close to a Student-t on u
+the independent move decorrelates the draws in a few moves, where a random walk needs hundreds,
+and small blocks stop soon after (``benchmarks/bench_smc_speed.py``).
 
 **Sequential pass** (``sequential=True``, off by default; it changes no draw): resample-move SMC
 along the data, also known as IBIS (Chopin 2002, Biometrika 89:539), from its own prior draws.
@@ -115,9 +116,10 @@ class SMCConfig(NamedTuple):
 
     tempering: TemperingConfig
     num_moves: int = 5
-    final_moves: int = 80
-    max_final_moves: int = 2000
+    final_moves: int = 5
+    max_final_moves: int = 1000
     decorrelation: float = 0.1
+    paired_closing: bool = True
     sequential: bool = False
 
 
@@ -305,15 +307,15 @@ def _smc_vehicle(
     run = adaptive_tempering(
         key_temper, prior_cloud(key_prior, log_lik_whole), target=posterior, config=tempering
     )
-    # Closing moves under the full posterior until the draws decorrelate from their start (module
-    # docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess mass in
-    # the long v_des tail. Below about 3.5 / sqrt(N) the largest of d sample correlations is
-    # noise, not mixing.
+    # Paired closing moves under the full posterior until the draws decorrelate from their start
+    # (module docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess
+    # mass in the long v_des tail. Below about 3.5 / sqrt(N) the largest of d sample correlations
+    # is noise, not mixing.
     closing = cloud_move(
         fit_cloud(run.particles.theta, run.log_weights, box),
         target=posterior,
         power=1.0,
-        config=tempering,
+        config=tempering._replace(independent=tempering.independent or config.paired_closing),
     )
     final, final_acceptance, final_moves, final_correlation = moves_until_decorrelated(
         key_closing,
@@ -347,9 +349,10 @@ def run(
     unmoved_tolerance: float = 0.0,
     max_moves: int = 64,
     max_stages: int = 200,
-    final_moves: int = 80,
-    max_final_moves: int = 2000,
+    final_moves: int = 5,
+    max_final_moves: int = 1000,
     decorrelation: float = 0.1,
+    paired_closing: bool = True,
     target_acceptance: float = 0.234,
     replicates: int = 1,
     vehicle_chunk: int = 32,
@@ -411,6 +414,7 @@ def run(
         final_moves=final_moves,
         max_final_moves=max_final_moves,
         decorrelation=decorrelation,
+        paired_closing=paired_closing,
         sequential=sequential,
     )
     score_lengths = _lengths_taken(np.asarray(problem.series.mask)) if vehicle_batch <= 1 else ()
