@@ -41,7 +41,9 @@ posterior tail the tempering path's excess mass outlived a fixed number of closi
 (``reports/agreement/reference.md`` holds the long NUTS references this was judged against).
 Paired rather than random-walk closing moves: where the posterior is close to a Student-t on u
 the independent move decorrelates the draws in a few moves, where a random walk needs hundreds,
-and small blocks stop soon after (``benchmarks/bench_smc_speed.py``).
+and small blocks stop soon after. The cap is low: where a posterior far from that shape keeps the
+draws correlated for hundreds of paired moves, more of them cost most of the fit's time and did
+not change its agreement with the NUTS reference (``reports/smc_levers.md``).
 
 **Sequential pass** (``sequential=True``, off by default; it changes no draw): resample-move SMC
 along the data, also known as IBIS (Chopin 2002, Biometrika 89:539), from its own prior draws.
@@ -117,7 +119,7 @@ class SMCConfig(NamedTuple):
     tempering: TemperingConfig
     num_moves: int = 5
     final_moves: int = 5
-    max_final_moves: int = 1000
+    max_final_moves: int = 250
     decorrelation: float = 0.1
     paired_closing: bool = True
     sequential: bool = False
@@ -350,7 +352,7 @@ def run(
     max_moves: int = 64,
     max_stages: int = 200,
     final_moves: int = 5,
-    max_final_moves: int = 1000,
+    max_final_moves: int = 250,
     decorrelation: float = 0.1,
     paired_closing: bool = True,
     target_acceptance: float = 0.234,
