@@ -67,6 +67,7 @@ __all__ = [
     "forecast_gain",
     "forecast_gain_from_scores",
     "holm",
+    "one_sided_t_test",
     "rmse_change",
     "transformed_t_test",
     "vehicle_energy_scores",
@@ -124,14 +125,21 @@ def elpd_gain(base: FitResult, extension: FitResult) -> Gain:
     return Gain(per_vehicle, total, se, t, *transformed_t_test(per_vehicle))
 
 
-def transformed_t_test(gains: np.ndarray) -> tuple[float, float]:
-    """One-sided t-test across vehicles of sign(g) log(1 + |g|) > 0: (t, p) (module docstring)."""
-    h = np.sign(gains) * np.log1p(np.abs(gains))
-    sd = h.std(ddof=1)
+def one_sided_t_test(values: np.ndarray) -> tuple[float, float]:
+    """One-sample t-test across vehicles (N - 1 df) that the mean of ``values`` is above 0: (t, p).
+    Fewer than two values, or the same value in every vehicle (e.g. the same model twice), carry
+    no evidence either way: (0, 1)."""
+    values = np.asarray(values, np.float64)
+    sd = values.std(ddof=1) if values.size > 1 else 0.0
     if sd == 0:
         return 0.0, 1.0
-    t = float(h.mean() / (sd / np.sqrt(h.size)))
-    return t, float(stats.t.sf(t, df=h.size - 1))
+    t = float(values.mean() / (sd / np.sqrt(values.size)))
+    return t, float(stats.t.sf(t, df=values.size - 1))
+
+
+def transformed_t_test(gains: np.ndarray) -> tuple[float, float]:
+    """One-sided t-test across vehicles of sign(g) log(1 + |g|) > 0: (t, p) (module docstring)."""
+    return one_sided_t_test(np.sign(gains) * np.log1p(np.abs(gains)))
 
 
 def holm(p_values: Mapping[str, float], family: Sequence[str], alpha: float = ALPHA) -> set[str]:
@@ -178,21 +186,13 @@ class ForecastGain(NamedTuple):
     start: str
 
 
-def _per_vehicle(values: np.ndarray, row: np.ndarray, num_vehicles: int) -> np.ndarray:
-    """Mean of per-window ``values`` over each vehicle's windows (NaN for a vehicle without)."""
-    out = np.full(num_vehicles, np.nan)
-    for vehicle in np.unique(row):
-        out[vehicle] = values[row == vehicle].mean()
-    return out
-
-
 def vehicle_energy_scores(rolled: Rollouts, num_vehicles: int) -> np.ndarray:
     """(vehicle,) mean over the vehicle's windows of the energy score of the joint (gap, speed)
     path over the whole window (the gap's error is the position's negated: leader replayed)."""
     if rolled.offset.shape[0] == 0:
         return np.full(num_vehicles, np.nan)
     scores = energy_score(-rolled.offset, rolled.speed_offset)
-    return _per_vehicle(scores, rolled.windows.row, num_vehicles)
+    return rolled.per_vehicle(scores, num_vehicles)
 
 
 def vehicle_mean_rmse(rolled: Rollouts, num_vehicles: int) -> np.ndarray:
@@ -201,7 +201,7 @@ def vehicle_mean_rmse(rolled: Rollouts, num_vehicles: int) -> np.ndarray:
     if rolled.offset.shape[0] == 0:
         return np.full(num_vehicles, np.nan)
     squared = rolled.offset[:, :, -1].mean(axis=1) ** 2
-    return np.sqrt(_per_vehicle(squared, rolled.windows.row, num_vehicles))
+    return np.sqrt(rolled.per_vehicle(squared, num_vehicles))
 
 
 def forecast_gain_from_scores(
@@ -218,13 +218,9 @@ def forecast_gain_from_scores(
     per_vehicle = np.asarray(current_energy, np.float64) - np.asarray(extension_energy, np.float64)
     paired = per_vehicle[np.isfinite(per_vehicle)]
     nan = float("nan")
-    mean, se, p = (float(paired.mean()) if paired.size else nan), nan, 1.0
-    if paired.size > 1:
-        sd = float(paired.std(ddof=1))
-        se = sd / np.sqrt(paired.size)
-        # Identical scores in every vehicle (the same model twice) carry no evidence either way.
-        if sd > 0:
-            p = float(stats.t.sf(mean / se, df=paired.size - 1))
+    mean = float(paired.mean()) if paired.size else nan
+    se = float(paired.std(ddof=1) / np.sqrt(paired.size)) if paired.size > 1 else nan
+    _, p = one_sided_t_test(paired)
     change, change_se = rmse_change(
         np.asarray(current_rmse, np.float64), np.asarray(extension_rmse, np.float64)
     )

@@ -55,15 +55,18 @@ class Rollouts(NamedTuple):
     collisions: np.ndarray
     start: str
 
+    def per_vehicle(self, values: np.ndarray, num_vehicles: int) -> np.ndarray:
+        """Mean of per-window ``values`` over each vehicle's windows (NaN for a vehicle without)."""
+        out = np.full(num_vehicles, np.nan)
+        for row in np.unique(self.windows.row):
+            out[row] = values[self.windows.row == row].mean()
+        return out
+
     def rmse_per_vehicle(self, num_vehicles: int) -> np.ndarray:
         """Root mean square position error over each vehicle's windows, rollouts and steps."""
-        out = np.full(num_vehicles, np.nan)
         if self.offset.size == 0:
-            return out
-        squared = (self.offset**2).mean(axis=(1, 2))
-        for row in np.unique(self.windows.row):
-            out[row] = np.sqrt(squared[self.windows.row == row].mean())
-        return out
+            return np.full(num_vehicles, np.nan)
+        return np.sqrt(self.per_vehicle((self.offset**2).mean(axis=(1, 2)), num_vehicles))
 
 
 def heldout_windows(series: FollowerArrays, horizon_s: float) -> RolloutWindows:
