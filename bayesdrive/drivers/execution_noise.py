@@ -218,14 +218,11 @@ def step_logpdf(
     inside = norm.logpdf(dx, law.mean, law.sd)
     if not may_be_censored:
         return inside
-    acc = implied_acceleration(state.v, dx, dt)
+    stopped, at_floor, at_ceiling = _step_classes(state.v, next_state.v, dx, dt, ceiling)
     floor_at, ceiling_at = -MAX_BRAKING + LIMIT_TOLERANCE, ceiling - LIMIT_TOLERANCE
     # The censored acceleration reaches a stop from below the floor never, above the ceiling always.
     stop_at = (STOP_SPEED - jnp.asarray(state.v)) / dt  # an array, so ~ negates its comparisons
     unreachable, forced = stop_at < -MAX_BRAKING, stop_at >= ceiling
-    stopped = jnp.asarray(next_state.v) <= STOP_SPEED
-    at_floor = ~stopped & (acc <= floor_at)
-    at_ceiling = ~stopped & ~at_floor & (acc >= ceiling_at)
     floor_z, ceiling_z = (floor_at - mean_acc) / sigma, (ceiling_at - mean_acc) / sigma
     # Raw-acceleration interval of each class: stop (-inf, stop], floor (stop, floor],
     # ceiling [max(ceiling, stop), inf); a moving step where the stop is forced is impossible.
@@ -238,15 +235,23 @@ def step_logpdf(
     return jnp.where(stopped | at_floor | at_ceiling, censored, inside)
 
 
+def _step_classes(
+    v: Array, next_v: Array, dx: Array, dt: Array, ceiling: Array
+) -> tuple[Array, Array, Array]:
+    """The censored classes of an observed step (module docstring): a stop; a moving step at the
+    floor; a moving step at the ceiling (not at the floor). Disjoint; data alone decide them."""
+    acc = implied_acceleration(v, dx, dt)
+    stopped = jnp.asarray(next_v) <= STOP_SPEED
+    at_floor = ~stopped & (acc <= -MAX_BRAKING + LIMIT_TOLERANCE)
+    at_ceiling = ~stopped & ~at_floor & (acc >= ceiling - LIMIT_TOLERANCE)
+    return stopped, at_floor, at_ceiling
+
+
 def censored_step(v: Array, next_v: Array, dx: Array, dt: Array, ceiling: Array) -> Array:
     """Whether an observed step is scored by a class probability (:func:`step_logpdf`): a stop, or
     an implied acceleration at a limit; depends on the data alone."""
-    acc = implied_acceleration(v, dx, dt)
-    return (
-        (next_v <= STOP_SPEED)
-        | (acc <= -MAX_BRAKING + LIMIT_TOLERANCE)
-        | (acc >= ceiling - LIMIT_TOLERANCE)
-    )
+    stopped, at_floor, at_ceiling = _step_classes(v, next_v, dx, dt, ceiling)
+    return stopped | at_floor | at_ceiling
 
 
 def exact_observation_logpdf(params, state: EgoState, obs: EgoState) -> Array:
