@@ -47,8 +47,9 @@ MAX_GENERATED = 1000
 MODES = ("plain", "devices", "batched", "cluster")
 # smc's default moves; rows without this field had the random walk with the pass along the data,
 # rows marked "paired" the paired independent + random-walk moves (defaults between e1d9eb0 and
-# 0b67778). Rows record the commit they ran at: the likelihood got about 5x cheaper at c4a39fe.
-SMC_MOVES = "random walk"
+# 0b67778), "random walk" the random walk alone (until 02768b0). Rows record the commit they ran
+# at: the likelihood got about 5x cheaper at c4a39fe.
+SMC_MOVES = "random walk, paired closing moves"
 
 
 def commit() -> str:
