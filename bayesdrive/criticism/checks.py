@@ -264,6 +264,31 @@ def _t_across_vehicles(values: np.ndarray) -> tuple[float, float, float]:
     return t, float(stats.t.sf(t, df=df)), float(stats.t.cdf(t, df=df))
 
 
+def _vehicle_values_check(
+    name: str,
+    title: str,
+    values: np.ndarray,
+    points_to: tuple[str, ...],
+    meaning: str,
+    p_value: float,
+    t: float,
+    **tails: float,
+) -> Check:
+    """A screening check of one value per vehicle: the headline is their mean (0 for none),
+    ``meaning`` says what it is, ``t`` and ``p_value`` come from its test across vehicles
+    (:func:`_t_across_vehicles`) and ``tails`` are that test's one-sided p-values to report."""
+    return Check(
+        name=name,
+        title=title,
+        statistic=float(values.mean()) if values.size else 0.0,
+        p_value=p_value,
+        points_to=points_to,
+        summary={"statistic": meaning, "t": t, "vehicles": int(values.size), **tails},
+        figure={"values": values},
+        screening=True,
+    )
+
+
 def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
     """Per-vehicle autocorrelation of z, tested across vehicles (screening checks).
 
@@ -286,24 +311,19 @@ def vehicle_autocorrelation_checks(res: Residuals) -> list[Check]:
     ):
         values = np.asarray(values)
         t, p_positive, p_negative = _t_across_vehicles(values)
+        # Negative lag 1: measurement noise; positive: drift (or AR noise, which has its own
+        # score test); positive long lags: drift.
         checks.append(
-            Check(
-                name=name,
-                title=f"Per-vehicle {title} autocorrelation of z, across vehicles",
-                statistic=float(values.mean()) if values.size else 0.0,
-                p_value=min(p_positive, p_negative) if name == "lag1_by_vehicle" else p_positive,
-                points_to=causes,
-                summary={
-                    "statistic": f"mean over vehicles of the per-vehicle {title} autocorrelation",
-                    "t": t,
-                    "vehicles": int(values.size),
-                    # Negative lag 1: measurement noise; positive: drift (or AR noise, which has
-                    # its own score test); positive long lags: drift.
-                    "p_positive": p_positive,
-                    "p_negative": p_negative,
-                },
-                figure={"values": values},
-                screening=True,
+            _vehicle_values_check(
+                name,
+                f"Per-vehicle {title} autocorrelation of z, across vehicles",
+                values,
+                causes,
+                f"mean over vehicles of the per-vehicle {title} autocorrelation",
+                min(p_positive, p_negative) if name == "lag1_by_vehicle" else p_positive,
+                t,
+                p_positive=p_positive,
+                p_negative=p_negative,
             )
         )
     return checks
@@ -330,19 +350,14 @@ def noise_speed_by_vehicle_check(res: Residuals, series: FollowerArrays) -> Chec
     values = np.asarray(values, np.float64)
     values = values[np.isfinite(values)]  # |z| of one value throughout has no rank correlation
     t, p_positive, _ = _t_across_vehicles(values)
-    return Check(
-        name="noise_vs_speed_by_vehicle",
-        title="Per-vehicle rank correlation of |z| with speed, across vehicles",
-        statistic=float(values.mean()) if values.size else 0.0,
-        p_value=p_positive,
-        points_to=("speed_dependent_noise",),
-        summary={
-            "statistic": "mean over vehicles of Spearman's correlation of |z| with speed",
-            "t": t,
-            "vehicles": int(values.size),
-        },
-        figure={"values": values},
-        screening=True,
+    return _vehicle_values_check(
+        "noise_vs_speed_by_vehicle",
+        "Per-vehicle rank correlation of |z| with speed, across vehicles",
+        values,
+        ("speed_dependent_noise",),
+        "mean over vehicles of Spearman's correlation of |z| with speed",
+        p_positive,
+        t,
     )
 
 
@@ -378,20 +393,15 @@ def leader_cross_correlation_check(res: Residuals, series: FollowerArrays) -> tu
             excess.append(sum(n * r**2 for r, n in per_lag) - len(lags))
     excess = np.asarray(excess, np.float64)
     t_excess, p_excess, _ = _t_across_vehicles(excess)
-    by_vehicle = Check(
-        name="leader_response_by_vehicle",
-        title="Per-vehicle response to the leader's past accelerations, across vehicles",
-        statistic=float(excess.mean()) if excess.size else 0.0,
-        p_value=p_excess,
-        points_to=("reaction_delay",),
-        summary={
-            "statistic": "mean over vehicles of n * sum over lags of squared cross-correlations, "
-            "minus its white-noise expectation (the number of lags)",
-            "t": t_excess,
-            "vehicles": int(excess.size),
-        },
-        figure={"values": excess},
-        screening=True,
+    by_vehicle = _vehicle_values_check(
+        "leader_response_by_vehicle",
+        "Per-vehicle response to the leader's past accelerations, across vehicles",
+        excess,
+        ("reaction_delay",),
+        "mean over vehicles of n * sum over lags of squared cross-correlations, minus its "
+        "white-noise expectation (the number of lags)",
+        p_excess,
+        t_excess,
     )
     return by_vehicle, Check(
         name="leader_cross_correlation",
