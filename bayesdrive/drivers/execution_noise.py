@@ -89,6 +89,7 @@ from bayesdrive.drivers.base import (
 )
 
 __all__ = [
+    "EXECUTION_NOISE_SD",
     "LIMIT_TOLERANCE",
     "MAX_ACCELERATION",
     "MAX_BRAKING",
@@ -116,6 +117,11 @@ MAX_ACCELERATION = 6.0
 SAFETY_GAP = 0.1
 # Implied accelerations this close to a limit (m/s^2) are read as at it (module docstring).
 LIMIT_TOLERANCE = 0.01
+# The base models' execution-noise sd: the noise is the same quantity in each (the paper's
+# sigma_IDM), so it has one prior and one pf grid step.
+EXECUTION_NOISE_SD = ParamSpec(
+    "sigma", "m/s^2", 0.3, 0.02, 2.0, "execution-noise sd", grid_step=0.1, execution_noise=True
+)
 
 
 def implied_acceleration(v: Array, dx: Array, dt: Array) -> Array:

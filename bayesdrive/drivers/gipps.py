@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec
-from bayesdrive.drivers.execution_noise import execution_noise_model
+from bayesdrive.drivers.execution_noise import EXECUTION_NOISE_SD, execution_noise_model
 
 __all__ = ["GIPPS", "GippsParams", "gipps_acceleration"]
 
@@ -38,9 +38,7 @@ GIPPS_SPECS = (
     ParamSpec("b_max", "m/s^2", 3.4, 0.5, 10.0, "most severe braking b (as > 0)", grid_step=0.5),
     ParamSpec("b_lead", "m/s^2", 3.2, 0.5, 10.0, "leader's braking as estimated", grid_step=0.5),
     ParamSpec("d_min", "m", 2.0, 0.5, 10.0, "margin s - L kept at standstill", grid_step=0.5),
-    ParamSpec(
-        "sigma", "m/s^2", 0.3, 0.02, 2.0, "execution-noise sd", grid_step=0.1, execution_noise=True
-    ),
+    EXECUTION_NOISE_SD,
 )
 
 

@@ -40,7 +40,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec
-from bayesdrive.drivers.execution_noise import execution_noise_model
+from bayesdrive.drivers.execution_noise import EXECUTION_NOISE_SD, execution_noise_model
 
 __all__ = ["DELTA", "IDM", "MIN_GAP", "IDMParams", "equilibrium_gap", "idm_acceleration"]
 
@@ -58,9 +58,7 @@ IDM_SPECS = (
     ParamSpec("tau", "s", 1.0, 0.1, 4.0, "safe time headway", grid_step=0.1),
     ParamSpec("a_max", "m/s^2", 3.0, 0.2, 5.0, "maximum acceleration", grid_step=0.1),
     ParamSpec("b_pref", "m/s^2", 2.0, 0.5, 10.0, "comfortable deceleration", grid_step=0.5),
-    ParamSpec(
-        "sigma", "m/s^2", 0.3, 0.02, 2.0, "execution-noise sd", grid_step=0.1, execution_noise=True
-    ),
+    EXECUTION_NOISE_SD,
 )
 
 

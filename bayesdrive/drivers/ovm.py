@@ -40,7 +40,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from bayesdrive.drivers.base import CarFollowingInputs, EgoState, ParamSpec
-from bayesdrive.drivers.execution_noise import execution_noise_model
+from bayesdrive.drivers.execution_noise import EXECUTION_NOISE_SD, execution_noise_model
 
 __all__ = ["OVM", "OVMParams", "optimal_velocity", "ovm_acceleration"]
 
@@ -53,9 +53,7 @@ OVM_SPECS = (
         "v_max", "m/s", 30.0, 5.0, 45.0, "optimal velocity scale", grid_step=0.5, desired_speed=True
     ),
     ParamSpec("s_c", "m", 10.0, 1.0, 40.0, "gap scale of the optimal velocity", grid_step=0.5),
-    ParamSpec(
-        "sigma", "m/s^2", 0.3, 0.02, 2.0, "execution-noise sd", grid_step=0.1, execution_noise=True
-    ),
+    EXECUTION_NOISE_SD,
 )
 
 
