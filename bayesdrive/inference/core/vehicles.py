@@ -8,7 +8,8 @@ prior (the model's uniform box by default) and build every step's inputs through
 (:func:`~bayesdrive.inference.core.likelihood.step_inputs`). It returns a :class:`VehicleProblem`, which runs a kernel over all vehicles
 (:meth:`VehicleProblem.run`, through :func:`map_vehicles`) and scores draws; :func:`posterior_draws`
 and :func:`log_likelihood_draws` put per-vehicle outputs in the result's (chain, draw, vehicle)
-layout. An engine keeps only its kernel, its own options and its own sample stats.
+layout (:func:`one_chain_result` the whole result of an engine with one chain per vehicle). An
+engine keeps only its kernel, its own options and its own sample stats.
 
 **Per-vehicle keys.** A vehicle's PRNG key is the run's key with the vehicle's id folded in
 (:func:`vehicle_keys`: ``fold_in`` of a stable 64-bit hash of the UTF-8 id, as two 32-bit
@@ -43,13 +44,14 @@ from bayesdrive.inference.core.likelihood import (
     score_draws,
     step_inputs,
 )
-from bayesdrive.inference.core.output import EngineInputs
+from bayesdrive.inference.core.output import EngineInputs, EngineResult
 
 __all__ = [
     "VehicleProblem",
     "clear_compiled",
     "log_likelihood_draws",
     "map_vehicles",
+    "one_chain_result",
     "posterior_draws",
     "prepare",
     "static_key",
@@ -210,6 +212,19 @@ def posterior_draws(names: Sequence[str], theta: np.ndarray) -> dict[str, np.nda
 def log_likelihood_draws(values: np.ndarray) -> np.ndarray:
     """Scores (vehicle, chain, draw, step) in the result's (chain, draw, vehicle, step) layout."""
     return np.moveaxis(np.asarray(values), 0, 2)
+
+
+def one_chain_result(
+    names: Sequence[str], draws: np.ndarray, log_likelihood: np.ndarray, **fields: Any
+) -> EngineResult:
+    """The result of an engine whose draws of a vehicle form one chain: ``draws``
+    (vehicle, draw, d) and their scores ``log_likelihood`` (vehicle, draw, step) get the chain
+    axis; ``fields`` are the other :class:`~bayesdrive.inference.core.output.EngineResult` fields."""
+    return EngineResult(
+        posterior=posterior_draws(names, np.asarray(draws)[:, None]),
+        log_likelihood=log_likelihood_draws(np.asarray(log_likelihood)[:, None]),
+        **fields,
+    )
 
 
 # Compiled chunk runners by cache key, so repeated fits of one shape (tests, seed studies) compile

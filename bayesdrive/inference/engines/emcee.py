@@ -67,7 +67,7 @@ from jax import Array
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.inference.core.likelihood import series_loglik
 from bayesdrive.inference.core.output import EngineInputs, EngineResult
-from bayesdrive.inference.core.vehicles import log_likelihood_draws, posterior_draws, prepare
+from bayesdrive.inference.core.vehicles import one_chain_result, prepare
 from bayesdrive.inference.diagnostics.convergence import (
     AUTOCORR_RELIABLE_FACTOR,
     EXTENSION_MIN_DRAWS,
@@ -237,8 +237,10 @@ def run(
     run_time += time.perf_counter() - started
     tau_array = np.asarray(taus)
     steps_array, burn_array = np.asarray(run_steps).T
-    return EngineResult(
-        posterior=posterior_draws(names, theta[:, None]),
+    return one_chain_result(
+        names,
+        theta,
+        log_lik,
         sample_stats={
             "autocorr_time": (("vehicle", "param"), tau_array),
             "thin": (("vehicle",), np.asarray(thins)),
@@ -252,7 +254,6 @@ def run(
             "acceptance_fraction": (("vehicle",), np.asarray(acceptance)),
             "seed": (("vehicle",), seeds),
         },
-        log_likelihood=log_likelihood_draws(log_lik[:, None]),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={

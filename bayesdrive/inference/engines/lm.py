@@ -71,7 +71,7 @@ from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
 from bayesdrive.drivers.execution_noise import STOP_SPEED
 from bayesdrive.inference.core.likelihood import StepInputs, check_model
 from bayesdrive.inference.core.output import EngineInputs, EngineResult
-from bayesdrive.inference.core.vehicles import log_likelihood_draws, posterior_draws, prepare
+from bayesdrive.inference.core.vehicles import one_chain_result, prepare
 
 __all__ = ["ResidualSeries", "residual_series", "run"]
 
@@ -329,8 +329,10 @@ def run(
     wall_time = time.perf_counter() - started
 
     vehicle = ("vehicle",)
-    return EngineResult(
-        posterior=posterior_draws(names, draws[:, None]),
+    return one_chain_result(
+        names,
+        draws,
+        log_likelihood,
         sample_stats={
             "cost": (vehicle, sum_squares / 2.0),
             "nfev": (vehicle, np.array([f.nfev for f in fits])),
@@ -345,7 +347,6 @@ def run(
             "at_bound": (("vehicle", "param"), at_bound),
             "seed": (vehicle, seeds),
         },
-        log_likelihood=log_likelihood_draws(log_likelihood[:, None]),
         compile_time_s=compile_time,
         wall_time_s=wall_time,
         options={

@@ -55,8 +55,8 @@ from bayesdrive.inference.core.resampling import count_distinct_sorted
 from bayesdrive.inference.core.smc import SMCState
 from bayesdrive.inference.core.smc import step as smc_step
 from bayesdrive.inference.core.vehicles import (
-    log_likelihood_draws,
     map_vehicles,
+    one_chain_result,
     posterior_draws,
     prepare,
     static_key,
@@ -293,8 +293,10 @@ def run(
     particles = grid.values(out.index)
     log_lik = problem.score(particles)
     vehicle_step = ("vehicle", "step")
-    return EngineResult(
-        posterior=posterior_draws(names, particles[:, None]),
+    return one_chain_result(
+        names,
+        particles,
+        log_lik,
         sample_stats={
             "particle_ess": (vehicle_step, out.ess),
             "resampled": (vehicle_step, np.asarray(arrays.mask) > 0),
@@ -305,7 +307,6 @@ def run(
             "epoch_log_evidence": (("epoch", "vehicle"), np.stack(epoch_log_evidence)),
             "epoch_pooled_mean": (("epoch", "param"), np.stack(pooled_means)),
         },
-        log_likelihood=log_likelihood_draws(log_lik[:, None]),
         prior=posterior_draws(names, np.asarray(draws)[:, None]),
         compile_time_s=compile_time,
         wall_time_s=run_time,
