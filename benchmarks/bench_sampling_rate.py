@@ -166,8 +166,8 @@ def markdown(record: dict) -> str:
         "p). RMSE: change of the predictive mean's position RMSE (m, negative is better).",
         "",
         "| data | rate | vehicles | steps (fit / held-out) | cause | one-step gain (SE) | "
-        "forecast gain (SE, p) | RMSE change (m) | collisions (IDM) | noise_time_s, rho: mean "
-        "(5%-95% over vehicles) |",
+        "forecast gain (SE, p) | RMSE change (m) | collisions (IDM) | noise_time_s: mean of the "
+        "vehicles' posterior means (5%-95% over vehicles); rho = T / (T + dt) at those T |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in record["results"]:
