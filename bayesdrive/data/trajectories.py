@@ -154,6 +154,44 @@ class Trajectories:
         )
         return cropped.subset(pd.unique(cropped.tracks["vehicle_id"]))
 
+    def every(self, factor: int) -> Trajectories:
+        """One sample in ``factor``: the samples at whole multiples of ``factor * dt`` on the
+        time axis (one axis per scene, so leaders and followers keep the same instants), with
+        ``dt`` multiplied by ``factor``. Speeds, gaps and accelerations stay as recorded at the
+        kept instants. A flag at a dropped instant moves to the vehicle's next kept instant, so
+        the longer step across it stays out of fitting; the change is recorded in ``notes``."""
+        if int(factor) != factor or factor < 1:
+            raise ValueError(f"the subsampling factor must be a whole number >= 1, got {factor}")
+        factor = int(factor)
+        if factor == 1:
+            return self
+        index = self.tracks["t"].to_numpy() / self.dt
+        off_grid = np.abs(index - np.rint(index)) > 1e-6
+        if off_grid.any():
+            row = self.tracks[off_grid].iloc[0]
+            raise ValueError(
+                f"vehicle {row['vehicle_id']}: sample at t = {row['t']} s is not a whole multiple "
+                f"of dt = {self.dt} s, so every {factor}-th sample is not defined"
+            )
+        kept = np.rint(index).astype(np.int64) % factor == 0
+        tracks = self.tracks[kept].reset_index(drop=True)
+        step = factor * self.dt
+        # Whole steps of the new dt from 0, rounded like the kept samples' times.
+        moved_t = np.ceil(np.rint(self.flags["t"].to_numpy(float) / self.dt) / factor) * step
+        flags = self.flags.assign(t=moved_t)
+        present = pd.MultiIndex.from_frame(tracks[["vehicle_id", "t"]].round(9))
+        on_kept = pd.MultiIndex.from_frame(flags[["vehicle_id", "t"]].round(9)).isin(present)
+        # A flag past a vehicle's last kept sample touches no step that is kept.
+        flags = flags[on_kept].drop_duplicates(["vehicle_id", "t", "kind"]).reset_index(drop=True)
+        note = (
+            f"subsampled: one sample in {factor} kept (dt {self.dt:g} s -> {step:g} s); "
+            f"{len(self.flags) - len(flags)} flag(s) merged or past a vehicle's last kept sample"
+        )
+        reduced = dataclasses.replace(
+            self, tracks=tracks, flags=flags, dt=step, notes=(*self.notes, note)
+        )
+        return reduced.subset(pd.unique(tracks["vehicle_id"]))
+
 
 def _clock_groups(scenes: pd.DataFrame) -> dict[str, int]:
     """Vehicle id -> clock group: scenes that share a vehicle share a time axis (union-find)."""

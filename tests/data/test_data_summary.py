@@ -67,3 +67,37 @@ def test_first_seconds_counts_from_each_scenes_earliest_sample():
     assert "d" not in ends.index and "d" not in set(cropped.scenes["vehicle_id"])
     with pytest.raises(ValueError, match="positive"):
         traj.first_seconds(0.0)
+
+
+def test_every_keeps_common_instants_moves_flags_and_notes_it():
+    dt = 0.1
+    rows = [("a", k * dt) for k in range(21)] + [("b", 0.3 + k * dt) for k in range(15)]
+    scenes = pd.DataFrame({"scene_id": ["s1", "s1"], "vehicle_id": ["a", "b"]})
+    flags = pd.DataFrame(
+        {
+            "vehicle_id": ["a", "b", "b"],
+            "t": [0.7, 1.0, 1.7],  # dropped instant; kept instant; past b's last kept sample
+            "kind": ["negative_gap"] * 3,
+            "message": ["m"] * 3,
+        }
+    )
+    traj = Trajectories(_tracks(rows), scenes, dt=dt, format="test", source="memory", flags=flags)
+    reduced = traj.every(5)
+    assert reduced.dt == pytest.approx(0.5)
+    times = reduced.tracks.groupby("vehicle_id")["t"].apply(list)
+    assert times["a"] == pytest.approx([0.0, 0.5, 1.0, 1.5, 2.0])
+    assert times["b"] == pytest.approx([0.5, 1.0, 1.5])  # the instants a keeps too
+    # The flag at 0.7 s moves to a's next kept instant (1.0 s), so the 0.5-1.0 s step stays out.
+    assert list(zip(reduced.flags["vehicle_id"], reduced.flags["t"].round(6), strict=True)) == [
+        ("a", 1.0),
+        ("b", 1.0),
+    ]
+    assert "one sample in 5 kept" in reduced.notes[-1]
+    assert traj.every(1) is traj
+    with pytest.raises(ValueError, match="whole number"):
+        traj.every(2.5)
+    off_grid = Trajectories(
+        _tracks([("a", 0.0), ("a", 0.15)]), scenes[:1], dt=dt, format="test", source="memory"
+    )
+    with pytest.raises(ValueError, match=r"vehicle a: sample at t = 0\.15"):
+        off_grid.every(2)
