@@ -32,12 +32,18 @@ CI_CELLS = {
     "time_gap_drift": ("large", 70007),
     "video_position_noise small": ("small", 70010),
 }
+# Cells the study has not backed yet (no 20 of 20 at the current library), run in the extended
+# tier: the leader's acceleration added through a first-order lag, at "large".
+EXTENDED_CELLS = {"leader_acceleration_response": ("large", 70012)}
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("cell", list(CI_CELLS))
+@pytest.mark.parametrize(
+    "cell",
+    [*CI_CELLS, *(pytest.param(cell, marks=pytest.mark.extended) for cell in EXTENDED_CELLS)],
+)
 def test_criticize_names_the_hidden_mechanism(cell, tmp_path):
-    size, seed = CI_CELLS[cell]
+    size, seed = (CI_CELLS | EXTENDED_CELLS)[cell]
     name = cell.split()[0]
     mechanisms = {} if name == NULL else {name: MECHANISMS[name].sizes[size]}
     path = tmp_path / f"{cell}.csv"
