@@ -13,26 +13,34 @@ real reader.
 Which verdicts count as right (cause names of ``bayesdrive.drivers.extensions``; two mechanisms at
 once: a verdict right for either; no mechanism: ``none``):
 
-=========================  ==========================  ==============================================
-mechanism                  right verdicts              how (see :data:`.mechanisms.MECHANISMS`)
-=========================  ==========================  ==============================================
-perception_delay           reaction_delay              gap and closing speed perceived delay_s late,
-                                                       interpolated between sub-steps
-pedal_noise                autocorrelated_noise        Ornstein-Uhlenbeck acceleration error in
-                                                       continuous time
-time_gap_drift             drifting_parameters         smooth sinusoidal drift of the time gap
-time_gap_switch            drifting_parameters         regime switch of the time gap (a random walk
-                                                       of tau reaches it only approximately)
-acceleration_drift         out of reach                drift of a_max: the extension lets only tau
-                                                       wander
-speed_power_noise          speed_dependent_noise       noise sd sigma (1 + c (v/10)^p), p in 1.5-2.5
-video_position_noise       measurement_noise           noisy positions; speeds, accelerations and
-                                                       headways differenced from them
-two_leader_anticipation    second_leader_anticipation  closing speed weighted over two leaders
-cut_in_relaxation          cut_in_overreaction         shorter accepted gap after a cut-in, relaxing
-                                                       back over seconds
-(none)                     none                        IDM with white noise per sample
-=========================  ==========================  ==============================================
+============================  ================================  ====================================
+mechanism                     right verdicts                    how (:data:`.mechanisms.MECHANISMS`)
+============================  ================================  ====================================
+perception_delay              reaction_delay                    gap and closing speed perceived
+                                                                delay_s late, interpolated between
+                                                                sub-steps
+pedal_noise                   autocorrelated_noise              Ornstein-Uhlenbeck acceleration
+                                                                error in continuous time
+time_gap_drift                drifting_parameters               smooth sinusoidal drift of the time
+                                                                gap
+time_gap_switch               drifting_parameters               regime switch of the time gap (a
+                                                                random walk of tau reaches it only
+                                                                approximately)
+acceleration_drift            out of reach                      drift of a_max: the extension lets
+                                                                only tau wander
+speed_power_noise             speed_dependent_noise             noise sd sigma (1 + c (v/10)^p), p
+                                                                in 1.5-2.5
+video_position_noise          measurement_noise                 noisy positions; speeds,
+                                                                accelerations and headways
+                                                                differenced from them
+two_leader_anticipation       second_leader_anticipation        closing speed weighted over two
+                                                                leaders
+cut_in_relaxation             cut_in_overreaction               shorter accepted gap after a cut-in,
+                                                                relaxing back over seconds
+leader_acceleration_response  leader_acceleration_anticipation  the leader's acceleration through a
+                                                                first-order lag, times a gain, added
+(none)                        none                              IDM with white noise per sample
+============================  ================================  ====================================
 """
 
 from __future__ import annotations

@@ -106,6 +106,16 @@ MECHANISMS: dict[str, Mechanism] = {
         "al. 2012); the plain IDM over-reacts to the cut-in, the extension's cure is the "
         "constant-acceleration heuristic",
     ),
+    "leader_acceleration_response": Mechanism(
+        "gain",
+        "--",
+        {"small": (0.1, 0.25), "medium": (0.25, 0.5), "large": (0.5, 0.8)},
+        ("leader_acceleration_anticipation",),
+        "the driver adds gain times the leader's acceleration as it perceives it to the IDM "
+        "acceleration: the leader's actual acceleration on the sub-steps through a first-order "
+        "lag of time constant uniform on 0.2-0.5 s per driver (the extension adds the backward "
+        "difference of the recorded leader speed over the last sample instead)",
+    ),
 }
 
 

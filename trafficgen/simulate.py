@@ -193,6 +193,8 @@ def _draw_sizes(
             params[f"{name}.power"] = np.where(acts, rng.uniform(1.5, 2.5, n), np.nan)
         elif name == "cut_in_relaxation":
             params[f"{name}.relaxation_time_s"] = np.where(acts, rng.uniform(4.0, 10.0, n), np.nan)
+        elif name == "leader_acceleration_response":
+            params[f"{name}.smoothing_s"] = np.where(acts, rng.uniform(0.2, 0.5, n), np.nan)
     return params
 
 
@@ -240,6 +242,8 @@ def simulate(
     growth, power = size("speed_power_noise"), size("speed_power_noise", "power")
     weight = size("two_leader_anticipation")
     relax, relax_time = size("cut_in_relaxation"), size("cut_in_relaxation", "relaxation_time_s")
+    lead_gain = size("leader_acceleration_response")
+    lead_smoothing = size("leader_acceleration_response", "smoothing_s")
 
     length = streams["lengths"].uniform(*LENGTH_M, n)
     heads = np.flatnonzero(layout.head)
@@ -269,6 +273,8 @@ def simulate(
     gap_rec = np.full((steps + 1, n), np.inf)
     noise = streams["noise"]
     pedal_state = noise.standard_normal(n)
+    realized_acc = np.zeros(n)  # each vehicle's acceleration over the last sub-step
+    perceived_lead_acc = np.zeros(n)  # the leader's acceleration as the driver perceives it
     same_platoon = layout.platoon[None, :] == layout.platoon[:, None]
     rows = np.arange(n)
 
@@ -375,6 +381,13 @@ def simulate(
                 p["b"],
                 has,
             )
+            # The leader's acceleration reaches the driver through a first-order lag (exact
+            # exponential smoothing on the sub-steps); without a leader there is none to perceive.
+            smoothing = np.exp(-h / np.maximum(lead_smoothing, 1e-9))
+            perceived_lead_acc = smoothing * perceived_lead_acc + (1.0 - smoothing) * np.where(
+                has, realized_acc[safe], 0.0
+            )
+            rule = rule + lead_gain * np.where(has, perceived_lead_acc, 0.0)
             sd = p["sigma"] * (1.0 + growth * (v / 10.0) ** power)
             if pedal.any():
                 decay = np.exp(-h / np.maximum(pedal_time, 1e-9))
@@ -395,6 +408,7 @@ def simulate(
             stops = v_next < 0
             dx = np.where(stops, v**2 / (2 * np.maximum(-acc, 1e-9)), 0.5 * (v + v_next) * h)
             v_next = np.maximum(v_next, 0.0)
+            realized_acc = (v_next - v) / h
             x = x + dx
             v = v_next
 

@@ -24,6 +24,7 @@ CAUSES = (
     "speed_dependent_noise",
     "second_leader_anticipation",
     "cut_in_overreaction",
+    "leader_acceleration_anticipation",
     "drifting_parameters",
     "measurement_noise",
 )

@@ -13,7 +13,8 @@ power form (large) is right 17 of 20 there, so it stays out of CI. Two mechanism
 to the study: no pair is named right 20 times in 20.
 Each test runs one round (a one-mechanism verdict is the first round's; the loop's later rounds
 cost CI time and are measured in the study). One seed per cell, fixed before any of these tests
-ran, outside the study's seed range (not chosen by outcome).
+ran, outside the study's seed range (not chosen by outcome). Cells the study has not backed run
+in the extended tier, as expected failures where the detector is known to name another cause.
 """
 
 from __future__ import annotations
@@ -32,12 +33,34 @@ CI_CELLS = {
     "time_gap_drift": ("large", 70007),
     "video_position_noise small": ("small", 70010),
 }
+# Cells the study has not backed (no 20 of 20 at the current library), in the extended tier,
+# with why each fails where it does (a strict xfail: a detector that comes to name it fails the
+# test, so the cell moves up).
+EXTENDED_CELLS = {
+    "leader_acceleration_response": (
+        "large",
+        70012,
+        "names drifting_parameters: its Kalman-filtered time gap gains more held-out than "
+        "leader_acceleration_anticipation, both significant; so on development seeds 900001-2",
+    )
+}
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("cell", list(CI_CELLS))
+@pytest.mark.parametrize(
+    "cell",
+    [
+        *CI_CELLS,
+        *(
+            pytest.param(
+                cell, marks=[pytest.mark.extended, pytest.mark.xfail(strict=True, reason=why)]
+            )
+            for cell, (_, _, why) in EXTENDED_CELLS.items()
+        ),
+    ],
+)
 def test_criticize_names_the_hidden_mechanism(cell, tmp_path):
-    size, seed = CI_CELLS[cell]
+    size, seed = (CI_CELLS | EXTENDED_CELLS)[cell][:2]
     name = cell.split()[0]
     mechanisms = {} if name == NULL else {name: MECHANISMS[name].sizes[size]}
     path = tmp_path / f"{cell}.csv"

@@ -80,6 +80,7 @@ ON = {
     "speed_dependent_noise": 0.15,
     "second_leader_anticipation": 0.6,
     "cut_in_overreaction": 0.99,
+    "leader_acceleration_anticipation": 0.5,
 }
 # Causes whose state is lifted from the observed past (each step scored on its own) and causes
 # with a hidden state (scored through their filter).
@@ -362,6 +363,23 @@ def test_cah_relaxes_a_cut_in_but_not_an_emergency():
     enhanced_stop = float(extended.model.mean_acceleration(cool, STATE, stopped))
     assert enhanced_stop <= -12.0
     assert enhanced_stop >= idm_stop
+
+
+def test_leader_acceleration_adds_its_weighted_clipped_value():
+    """The IDM's acceleration (defaults, v = 12, s = 18, v_l = 11) plus w times the
+    leader's acceleration, the latter clipped to [-9, 6] m/s^2 (a misread speed jump of 20 m/s^2
+    counts as -9); without a leader, and for w = 0, the IDM alone."""
+    extended = extend("leader_acceleration_anticipation", IDM)
+    idm = float(idm_acceleration(IDM.defaults(), 12.0, 18.0, 11.0, 1.0))
+    for lead_acc, counted in ((-1.5, -1.5), (2.0, 2.0), (-20.0, -9.0), (20.0, 6.0)):
+        inputs = make_inputs(lead_acc=jnp.float32(lead_acc))
+        for w in (0.0, 0.3, 1.0):
+            got = extended.model.mean_acceleration(params_for(extended, w), STATE, inputs)
+            np.testing.assert_allclose(got, idm + w * counted, rtol=1e-5, atol=1e-6)
+    free_road = make_inputs(has_leader=jnp.float32(0.0), lead_acc=jnp.float32(-3.0))
+    free = float(idm_acceleration(IDM.defaults(), 12.0, 18.0, 11.0, 0.0))
+    got = extended.model.mean_acceleration(params_for(extended, 0.8), STATE, free_road)
+    np.testing.assert_allclose(got, free, rtol=1e-6)
 
 
 def test_unknown_cause_is_refused_with_the_known_ones():

@@ -162,23 +162,19 @@ def test_an_extension_without_its_inputs_is_refused_in_one_line():
 GENERATOR_NAMES = {"v0": "v_des", "s0": "d_min", "T": "tau", "a": "a_max", "b": "b_pref"}
 
 
-def test_the_smc_engine_fits_a_perception_delay_of_the_independent_generator(tmp_path):
-    """One follower of trafficgen (40 s, no cut-in) perceiving gap and closing speed 0.9 s late,
-    seed 3, and one without the delay (seed 4, the negative control); the IDM parameters and sigma
-    fixed at the generator's truth for that driver, 256 particles: the smc posterior of the delay
-    has its mean within 0.05 s of 0.9 and 0.9 inside its 1-99% interval (a delay of the own speed
-    too, a different mechanism, misses it); on the control its mean is below 0.15 s with 0.9 s
-    above its 99th percentile."""
+def posteriors_on_generated_followers(
+    tmp_path, model_name: str, param: str, runs, engine: str = "smc"
+) -> dict:
+    """The ``engine``'s posterior (256 draws) of ``param`` of ``model_name`` on one follower of
+    trafficgen (40 s, no cut-in) per ``(name, seed, mechanisms)`` of ``runs``, the IDM parameters
+    and sigma fixed at the generator's truth for that driver."""
     from bayesdrive.data.readers import read
     from bayesdrive.data.views import scored_series
     from trafficgen import generate
 
-    model = get_model("idm+reaction_delay")
+    model = get_model(model_name)
     posterior = {}
-    for name, seed, mechanisms in (
-        ("delayed", 3, {"perception_delay": (0.9, 0.9)}),
-        ("control", 4, None),
-    ):
+    for name, seed, mechanisms in runs:
         path = tmp_path / f"{name}.csv"
         recording = generate(
             seed, path, mechanisms, platoons=1, followers=1, duration_s=40.0, cut_ins=0
@@ -191,17 +187,54 @@ def test_the_smc_engine_fits_a_perception_delay_of_the_independent_generator(tmp
             jax.random.key(seed),
             scored_series(read(path, format="ngsim_raw")),
             model=model,
-            params=("reaction_time",),
+            engine=engine,
+            params=(param,),
             fixed=truth,
             num_particles=256,
             seed=seed,
         )
-        posterior[name] = tree["posterior"]["reaction_time"].values.ravel()
+        posterior[name] = tree["posterior"][param].values.ravel()
+    return posterior
+
+
+def test_the_smc_engine_fits_a_perception_delay_of_the_independent_generator(tmp_path):
+    """One follower of trafficgen perceiving gap and closing speed 0.9 s late, seed 3, and one
+    without the delay (seed 4, the negative control): the smc posterior of the delay has its mean
+    within 0.05 s of 0.9 and 0.9 inside its 1-99% interval (a delay of the own speed too, a
+    different mechanism, misses it); on the control its mean is below 0.15 s with 0.9 s above its
+    99th percentile."""
+    posterior = posteriors_on_generated_followers(
+        tmp_path,
+        "idm+reaction_delay",
+        "reaction_time",
+        (("delayed", 3, {"perception_delay": (0.9, 0.9)}), ("control", 4, None)),
+    )
     low, high = np.quantile(posterior["delayed"], [0.01, 0.99])
     assert abs(posterior["delayed"].mean() - 0.9) < 0.05
     assert low < 0.9 < high
     assert posterior["control"].mean() < 0.15
     assert np.quantile(posterior["control"], 0.99) < 0.9
+
+
+def test_the_lm_engine_finds_a_leader_acceleration_response_of_the_independent_generator(
+    tmp_path,
+):
+    """One follower of trafficgen adding 0.8 of its leader's acceleration through a first-order
+    lag (seed 3), and one without (seed 4, the negative control), fitted by lm (its start at the
+    weight's default, the edge of the prior box, moved inside it): the posterior of
+    leader_acc_weight puts its 1st percentile above 0.3 (the lag the extension does not model
+    keeps it from the generator's 0.8, so only a floor is asked); on the control its mean is below
+    0.1 with 0.3 above its 99th percentile."""
+    posterior = posteriors_on_generated_followers(
+        tmp_path,
+        "idm+leader_acceleration_anticipation",
+        "leader_acc_weight",
+        (("responding", 3, {"leader_acceleration_response": (0.8, 0.8)}), ("control", 4, None)),
+        engine="lm",
+    )
+    assert np.quantile(posterior["responding"], 0.01) > 0.3
+    assert posterior["control"].mean() < 0.1
+    assert np.quantile(posterior["control"], 0.99) < 0.3
 
 
 @pytest.mark.extended

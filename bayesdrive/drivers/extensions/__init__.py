@@ -11,7 +11,7 @@ extension of each kind to its base, applied in the order of :data:`KIND_ORDER` (
 kind            extensions                                                  wraps
 ==============  ==========================================================  =====================
 ``mean``        reaction_delay, second_leader_anticipation,                 a base model that
-                cut_in_overreaction                                         reads car following
+                cut_in_overreaction, leader_acceleration_anticipation       reads car following
 ``noise``       autocorrelated_noise, speed_dependent_noise                 any exactly observed
                                                                             model with white noise
 ``parameters``  drifting_parameters                                         the base model alone
@@ -48,6 +48,7 @@ from bayesdrive.drivers.extensions import (
     autocorrelated_noise,
     cut_in,
     drifting_parameters,
+    leader_acceleration,
     reaction_delay,
     second_leader,
     speed_dependent_noise,
@@ -96,6 +97,7 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
         speed_dependent_noise.CAUSE: speed_dependent_noise.with_speed_dependent_noise,
         second_leader.CAUSE: second_leader.with_second_leader_anticipation,
         cut_in.CAUSE: cut_in.with_cut_in_heuristic,
+        leader_acceleration.CAUSE: leader_acceleration.with_leader_acceleration_anticipation,
         drifting_parameters.CAUSE: drifting_parameters.with_drifting_time_gap,
         measurement_noise.CAUSE: with_measurement_noise,
         video_noise.NAME: with_video_noise,
@@ -111,6 +113,7 @@ KINDS = MappingProxyType(
         reaction_delay.CAUSE: "mean",
         second_leader.CAUSE: "mean",
         cut_in.CAUSE: "mean",
+        leader_acceleration.CAUSE: "mean",
         autocorrelated_noise.CAUSE: "noise",
         speed_dependent_noise.CAUSE: "noise",
         drifting_parameters.CAUSE: "parameters",

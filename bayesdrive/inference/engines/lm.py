@@ -21,7 +21,10 @@ vehicle is recorded in ``sample_stats.censored_steps``.
 uses for a bounded uniform); :math:`\theta = l + (u - l)\,\mathrm{sigmoid}(z)` never leaves the
 box. Residuals and their Jacobian (``jax.jacfwd``) are compiled once per padded series length.
 Each vehicle is fitted from two starts, the model defaults and the prior centre (z = 0), and the
-fit with the lower cost is kept (the first on a tie); no randomness is involved.
+fit with the lower cost is kept (the first on a tie); no randomness is involved. A default on the
+edge of its box (an extension switched off at its prior's lower bound) has no finite z, and from
+an infinite z, where the Jacobian vanishes, LM would not move: that start is moved inside the box
+by ``EDGE_FRACTION`` of its width.
 
 **Noise sd.** :math:`\sigma` (the parameter whose spec is marked ``execution_noise``) does not
 enter the residuals. When it is inferred it is estimated as
@@ -81,6 +84,8 @@ log = logging.getLogger(__name__)
 IDENTIFIED_RTOL = 1e-10
 # An estimate within this fraction of its box width from a bound counts as at the bound.
 AT_BOUND = 1e-4
+# How far inside its box, as a fraction of the width, a default on the box's edge starts LM.
+EDGE_FRACTION = 1e-3
 # Vehicle ids named in the not-converged warning (the count is always given).
 WARN_IDS = 10
 START_NAMES = ("defaults", "prior_centre")
@@ -233,9 +238,8 @@ def run(
     lower = np.asarray(box.lower, np.float64)
     width = np.asarray(box.upper, np.float64) - lower
     defaults = np.array([model.spec(n).default for n in fitted])
-    starts = np.stack(
-        [np.log((defaults - lower) / (lower + width - defaults)), np.zeros(len(fitted))]
-    )
+    inside = np.clip((defaults - lower) / width, EDGE_FRACTION, 1.0 - EDGE_FRACTION)
+    starts = np.stack([np.log(inside / (1.0 - inside)), np.zeros(len(fitted))])
 
     series, censored = residual_series(arrays, problem.series)
     num_vehicles = problem.num_vehicles
