@@ -16,7 +16,9 @@ loop) are counted in the table.
 ``STUDY_SEEDS.start + r - 1``: 100001, 100002, ... . These were never used while developing the
 generator or the detector; development and pilots use ``--dev``, which takes ``DEV_SEEDS``
 (900001, ...) and writes to files of their own (``detection_dev_runs.csv``, ``detection_dev.md``).
-CI's seeds (70001, ...) are a third range, fixed in the test.
+CI's seeds (70001, ...) are a third range, fixed in the test. A rerun after a change to the
+detector takes fresh seeds, fixed before it runs: ``--first-seed`` starts the study's range
+elsewhere (the table names every row's seeds).
 
 **Resumable.** Each finished replication is appended to ``<out>/detection_runs.csv`` as one line in
 one ``write`` on a file opened for appending (so a stop never leaves half a row); a rerun skips the
@@ -359,8 +361,9 @@ def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
         "have none, and their row shows what criticize said instead; 'final models' counts the "
         "models the loop ended with (a cause beyond the right ones is a false positive of a "
         "later round). Intervals: Wilson 95%. Seeds: replication r of every cell uses the r-th seed of "
-        f"the range ({'development' if dev else 'study'} seeds "
-        f"{(DEV_SEEDS if dev else STUDY_SEEDS).start}, ...).\n\n"
+        f"the range ({'development' if dev else 'study'} seeds from "
+        f"{(DEV_SEEDS if dev else STUDY_SEEDS).start}, or where a rerun's --first-seed put "
+        "them; each row names its seeds).\n\n"
         + "\n".join(lines)
         + f"\n\nCells right in all of at least {CLAIM_REPLICATIONS} replications: "
         + (", ".join(f"{r.cell} {r.size}" for r in reliable.itertuples()) or "none yet")
@@ -386,6 +389,7 @@ def run_shards(args: argparse.Namespace) -> int:
     common += ["--replications", str(args.replications)]
     common += ["--null-replications", str(args.null_replications)]
     common += ["--dev"] if args.dev else []
+    common += ["--first-seed", str(args.first_seed)]
     common += ["--stop-at", str(args.stop_at)] if args.stop_at is not None else []
     shards = []
     for k in range(args.jobs):
@@ -410,6 +414,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--sizes", default=",".join(SIZES))
     parser.add_argument("--dev", action="store_true", help="development seeds and files")
+    parser.add_argument(
+        "--first-seed",
+        type=int,
+        default=STUDY_SEEDS.start,
+        help="the study's first seed (fresh seeds for a rerun, fixed before it runs)",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
     parser.add_argument("--shard", default="0/1", help="K/N: every N-th replication from the K-th")
@@ -432,7 +442,7 @@ def main(argv: list[str] | None = None) -> int:
         if runs_path.exists():
             print(write_report(runs_path, args.out, dev=args.dev))
         return 1 if failed else 0
-    seeds = DEV_SEEDS if args.dev else STUDY_SEEDS
+    seeds = DEV_SEEDS if args.dev else range(args.first_seed, args.first_seed + len(STUDY_SEEDS))
     unknown = [
         c for c in args.cells.split(",") for m in c.split("+") if m not in (NULL, *MECHANISMS)
     ]
