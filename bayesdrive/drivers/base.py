@@ -21,12 +21,16 @@ ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and
   (identity unless the state remembers more than position and speed, e.g. the last noise).
 * ``filter(params, steps) -> (T,)``: for a model with a hidden state, the one-step predictive log
   densities of one vehicle's steps from a state filter; None when each step is scored on its own.
-* ``series_logpdf(params, steps) -> (T,)``: optional, for a model without a hidden state whose
-  lift is the identity: ``transition_logpdf`` of every step of one vehicle's series at once, from
-  its observed states, where the model can do that faster than step by step (the execution-noise
-  models skip the stop probability on series without a stop). None: engines map
-  ``transition_logpdf`` over the steps. A model made by replacing ``transition_logpdf`` must
-  replace or clear it too.
+* ``censored(state, next_state, inputs) -> bool``: optional, whether an observed step (the
+  observed states, relative to the current step, and the model's inputs) may be scored by a class
+  probability (a stop, a step at a physical limit), from the data alone. A model that declares it
+  takes a keyword ``may_be_censored`` (a Python bool, default True) in ``transition_logpdf`` and,
+  where it has one, ``filter``: False promises that no step they score is censored, so they skip
+  the class probabilities, whose normal log-CDFs cost more than the rest of the density. The
+  likelihood checks each series once and skips them where no step is censored, for every model
+  alike (:func:`bayesdrive.inference.core.likelihood.step_logpdfs`). None: the densities are
+  always called without the keyword. A model made by replacing ``transition_logpdf`` or
+  ``filter`` must keep that keyword or clear ``censored``.
 
 States are kept *relative to the current step*: engines pass ``x = 0`` and the observed increment
 ``dx = x[t+1] - x[t]`` (computed in float64 by the data layer), so float32 never subtracts two
@@ -214,7 +218,7 @@ class DriverModel(NamedTuple):
     lift: Callable[[Any, EgoState, Any], Any] = observed_lift
     filter: Callable[[Any, Any], Array] | None = None
     reads_history: bool = False
-    series_logpdf: Callable[[Any, Any], Array] | None = None
+    censored: Callable[[EgoState, EgoState, Any], Array] | None = None
     observation: str = EXACT
     scene: str | None = None
     noise_sd: Callable[[Any, Any], Array] | None = None

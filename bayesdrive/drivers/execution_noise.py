@@ -97,6 +97,7 @@ __all__ = [
     "STOP_SPEED",
     "IncrementLaw",
     "acceleration_ceiling",
+    "censored_observation",
     "censored_step",
     "exact_initial_sample",
     "exact_observation_logpdf",
@@ -260,6 +261,14 @@ def censored_step(v: Array, next_v: Array, dx: Array, dt: Array, ceiling: Array)
     return stopped | at_floor | at_ceiling
 
 
+def censored_observation(state: EgoState, next_state: EgoState, inputs) -> Array:
+    """:func:`censored_step` of an observed step whose ceiling comes from the car-following
+    ``inputs`` (gap, lead_v, has_leader, dt): the ``censored`` declaration of every model scored by
+    :func:`step_logpdf` (:class:`~bayesdrive.drivers.base.DriverModel`)."""
+    ceiling = acceleration_ceiling(state.v, inputs)
+    return censored_step(state.v, next_state.v, next_state.x - state.x, inputs.dt, ceiling)
+
+
 def exact_observation_logpdf(params, state: EgoState, obs: EgoState) -> Array:
     """The state is observed exactly: the observation carries no density of its own (log 1 = 0)."""
     del params, state, obs
@@ -294,39 +303,15 @@ def execution_noise_model(
         ceiling = acceleration_ceiling(state.v, inputs)
         return noisy_step(key, state, mean_acc, noise_sd(params, state), inputs.dt, ceiling)
 
-    def transition_logpdf(params, state: EgoState, next_state: EgoState, inputs) -> Array:
+    def transition_logpdf(
+        params, state: EgoState, next_state: EgoState, inputs, *, may_be_censored: bool = True
+    ) -> Array:
         mean_acc = mean_acceleration(params, state, inputs)
         ceiling = acceleration_ceiling(state.v, inputs)
         sd = noise_sd(params, state)
-        return step_logpdf(state, next_state, mean_acc, sd, inputs.dt, ceiling)
-
-    def series_logpdf(params, steps) -> Array:
-        # Stops and steps at a limit are rare in car-following data and their class
-        # probability's normal log-CDFs cost more than the rest of the density: a series without
-        # one skips them.
-        ceilings = jax.vmap(acceleration_ceiling)(steps.v, steps.inputs)
-
-        def scored(may_be_censored: bool) -> Array:
-            def one(v, next_v, dx, inputs, ceiling):
-                state = EgoState(jnp.zeros_like(v), v)
-                mean_acc = mean_acceleration(params, state, inputs)
-                sd = noise_sd(params, state)
-                next_state = EgoState(dx, next_v)
-                return step_logpdf(
-                    state,
-                    next_state,
-                    mean_acc,
-                    sd,
-                    inputs.dt,
-                    ceiling,
-                    may_be_censored=may_be_censored,
-                )
-
-            return jax.vmap(one)(steps.v, steps.next_v, steps.dx, steps.inputs, ceilings)
-
-        dt = steps.inputs.dt
-        any_censored = jnp.any(censored_step(steps.v, steps.next_v, steps.dx, dt, ceilings))
-        return jax.lax.cond(any_censored, lambda: scored(True), lambda: scored(False))
+        return step_logpdf(
+            state, next_state, mean_acc, sd, inputs.dt, ceiling, may_be_censored=may_be_censored
+        )
 
     return DriverModel(
         name=name,
@@ -338,7 +323,7 @@ def execution_noise_model(
         observation_logpdf=exact_observation_logpdf,
         initial_sample=exact_initial_sample,
         inputs_at=inputs_at,
-        series_logpdf=series_logpdf,
+        censored=censored_observation,
         scene=scene,
         noise_sd=noise_sd,
     )

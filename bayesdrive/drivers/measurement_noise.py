@@ -111,9 +111,11 @@ def shift_ego(inputs: Any, offset: Array) -> Any:
     return inputs._replace(**shifted)
 
 
-def _noise_filter(base: DriverModel, base_params, params, steps: Any) -> Array:
+def _noise_filter(
+    base: DriverModel, base_params, params, steps: Any, *, may_be_censored: bool = True
+) -> Array:
     """One-step predictive log densities of one vehicle's steps (T,) with speeds recorded exactly
-    (module docstring, use 1).
+    (module docstring, use 1); ``may_be_censored=False`` promises that no step ends in a stop.
 
     The recursion has a closed form, so it is vectorised over steps instead of scanned: in a
     stretch of data, at its k-th step (k = 0 first), P = s^2/(k + 1) and (k + 1) m = sum over the
@@ -140,6 +142,8 @@ def _noise_filter(base: DriverModel, base_params, params, steps: Any) -> Array:
         sigma = base.noise_sd(own, state)
         law = increment_law(v, rule, sigma, dt)
         moving = norm.logpdf(dx, law.mean - mean, jnp.sqrt(law.sd**2 + noise_var + var))
+        if not may_be_censored:
+            return moving
         ceiling = acceleration_ceiling(v, inputs)
         stopped = step_logpdf(state, EgoState(dx, next_v), rule, sigma, dt, ceiling)
         return jnp.where(next_v <= STOP_SPEED, stopped, moving)
@@ -186,8 +190,16 @@ def with_measurement_noise(model: DriverModel) -> DriverModel:
     def transition_sample(key: Array, params, state: EgoState, inputs) -> Any:
         return model.transition_sample(key, base(params), state, inputs)
 
-    def transition_logpdf(params, state: EgoState, next_state: EgoState, inputs) -> Array:
-        return model.transition_logpdf(base(params), state, next_state, inputs)
+    def transition_logpdf(params, state: EgoState, next_state: EgoState, inputs, **censoring):
+        return model.transition_logpdf(base(params), state, next_state, inputs, **censoring)
+
+    censored = None
+    if model.censored is not None:
+
+        def censored(state: EgoState, next_state: EgoState, inputs) -> Array:
+            # The filter scores a stop by its class probability, whatever the base declares.
+            stopped = next_state.v <= STOP_SPEED
+            return stopped | model.censored(state, next_state, inputs)
 
     def observation_logpdf(params, state: EgoState, obs: EgoState) -> Array:
         # Positions only: the recorded speed is no observation (module docstring).
@@ -209,6 +221,7 @@ def with_measurement_noise(model: DriverModel) -> DriverModel:
         inputs_at=model.inputs_at,
         lift=observed_lift,
         filter=functools.partial(_noise_filter, model, base),
+        censored=censored,
         observation=CAUSE,
         scene=model.scene,
         noise_sd=lambda params, state: model.noise_sd(base(params), state),

@@ -121,5 +121,7 @@ def with_video_noise(model: DriverModel) -> DriverModel:
     return noisy._replace(
         name=f"{model.name}+{NAME}",
         filter=functools.partial(_kalman_filter, model),
+        # Its Gaussian filter scores no step by a class probability.
+        censored=None,
         observation=NAME,
     )

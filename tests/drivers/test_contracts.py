@@ -23,7 +23,7 @@ from bayesdrive.drivers.extensions.autocorrelated_noise import NoiseMemoryInputs
 from bayesdrive.drivers.extensions.inputs import inputs_at as extended_inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.core.likelihood import StepInputs, check_model
+from bayesdrive.inference.core.likelihood import StepInputs, check_model, step_logpdfs
 from bayesdrive.inference.core.output import set_metadata
 from bayesdrive.inference.engines import pmmh
 from bayesdrive.simulation.evaluation import _posterior_policy
@@ -96,7 +96,7 @@ def test_speed_dependent_noise_scales_the_declared_noise_sd():
     assert float(renamed.noise_sd(ours, state)) == pytest.approx(0.35 * (1 + 12.0 * slope))
     data = steps()
     np.testing.assert_allclose(
-        renamed.series_logpdf(ours, data), idm.series_logpdf(theirs, data), rtol=1e-6
+        step_logpdfs(renamed, ours, data), step_logpdfs(idm, theirs, data), rtol=1e-6
     )
 
 

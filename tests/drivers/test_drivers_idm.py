@@ -19,7 +19,7 @@ from bayesdrive.drivers.execution_noise import (
     acceleration_ceiling,
 )
 from bayesdrive.drivers.idm import IDM, idm_acceleration
-from bayesdrive.inference.core.likelihood import StepInputs
+from bayesdrive.inference.core.likelihood import StepInputs, step_logpdfs
 
 DT = 0.1
 # Textbook parameters used in the hand computations below.
@@ -169,7 +169,7 @@ def test_step_logpdf_matches_an_independent_scipy_formula():
     assert (acc[~stopped] <= -MAX_BRAKING).sum() >= 5
 
 
-def test_series_logpdf_matches_the_scipy_formula_with_and_without_stops():
+def test_series_density_matches_the_scipy_formula_with_and_without_stops():
     # The whole-series density skips the stop term on a series without a stop: on one with stops
     # it must score them, on the moving steps alone it must give the moving densities.
     params, v, dx, next_v, inputs, stopped, expected = _scipy_case()
@@ -185,7 +185,8 @@ def test_series_logpdf_matches_the_scipy_formula_with_and_without_stops():
             mask=f(np.ones(len(v))),
             inputs=jax.tree.map(lambda a: a[rows], inputs),
         )
-        return np.asarray(jax.jit(IDM.series_logpdf)(params, steps), dtype=np.float64)
+        scored = jax.jit(functools.partial(step_logpdfs, IDM))(params, steps)
+        return np.asarray(scored, dtype=np.float64)
 
     everything = np.arange(len(v))
     assert_matches_scipy(series(everything), expected)

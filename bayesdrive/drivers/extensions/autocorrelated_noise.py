@@ -60,6 +60,7 @@ from jax import Array
 from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, Series
 from bayesdrive.drivers.execution_noise import (
     acceleration_ceiling,
+    censored_observation,
     censored_step,
     implied_acceleration,
     noisy_step,
@@ -166,11 +167,18 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
         known = (~censored).astype(moved.v.dtype)
         return NoiseMemoryState(moved.x, moved.v, known * residual, known)
 
-    def transition_logpdf(params, state: NoiseMemoryState, next_state, inputs) -> Array:
+    def transition_logpdf(
+        params, state: NoiseMemoryState, next_state, inputs, *, may_be_censored: bool = True
+    ) -> Array:
         mean_acc, sd = conditional(params, state, inputs)
         ceiling = acceleration_ceiling(state.v, inputs.now)
         ego = EgoState(state.x, state.v)
-        return step_logpdf(ego, next_state, mean_acc, sd, inputs.dt, ceiling)
+        return step_logpdf(
+            ego, next_state, mean_acc, sd, inputs.dt, ceiling, may_be_censored=may_be_censored
+        )
+
+    def censored(state: EgoState, next_state: EgoState, inputs: NoiseMemoryInputs) -> Array:
+        return censored_observation(state, next_state, inputs.now)
 
     def lift(params, state: EgoState, inputs: NoiseMemoryInputs) -> NoiseMemoryState:
         before = inputs.previous_v
@@ -201,6 +209,7 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
         mean_acceleration=mean_acceleration,
         transition_sample=transition_sample,
         transition_logpdf=transition_logpdf,
+        censored=censored,
         initial_sample=initial_sample,
         inputs_at=inputs_at,
         lift=lift,

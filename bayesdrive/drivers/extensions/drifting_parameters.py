@@ -40,6 +40,7 @@ from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
 from bayesdrive.drivers.execution_noise import (
     STOP_SPEED,
     acceleration_ceiling,
+    censored_observation,
     implied_acceleration,
     noisy_step,
     step_logpdf,
@@ -104,14 +105,18 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         moved = noisy_step(key_step, ego, mean_acc, sigma, inputs.dt, ceiling)
         return DriftState(moved.x, moved.v, offset)
 
-    def transition_logpdf(params, state: DriftState, next_state: DriftState, inputs) -> Array:
+    def transition_logpdf(
+        params, state: DriftState, next_state: DriftState, inputs, *, may_be_censored: bool = True
+    ) -> Array:
         sd = params.tau_drift * jnp.sqrt(inputs.dt)
         drift = jax.scipy.stats.norm.logpdf(next_state.tau_offset, state.tau_offset, sd)
         mean_acc = rule(params, next_state.tau_offset, state.v, inputs)
         ego = EgoState(state.x, state.v)
         sigma = base.noise_sd(base_params(base, params), ego)
         ceiling = acceleration_ceiling(state.v, inputs)
-        move = step_logpdf(ego, next_state, mean_acc, sigma, inputs.dt, ceiling)
+        move = step_logpdf(
+            ego, next_state, mean_acc, sigma, inputs.dt, ceiling, may_be_censored=may_be_censored
+        )
         return drift + move
 
     def lift(params, state: EgoState, inputs: ExtendedInputs) -> DriftState:
@@ -123,7 +128,7 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         del key, params
         return DriftState(obs.x, obs.v, jnp.zeros_like(obs.v))
 
-    def ekf(params, steps: Any) -> Array:
+    def ekf(params, steps: Any, *, may_be_censored: bool = True) -> Array:
         """One-step predictive log densities of one vehicle's steps (T,), by the EKF above."""
         dt = steps.inputs.dt[0]
         drift_var = params.tau_drift**2 * dt
@@ -142,7 +147,15 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
             innovation_var = slope**2 * var + sigma**2
             ceiling = acceleration_ceiling(v, inputs)
             innovation_sd = jnp.sqrt(innovation_var)
-            logp = step_logpdf(state, EgoState(dx, next_v), rule_at, innovation_sd, dt, ceiling)
+            logp = step_logpdf(
+                state,
+                EgoState(dx, next_v),
+                rule_at,
+                innovation_sd,
+                dt,
+                ceiling,
+                may_be_censored=may_be_censored,
+            )
             gain = var * slope / innovation_var
             moving = (usable > 0) & (next_v > STOP_SPEED)
             surprise = implied_acceleration(v, dx, dt) - rule_at
@@ -166,6 +179,7 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         mean_acceleration=mean_acceleration,
         transition_sample=transition_sample,
         transition_logpdf=transition_logpdf,
+        censored=censored_observation,
         initial_sample=initial_sample,
         inputs_at=inputs_at,
         lift=lift,

@@ -151,22 +151,43 @@ def step_loglik(
     return jnp.where(step.mask > 0, logp, 0.0)
 
 
-def step_logpdfs(model: DriverModel, params: Any, steps: StepInputs) -> Array:
+def step_logpdfs(
+    model: DriverModel, params: Any, steps: StepInputs, *, may_be_censored: bool | None = None
+) -> Array:
     """One-step log predictive density of every step of one vehicle's (T,) series -> (T,).
 
-    Exactly observed models score each step on its own (from the lifted state), or the whole
-    series at once where the model has a faster ``series_logpdf``; models with a hidden state run
-    their filter over the vehicle's steps in order. Nothing is masked here."""
-    if model.filter is not None:
-        return model.filter(params, steps)
-    if model.series_logpdf is not None:
-        return model.series_logpdf(params, steps)
+    Exactly observed models score each step on its own (from the lifted state); models with a
+    hidden state run their filter over the vehicle's steps in order. A model that declares which
+    steps are ``censored`` is checked once over the whole series: without a censored step its
+    densities skip the class probabilities (``may_be_censored=False``; one ``lax.cond``, a real
+    branch where the series is not batched). ``may_be_censored`` given (True, or False: a promise
+    that no step is censored) replaces that check, for such a model only. Nothing is masked here."""
 
-    def one(v, next_v, dx, inputs):
-        state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
-        return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs)
+    def scored(**censoring: bool) -> Array:
+        if model.filter is not None:
+            return model.filter(params, steps, **censoring)
 
-    return jax.vmap(one)(steps.v, steps.next_v, steps.dx, steps.inputs)
+        def one(v, next_v, dx, inputs):
+            state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
+            return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs, **censoring)
+
+        return jax.vmap(one)(steps.v, steps.next_v, steps.dx, steps.inputs)
+
+    if model.censored is None:
+        if may_be_censored is not None:
+            raise ValueError(f"model {model.name!r} declares no censored steps to skip")
+        return scored()
+    if may_be_censored is not None:
+        return scored(may_be_censored=may_be_censored)
+    observed = EgoState(jnp.zeros_like(steps.v), steps.v)
+    any_censored = jnp.any(
+        jax.vmap(model.censored)(observed, EgoState(steps.dx, steps.next_v), steps.inputs)
+    )
+    return jax.lax.cond(
+        any_censored,
+        lambda: scored(may_be_censored=True),
+        lambda: scored(may_be_censored=False),
+    )
 
 
 def particles_loglik(
@@ -181,8 +202,6 @@ def series_loglik(
 ) -> Array:
     """Every step of one vehicle's series scored for one parameter vector: -> (T,) (0 where
     masked; through the model's state filter where it has one)."""
-    if model.filter is None and model.series_logpdf is None:
-        return jax.vmap(lambda step: step_loglik(model, names, fixed, theta, step))(series)
     logp = step_logpdfs(model, fill_params(model, names, theta, fixed), series)
     return jnp.where(series.mask > 0, logp, 0.0)
 

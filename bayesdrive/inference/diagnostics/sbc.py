@@ -130,20 +130,10 @@ def sd_doubled(model: DriverModel) -> DriverModel:
     def doubled(params):
         return params._replace(**{noise: 2.0 * getattr(params, noise)})
 
-    def transition_logpdf(params, state, next_state, inputs):
-        return model.transition_logpdf(doubled(params), state, next_state, inputs)
+    def transition_logpdf(params, state, next_state, inputs, **censoring):
+        return model.transition_logpdf(doubled(params), state, next_state, inputs, **censoring)
 
-    series_logpdf = None
-    if model.series_logpdf is not None:
-
-        def series_logpdf(params, steps):
-            return model.series_logpdf(doubled(params), steps)
-
-    return model._replace(
-        name=f"{model.name}-sd-doubled",
-        transition_logpdf=transition_logpdf,
-        series_logpdf=series_logpdf,
-    )
+    return model._replace(name=f"{model.name}-sd-doubled", transition_logpdf=transition_logpdf)
 
 
 def simulate_replications(
