@@ -24,13 +24,13 @@ ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and
 * ``censored(state, next_state, inputs) -> bool``: optional, whether an observed step (the
   observed states, relative to the current step, and the model's inputs) may be scored by a class
   probability (a stop, a step at a physical limit), from the data alone. A model that declares it
-  takes a keyword ``may_be_censored`` (a Python bool, default True) in ``transition_logpdf`` and,
-  where it has one, ``filter``: False promises that no step they score is censored, so they skip
-  the class probabilities, whose normal log-CDFs cost more than the rest of the density. The
-  likelihood checks each series once and skips them where no step is censored, for every model
-  alike (:func:`bayesdrive.inference.core.likelihood.step_logpdfs`). None: the densities are
-  always called without the keyword. A model made by replacing ``transition_logpdf`` or
-  ``filter`` must keep that keyword or clear ``censored``.
+  takes a keyword ``may_be_censored`` (a bool or a boolean scalar array, default True) in
+  ``transition_logpdf`` and, where it has one, ``filter``: False promises that no step they score
+  is censored, so they skip the class probabilities, whose normal log-CDFs cost more than the rest
+  of the density. The likelihood tells them once per series, for every model alike
+  (:func:`bayesdrive.inference.core.likelihood.censoring`). None: the densities are always called
+  without the keyword. A model made by replacing ``transition_logpdf`` or ``filter`` must keep
+  that keyword or clear ``censored``.
 
 States are kept *relative to the current step*: engines pass ``x = 0`` and the observed increment
 ``dx = x[t+1] - x[t]`` (computed in float64 by the data layer), so float32 never subtracts two

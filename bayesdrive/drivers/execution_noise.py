@@ -211,35 +211,42 @@ def step_logpdf(
     dt: Array,
     ceiling: Array,
     *,
-    may_be_censored: bool = True,
+    may_be_censored: bool | Array = True,
 ) -> Array:
     """Exact log-density of the observed next state under :func:`noisy_step` with ``ceiling``
     (module docstring: a moving step inside the limits has a density, a stop or a step at a limit
     the probability of its class).
 
-    ``may_be_censored=False`` promises that the observed step is none of those (next speed above
+    ``may_be_censored`` False promises that the observed step is none of those (next speed above
     ``STOP_SPEED``, implied acceleration inside the limits): the class probability, whose normal
-    log-CDFs cost more than all the rest, is then not computed."""
+    log-CDFs cost more than all the rest, is then not computed. A boolean array decides when the
+    program runs (one ``lax.cond`` around the class probability alone, a real branch where the
+    flag is not batched), so a caller can decide once for a whole series."""
     law = increment_law(state.v, mean_acc, sigma, dt)
     dx = next_state.x - state.x
     inside = norm.logpdf(dx, law.mean, law.sd)
-    if not may_be_censored:
-        return inside
-    stopped, at_floor, at_ceiling = _step_classes(state.v, next_state.v, dx, dt, ceiling)
-    floor_at, ceiling_at = -MAX_BRAKING + LIMIT_TOLERANCE, ceiling - LIMIT_TOLERANCE
-    # The censored acceleration reaches a stop from below the floor never, above the ceiling always.
-    stop_at = (STOP_SPEED - jnp.asarray(state.v)) / dt  # an array, so ~ negates its comparisons
-    unreachable, forced = stop_at < -MAX_BRAKING, stop_at >= ceiling
-    floor_z, ceiling_z = (floor_at - mean_acc) / sigma, (ceiling_at - mean_acc) / sigma
-    # Raw-acceleration interval of each class: stop (-inf, stop], floor (stop, floor],
-    # ceiling [max(ceiling, stop), inf); a moving step where the stop is forced is impossible.
-    low = jnp.where(at_floor, law.stop_z, jnp.maximum(ceiling_z, law.stop_z))
-    low_open = stopped | (at_floor & unreachable)
-    high = jnp.where(stopped, law.stop_z, floor_z)
-    high_open = at_ceiling | (stopped & forced)
-    possible = jnp.where(stopped, ~unreachable, ~forced)
-    censored = _log_normal_mass(low, high, low_open, high_open, possible)
-    return jnp.where(stopped | at_floor | at_ceiling, censored, inside)
+
+    def with_classes() -> Array:
+        stopped, at_floor, at_ceiling = _step_classes(state.v, next_state.v, dx, dt, ceiling)
+        floor_at, ceiling_at = -MAX_BRAKING + LIMIT_TOLERANCE, ceiling - LIMIT_TOLERANCE
+        # The censored acceleration reaches a stop from below the floor never, above the ceiling
+        # always.
+        stop_at = (STOP_SPEED - jnp.asarray(state.v)) / dt  # an array, so ~ negates its comparisons
+        unreachable, forced = stop_at < -MAX_BRAKING, stop_at >= ceiling
+        floor_z, ceiling_z = (floor_at - mean_acc) / sigma, (ceiling_at - mean_acc) / sigma
+        # Raw-acceleration interval of each class: stop (-inf, stop], floor (stop, floor],
+        # ceiling [max(ceiling, stop), inf); a moving step where the stop is forced is impossible.
+        low = jnp.where(at_floor, law.stop_z, jnp.maximum(ceiling_z, law.stop_z))
+        low_open = stopped | (at_floor & unreachable)
+        high = jnp.where(stopped, law.stop_z, floor_z)
+        high_open = at_ceiling | (stopped & forced)
+        possible = jnp.where(stopped, ~unreachable, ~forced)
+        censored = _log_normal_mass(low, high, low_open, high_open, possible)
+        return jnp.where(stopped | at_floor | at_ceiling, censored, inside)
+
+    if isinstance(may_be_censored, bool):
+        return with_classes() if may_be_censored else inside
+    return jax.lax.cond(may_be_censored, with_classes, lambda: inside)
 
 
 def _step_classes(
@@ -304,7 +311,12 @@ def execution_noise_model(
         return noisy_step(key, state, mean_acc, noise_sd(params, state), inputs.dt, ceiling)
 
     def transition_logpdf(
-        params, state: EgoState, next_state: EgoState, inputs, *, may_be_censored: bool = True
+        params,
+        state: EgoState,
+        next_state: EgoState,
+        inputs,
+        *,
+        may_be_censored: bool | Array = True,
     ) -> Array:
         mean_acc = mean_acceleration(params, state, inputs)
         ceiling = acceleration_ceiling(state.v, inputs)

@@ -112,7 +112,7 @@ def shift_ego(inputs: Any, offset: Array) -> Any:
 
 
 def _noise_filter(
-    base: DriverModel, base_params, params, steps: Any, *, may_be_censored: bool = True
+    base: DriverModel, base_params, params, steps: Any, *, may_be_censored: bool | Array = True
 ) -> Array:
     """One-step predictive log densities of one vehicle's steps (T,) with speeds recorded exactly
     (module docstring, use 1); ``may_be_censored=False`` promises that no step ends in a stop.
@@ -142,10 +142,10 @@ def _noise_filter(
         sigma = base.noise_sd(own, state)
         law = increment_law(v, rule, sigma, dt)
         moving = norm.logpdf(dx, law.mean - mean, jnp.sqrt(law.sd**2 + noise_var + var))
-        if not may_be_censored:
-            return moving
         ceiling = acceleration_ceiling(v, inputs)
-        stopped = step_logpdf(state, EgoState(dx, next_v), rule, sigma, dt, ceiling)
+        stopped = step_logpdf(
+            state, EgoState(dx, next_v), rule, sigma, dt, ceiling, may_be_censored=may_be_censored
+        )
         return jnp.where(next_v <= STOP_SPEED, stopped, moving)
 
     return jax.vmap(one)(steps.inputs, steps.v, steps.next_v, steps.dx, mean, var)

@@ -68,7 +68,8 @@ def marked(model):
     scores = model.filter if model.filter is not None else model.transition_logpdf
 
     def scores_marked(*args, may_be_censored: bool = True):
-        return scores(*args, may_be_censored=may_be_censored) + (0.0 if may_be_censored else MARK)
+        mark = jnp.where(may_be_censored, 0.0, MARK)
+        return scores(*args, may_be_censored=may_be_censored) + mark
 
     if model.filter is not None:
         return model._replace(filter=scores_marked)

@@ -168,7 +168,7 @@ def with_autocorrelated_noise(base: DriverModel) -> ExtendedModel:
         return NoiseMemoryState(moved.x, moved.v, known * residual, known)
 
     def transition_logpdf(
-        params, state: NoiseMemoryState, next_state, inputs, *, may_be_censored: bool = True
+        params, state: NoiseMemoryState, next_state, inputs, *, may_be_censored: bool | Array = True
     ) -> Array:
         mean_acc, sd = conditional(params, state, inputs)
         ceiling = acceleration_ceiling(state.v, inputs.now)

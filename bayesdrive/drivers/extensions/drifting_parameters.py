@@ -106,7 +106,12 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         return DriftState(moved.x, moved.v, offset)
 
     def transition_logpdf(
-        params, state: DriftState, next_state: DriftState, inputs, *, may_be_censored: bool = True
+        params,
+        state: DriftState,
+        next_state: DriftState,
+        inputs,
+        *,
+        may_be_censored: bool | Array = True,
     ) -> Array:
         sd = params.tau_drift * jnp.sqrt(inputs.dt)
         drift = jax.scipy.stats.norm.logpdf(next_state.tau_offset, state.tau_offset, sd)
@@ -128,7 +133,7 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         del key, params
         return DriftState(obs.x, obs.v, jnp.zeros_like(obs.v))
 
-    def ekf(params, steps: Any, *, may_be_censored: bool = True) -> Array:
+    def ekf(params, steps: Any, *, may_be_censored: bool | Array = True) -> Array:
         """One-step predictive log densities of one vehicle's steps (T,), by the EKF above."""
         dt = steps.inputs.dt[0]
         drift_var = params.tau_drift**2 * dt

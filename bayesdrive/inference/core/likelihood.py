@@ -26,6 +26,7 @@ from bayesdrive.drivers.base import DriverModel, EgoState, device_series, fill_p
 
 __all__ = [
     "StepInputs",
+    "censoring",
     "check_model",
     "fixed_params",
     "full_history",
@@ -138,6 +139,21 @@ def check_model(model: DriverModel, engine: str, *, whole_series: bool = False) 
         )
 
 
+def censoring(model: DriverModel, steps: StepInputs) -> dict[str, Array]:
+    """The keyword a model that declares ``censored`` steps takes in its densities: whether any
+    of ``steps`` (one step, or one vehicle's (T,) series) is censored; nothing for another model.
+    On a series without a censored step the densities then skip the class probabilities, at run
+    time (a traced flag; :func:`~bayesdrive.drivers.execution_noise.step_logpdf`)."""
+    if model.censored is None:
+        return {}
+    observed = EgoState(jnp.zeros_like(steps.v), steps.v)
+    following = EgoState(steps.dx, steps.next_v)
+    censored = model.censored
+    for _ in range(jnp.ndim(steps.v)):
+        censored = jax.vmap(censored)
+    return {"may_be_censored": jnp.any(censored(observed, following, steps.inputs))}
+
+
 def step_loglik(
     model: DriverModel, names: Sequence[str], fixed: Any, theta: Array, step: StepInputs
 ) -> Array:
@@ -147,7 +163,8 @@ def step_loglik(
     params = fill_params(model, names, theta, fixed)
     observed = EgoState(x=jnp.zeros_like(step.v), v=step.v)
     state = model.lift(params, observed, step.inputs)
-    logp = model.transition_logpdf(params, state, EgoState(x=step.dx, v=step.next_v), step.inputs)
+    following = EgoState(x=step.dx, v=step.next_v)
+    logp = model.transition_logpdf(params, state, following, step.inputs, **censoring(model, step))
     return jnp.where(step.mask > 0, logp, 0.0)
 
 
@@ -158,36 +175,22 @@ def step_logpdfs(
 
     Exactly observed models score each step on its own (from the lifted state); models with a
     hidden state run their filter over the vehicle's steps in order. A model that declares which
-    steps are ``censored`` is checked once over the whole series: without a censored step its
-    densities skip the class probabilities (``may_be_censored=False``; one ``lax.cond``, a real
-    branch where the series is not batched). ``may_be_censored`` given (True, or False: a promise
-    that no step is censored) replaces that check, for such a model only. Nothing is masked here."""
+    steps are ``censored`` is told whether the series has one (:func:`censoring`), or
+    ``may_be_censored`` where given (False: a promise that no step is). Nothing is masked here."""
+    if may_be_censored is None:
+        flag = censoring(model, steps)
+    elif model.censored is None:
+        raise ValueError(f"model {model.name!r} declares no censored steps to skip")
+    else:
+        flag = {"may_be_censored": may_be_censored}
+    if model.filter is not None:
+        return model.filter(params, steps, **flag)
 
-    def scored(**censoring: bool) -> Array:
-        if model.filter is not None:
-            return model.filter(params, steps, **censoring)
+    def one(v, next_v, dx, inputs):
+        state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
+        return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs, **flag)
 
-        def one(v, next_v, dx, inputs):
-            state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
-            return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs, **censoring)
-
-        return jax.vmap(one)(steps.v, steps.next_v, steps.dx, steps.inputs)
-
-    if model.censored is None:
-        if may_be_censored is not None:
-            raise ValueError(f"model {model.name!r} declares no censored steps to skip")
-        return scored()
-    if may_be_censored is not None:
-        return scored(may_be_censored=may_be_censored)
-    observed = EgoState(jnp.zeros_like(steps.v), steps.v)
-    any_censored = jnp.any(
-        jax.vmap(model.censored)(observed, EgoState(steps.dx, steps.next_v), steps.inputs)
-    )
-    return jax.lax.cond(
-        any_censored,
-        lambda: scored(may_be_censored=True),
-        lambda: scored(may_be_censored=False),
-    )
+    return jax.vmap(one)(steps.v, steps.next_v, steps.dx, steps.inputs)
 
 
 def particles_loglik(
