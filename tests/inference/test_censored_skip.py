@@ -5,10 +5,11 @@ Real NGSIM I-80 series: vehicle 210 has no censored step; vehicle 252 of the sam
 at the collision-free ceiling (its reconstructed gap shrinks to about 1 m and below); 210 with
 one step edited to end in a stop gives a stop. Each model (two extensions scored step by step,
 two with a state filter) scores every series three ways: as the likelihood chooses, with the
-class probabilities always computed and with them skipped. Tolerance rtol 1e-4 and 1e-3 nats
-(float32 rounding of one density computed in two compiled programs, :data:`TOLERANCE`); no
-randomness. Negative control: skipping on a series with a censored step changes its density by
-more than 1 nat.
+class probabilities always computed and with them skipped; the two scored step by step are also
+scored one step at a time, as pf and smc's sequential pass score them. Tolerance rtol 1e-4 and
+1e-3 nats (float32 rounding of one density computed in two compiled programs,
+:data:`TOLERANCE`); no randomness. Negative control: skipping on a series with a censored step
+changes its density by more than 1 nat.
 """
 
 from __future__ import annotations
@@ -21,7 +22,12 @@ import pytest
 from bayesdrive.data.readers import read
 from bayesdrive.data.views import FollowerArrays, scored_series
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.core.likelihood import (
+    StepInputs,
+    step_inputs,
+    step_loglik,
+    step_logpdfs,
+)
 
 CHAIN = "ngsim_i80_chains/202_210_213_222_234_252.csv"
 CLEAN, AT_CEILING = "210", "252"
@@ -89,7 +95,13 @@ def test_the_skip_changes_no_series_density_and_is_taken_only_without_a_censored
         full = step_logpdfs(model, params, steps, may_be_censored=True)
         skipped = step_logpdfs(model, params, steps, may_be_censored=False)
         branch = step_logpdfs(marked(model), params, steps) - chosen
-        return chosen, full, skipped, branch
+        if model.filter is not None:  # scored as a whole series only
+            return chosen, full, skipped, branch, None
+        # What engines that score one step at a time get (pf, smc's sequential pass): each
+        # step's own check.
+        theta = jnp.stack(params)
+        one_by_one = jax.vmap(lambda step: step_loglik(model, model.param_names, None, theta, step))
+        return chosen, full, skipped, branch, one_by_one(steps)
 
     series = {
         "clean": one_vehicle(chain, model, CLEAN),
@@ -97,10 +109,14 @@ def test_the_skip_changes_no_series_density_and_is_taken_only_without_a_censored
         "stop": one_vehicle(with_a_stop(chain), model, CLEAN),
     }
     for kind, steps in series.items():
-        chosen, full, skipped, branch = map(np.asarray, scored(steps))
+        chosen, full, skipped, branch, one_by_one = scored(steps)
+        chosen, full, skipped, branch = map(np.asarray, (chosen, full, skipped, branch))
         usable = np.asarray(steps.mask) > 0
         assert np.all(np.isfinite(full[usable])), kind
         np.testing.assert_allclose(chosen, full, **TOLERANCE, err_msg=kind)
+        if one_by_one is not None:
+            masked = np.where(usable, full, 0.0)
+            np.testing.assert_allclose(one_by_one, masked, **TOLERANCE, err_msg=kind)
         # The skip is taken exactly on the series without a censored step.
         expected = MARK if kind == "clean" else 0.0
         np.testing.assert_allclose(branch, expected, **TOLERANCE, err_msg=kind)

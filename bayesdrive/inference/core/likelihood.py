@@ -148,7 +148,7 @@ def censoring(model: DriverModel, steps: StepInputs) -> dict[str, Array]:
         return {}
     observed = EgoState(jnp.zeros_like(steps.v), steps.v)
     following = EgoState(steps.dx, steps.next_v)
-    censored = model.censored
+    censored = model.censored  # of one step: mapped over each axis of the steps
     for _ in range(jnp.ndim(steps.v)):
         censored = jax.vmap(censored)
     return {"may_be_censored": jnp.any(censored(observed, following, steps.inputs))}
