@@ -106,6 +106,14 @@ def test_mechanism_sizes_per_driver_and_streams_apart():
     assert not np.allclose(rec.true_x[rec.follower], base.true_x[rec.follower])
 
 
+def _whole_record_pairs(rec):
+    """(follower, leader) row pairs of the followers that keep one leader for the whole record."""
+    for i in np.flatnonzero(rec.follower):
+        lead = rec.leader[i]
+        if (lead == lead[0]).all() and lead[0] >= 0:
+            yield i, lead[0]
+
+
 def test_perception_delay_lags_the_response():
     """Followers' accelerations respond to their leader's later with a delay than without one:
     the lag of the peak cross-correlation grows (negative control: no mechanism)."""
@@ -113,11 +121,8 @@ def test_perception_delay_lags_the_response():
     def response_lag(rec):
         acc = np.gradient(rec.true_v, rec.dt, axis=1)
         lags = []
-        for i in np.flatnonzero(rec.follower):
-            lead = rec.leader[i]
-            if (lead != lead[0]).any() or lead[0] < 0:
-                continue  # only whole-record leaders
-            own, ahead = acc[i] - acc[i].mean(), acc[lead[0]] - acc[lead[0]].mean()
+        for i, lead in _whole_record_pairs(rec):
+            own, ahead = acc[i] - acc[i].mean(), acc[lead] - acc[lead].mean()
             corr = [np.dot(own[k:], ahead[: len(ahead) - k]) for k in range(30)]
             lags.append(int(np.argmax(corr)))
         return np.mean(lags)
@@ -137,13 +142,8 @@ def test_leader_acceleration_response_follows_the_leader_sooner():
 
     def lag1_correlation(rec):
         acc = np.gradient(rec.true_v, rec.dt, axis=1)
-        correlations = []
-        for i in np.flatnonzero(rec.follower):
-            lead = rec.leader[i]
-            if (lead != lead[0]).any() or lead[0] < 0:
-                continue  # only whole-record leaders
-            correlations.append(np.corrcoef(acc[i, 1:], acc[lead[0], :-1])[0, 1])
-        return np.mean(correlations)
+        pairs = _whole_record_pairs(rec)
+        return np.mean([np.corrcoef(acc[i, 1:], acc[lead, :-1])[0, 1] for i, lead in pairs])
 
     scenario = {"platoons": 2, "followers": 4, "duration_s": 40.0, "cut_ins": 0}
     plain = simulate(7, None, **scenario)
