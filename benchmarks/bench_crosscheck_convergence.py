@@ -8,7 +8,9 @@ model fitted:
 * ``idm``: plain IDM drivers with white noise, fitted by ``idm``;
 * ``autocorrelated_noise``: Ornstein-Uhlenbeck pedal noise (``pedal_noise``), fitted by
   ``idm+autocorrelated_noise``;
-* ``reaction_delay``: delayed perception (``perception_delay``), fitted by ``idm+reaction_delay``.
+* ``reaction_delay``: delayed perception (``perception_delay``), fitted by ``idm+reaction_delay``;
+* ``ngsim_agreement`` (only when asked for with ``--data``): real data, the 15 NGSIM I-80 followers
+  of ``benchmarks/bench_agreement.py`` (its choice rule, fitting windows), fitted by ``idm``.
 
 Every data set is fitted by ``bayesdrive.inference.fit.fit`` at its defaults (all parameters, 1000
 draws, seed ``--seed``) with smc, nuts and emcee; with the engines as they were before extension
@@ -51,6 +53,10 @@ DATA = {
     "autocorrelated_noise": ({"pedal_noise": (0.5, 0.8)}, "idm+autocorrelated_noise"),
     "reaction_delay": ({"perception_delay": (0.4, 0.7)}, "idm+reaction_delay"),
 }
+# Real data: the 15 NGSIM I-80 followers of benchmarks/bench_agreement.py (its choice rule, their
+# fitting windows), fitted by the IDM; ``--followers`` does not apply to them.
+NGSIM = "ngsim_agreement"
+NGSIM_VEHICLES = 15
 # Each run: (engine, engine options); the "-before" runs are the engines without extension.
 RUNS = {
     "smc": ("smc", {}),
@@ -93,24 +99,30 @@ def one_run(data: str, run: str, seed: int, followers: int, duration: float, fol
     import jax
 
     from bayesdrive.data.readers import read
+    from bayesdrive.drivers.idm import IDM
     from bayesdrive.drivers.registry import get_model
     from bayesdrive.inference.core.output import metadata, save_result
     from bayesdrive.inference.diagnostics.agreement import convergence_table
     from bayesdrive.inference.fit import fit
 
-    path = generate_data(data, seed, followers, duration, Path(folder))
-    trajectories = read(path, format="ngsim_raw")
-    model = get_model(DATA[data][1])
+    if data == NGSIM:
+        from bayesdrive.data.registry import load
+        from bayesdrive.data.views import follower_arrays
+        from benchmarks.bench_agreement import DATA as AGREEMENT_DATA
+        from benchmarks.bench_agreement import choose_vehicles
+
+        traj = load(AGREEMENT_DATA)
+        vehicles = choose_vehicles(traj, NGSIM_VEHICLES)
+        # Arrays, not a subset: a subset would drop the leaders whose speeds the followers need.
+        data_in, limit, model = follower_arrays(traj, window="fit", vehicle_ids=vehicles), {}, IDM
+    else:
+        path = generate_data(data, seed, followers, duration, Path(folder))
+        data_in, limit = read(path, format="ngsim_raw"), {"max_vehicles": followers}
+        model = get_model(DATA[data][1])
     engine, options = RUNS[run]
     started = time.perf_counter()
     tree = fit(
-        jax.random.key(seed),
-        trajectories,
-        model=model,
-        engine=engine,
-        seed=seed,
-        max_vehicles=followers,
-        **options,
+        jax.random.key(seed), data_in, model=model, engine=engine, seed=seed, **limit, **options
     )
     wall = time.perf_counter() - started
     save_result(tree, Path(folder) / f"{data}-{run}.nc")
@@ -203,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("reports"))
     parser.add_argument("--followers", type=int, default=24)
     parser.add_argument("--duration", type=float, default=60.0, help="seconds per follower")
-    parser.add_argument("--data", default=",".join(DATA), help=f"among {', '.join(DATA)}")
+    parser.add_argument("--data", default=",".join(DATA), help=f"among {', '.join([*DATA, NGSIM])}")
     parser.add_argument("--runs", default=",".join(RUNS), help=f"among {', '.join(RUNS)}")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--jobs", type=int, default=1)
@@ -219,7 +231,8 @@ def main(argv: list[str] | None = None) -> int:
         tmp = str(args.keep or scratch)
         Path(tmp).mkdir(parents=True, exist_ok=True)
         for data in data_sets:  # written once, before the jobs read them
-            generate_data(data, args.seed, args.followers, args.duration, Path(tmp))
+            if data != NGSIM:
+                generate_data(data, args.seed, args.followers, args.duration, Path(tmp))
         jobs = [(data, run) for data in data_sets for run in runs]
         context = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
