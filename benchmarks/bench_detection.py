@@ -262,6 +262,8 @@ def cell_rates(runs: pd.DataFrame) -> pd.DataFrame:
                 "seeds": _ranges(seeds),
             }
         )
+    if not rows:  # no replication of the current generator and sampler yet
+        return pd.DataFrame(columns=["cell", "size", "generator", "code", "n", "hits"])
     out = pd.DataFrame(rows)
     size_order = [NULL, *SIZES]
     return out.sort_values(
