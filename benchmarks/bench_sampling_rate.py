@@ -36,8 +36,6 @@ import sys
 import time
 from pathlib import Path
 
-import pandas as pd
-
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -45,7 +43,7 @@ if str(ROOT) not in sys.path:
 from bayesdrive.criticism.criticize import CriticizeConfig, criticize  # noqa: E402
 from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
 from bayesdrive.data.provenance import provenance_line  # noqa: E402
-from bayesdrive.experiments.paper import FULL, highway_data  # noqa: E402
+from bayesdrive.experiments.paper import FULL, criticism_data, highway_data  # noqa: E402
 
 SEED = 20261127
 FACTORS = {"10 Hz": 1, "2 Hz": 5}
@@ -54,12 +52,8 @@ DATA = ("ngsim_i80_chains", "openacc_vicolungo:human")
 
 
 def criticised(label: str):
-    """The reproduction's criticism data for ``label`` (``experiments.paper.criticism_step``)."""
-    name = label.split(":")[0]
-    traj = highway_data(name)[label]
-    scenes = list(pd.unique(traj.scenes["scene_id"]))[: FULL.criticism_scenes]
-    chosen = traj.scenes.loc[traj.scenes["scene_id"].isin(scenes), "vehicle_id"]
-    return traj.subset(chosen).first_seconds(FULL.criticism_seconds)
+    """The reproduction's criticism data for ``label`` (``experiments.paper.criticism_data``)."""
+    return criticism_data(highway_data(label.split(":")[0])[label], FULL)
 
 
 def cause_row(entry: dict, dt: float) -> dict:

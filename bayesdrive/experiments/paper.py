@@ -819,6 +819,19 @@ def prior_sensitivity_step(traj: Trajectories, vehicle_ids: list[str], settings:
     }
 
 
+def criticised_scenes(traj: Trajectories, settings: Settings) -> list[str]:
+    """The scenes the criticism reads: the first ``criticism_scenes`` (None: all)."""
+    return list(pd.unique(traj.scenes["scene_id"]))[: settings.criticism_scenes]
+
+
+def criticism_data(traj: Trajectories, settings: Settings) -> Trajectories:
+    """The criticism's data (:func:`criticism_step`): every vehicle of its scenes, so each
+    follower's leader is in the data, cut to their first ``criticism_seconds``."""
+    scenes = criticised_scenes(traj, settings)
+    chosen = traj.scenes.loc[traj.scenes["scene_id"].isin(scenes), "vehicle_id"]
+    return traj.subset(chosen).first_seconds(settings.criticism_seconds)
+
+
 def criticism_step(out: Path, traj: Trajectories, settings: Settings) -> dict:
     """What the stochastic IDM gets wrong on real data, the named cause and its gain.
 
@@ -829,10 +842,8 @@ def criticism_step(out: Path, traj: Trajectories, settings: Settings) -> dict:
     from bayesdrive.criticism.criticize import CriticizeConfig, criticize
     from bayesdrive.reports.criticism_plots import plot_criticism
 
-    scenes = list(pd.unique(traj.scenes["scene_id"]))[: settings.criticism_scenes]
-    chosen = traj.subset(
-        traj.scenes.loc[traj.scenes["scene_id"].isin(scenes), "vehicle_id"]
-    ).first_seconds(settings.criticism_seconds)
+    scenes = criticised_scenes(traj, settings)
+    chosen = criticism_data(traj, settings)
     config = CriticizeConfig(
         num_particles=settings.criticism_particles,
         num_rollouts=settings.criticism_rollouts,
