@@ -26,8 +26,10 @@ there) and the table is written to ``<out>/scaling.md``. Run::
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import os
+import pickle
 import platform
 import resource
 import subprocess
@@ -84,17 +86,24 @@ def followers(size: int, duration_s: float, seed: int, workdir: Path):
     generated = min(size, MAX_GENERATED)
     platoons = -(-generated // FOLLOWERS_PER_PLATOON)
     path = workdir / f"platoons_{platoons}_{duration_s:g}s_{seed}.csv"
-    if not path.exists():
-        generate(
-            seed,
-            path,
-            None,
-            platoons=platoons,
-            followers=FOLLOWERS_PER_PLATOON,
-            duration_s=duration_s,
-            cut_ins=0,
-        )
-    arrays = follower_arrays(read(path, format="ngsim_raw"), window="all")
+    # Reading and checking 1,000 generated followers takes about a minute, longer than fitting
+    # them on a GPU: the read arrays are kept beside the recording for the next process.
+    read_arrays = path.with_suffix(".followers.pickle.gz")
+    if read_arrays.exists():
+        arrays = pickle.loads(gzip.decompress(read_arrays.read_bytes()))
+    else:
+        if not path.exists():
+            generate(
+                seed,
+                path,
+                None,
+                platoons=platoons,
+                followers=FOLLOWERS_PER_PLATOON,
+                duration_s=duration_s,
+                cut_ins=0,
+            )
+        arrays = follower_arrays(read(path, format="ngsim_raw"), window="all")
+        read_arrays.write_bytes(gzip.compress(pickle.dumps(arrays), compresslevel=1))
     if len(arrays.vehicle_ids) < generated:
         raise RuntimeError(f"the recording holds {len(arrays.vehicle_ids)} followers, not {size}")
     arrays = arrays.subset(slice(0, generated))

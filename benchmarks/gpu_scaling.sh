@@ -11,7 +11,9 @@
 #   benchmarks/gpu_scaling.sh OUT_FOLDER SECONDS_AVAILABLE
 #
 # Environment (defaults): BATCHES ("64 256"), LARGE_SIZES ("10000 100000"), CANDIDATE_LIMIT (120),
-# BENCH_ARGS (extra bench_scaling.py arguments, "" ; e.g. "--particles 32" for a dry run on CPU).
+# BENCH_ARGS (extra bench_scaling.py arguments, "" ; e.g. "--particles 32" for a dry run on CPU),
+# WORKDIR (a new temporary folder; a folder holding the generated followers read once before),
+# SKIP_NGSIM (empty; set: no NGSIM row).
 # Each (source, batch) writes its own folder of bench_scaling.py rows under OUT_FOLDER; merge
 # them into reports/scaling/runs.jsonl, with the commit the tree was at, and run
 # `python benchmarks/bench_scaling.py --report-only`.
@@ -22,7 +24,7 @@ batches=${BATCHES:-64 256}
 large_sizes=${LARGE_SIZES:-10000 100000}
 candidate_limit=${CANDIDATE_LIMIT:-120}
 deadline=$(($(date +%s) + available))
-work=$(mktemp -d)
+work=${WORKDIR:-$(mktemp -d)}
 export JAX_COMPILATION_CACHE_DIR="$work/jax-cache"
 mkdir -p "$out"
 
@@ -43,7 +45,7 @@ fits() {  # whether SIZE vehicles at PER_VEHICLE seconds, plus start-up, end bef
 }
 
 nvidia-smi -L || echo "no NVIDIA GPU"
-bench "$available" --source ngsim_i80_chains --sizes 0 --batch 64 --means --out "$out/ngsim"
+[ -n "${SKIP_NGSIM:-}" ] || bench "$available" --source ngsim_i80_chains --sizes 0 --batch 64 --means --out "$out/ngsim"
 best_batch="" cost=""
 for batch in $batches; do
     bench "$candidate_limit" --sizes 1000 --batch "$batch" --out "$out/b$batch"
