@@ -26,8 +26,8 @@ there) and the table is written to ``<out>/scaling.md``. Run::
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
+import lzma
 import os
 import pickle
 import platform
@@ -88,9 +88,9 @@ def followers(size: int, duration_s: float, seed: int, workdir: Path):
     path = workdir / f"platoons_{platoons}_{duration_s:g}s_{seed}.csv"
     # Reading and checking 1,000 generated followers takes about a minute, longer than fitting
     # them on a GPU: the read arrays are kept beside the recording for the next process.
-    read_arrays = path.with_suffix(".followers.pickle.gz")
+    read_arrays = path.with_suffix(".followers.pickle.xz")
     if read_arrays.exists():
-        arrays = pickle.loads(gzip.decompress(read_arrays.read_bytes()))
+        arrays = pickle.loads(lzma.decompress(read_arrays.read_bytes()))
     else:
         if not path.exists():
             generate(
@@ -103,7 +103,7 @@ def followers(size: int, duration_s: float, seed: int, workdir: Path):
                 cut_ins=0,
             )
         arrays = follower_arrays(read(path, format="ngsim_raw"), window="all")
-        read_arrays.write_bytes(gzip.compress(pickle.dumps(arrays), compresslevel=1))
+        read_arrays.write_bytes(lzma.compress(pickle.dumps(arrays), preset=3))
     if len(arrays.vehicle_ids) < generated:
         raise RuntimeError(f"the recording holds {len(arrays.vehicle_ids)} followers, not {size}")
     arrays = arrays.subset(slice(0, generated))
