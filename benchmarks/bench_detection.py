@@ -12,6 +12,13 @@ the final model holds a right verdict of each (:func:`names_every_mechanism`). T
 final model too, so causes added in later rounds on one-mechanism data (false positives of the
 loop) are counted in the table.
 
+**Adoption** (``--rollouts N``): the same replications with ``N`` rollouts per model, so each
+round's named cause is also judged for adoption (its held-out 5 s forecast against the current
+model's, module docstring of :mod:`bayesdrive.criticism.criticize`). Rows go to files of their own
+(``detection_adoption_runs.csv``, ``detection_adoption.md``) with what was adopted and round 1's
+adoption reason; the table puts each cell's adoption rate (null data: nothing adopted) beside its
+naming rate. The first round names its cause as without rollouts.
+
 **Seeds, fixed before the run.** Replication r (1, 2, ...) of every cell uses seed
 ``STUDY_SEEDS.start + r - 1``: 100001, 100002, ... . These were never used while developing the
 generator or the detector; development and pilots use ``--dev``, which takes ``DEV_SEEDS``
@@ -64,7 +71,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bayesdrive.criticism.criticize import DETECTION_CONFIG, criticize  # noqa: E402
+from bayesdrive.criticism.criticize import (  # noqa: E402
+    DETECTION_CONFIG,
+    CriticizeConfig,
+    criticize,
+)
 from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
 from bayesdrive.data.readers import read  # noqa: E402
 from trafficgen import (  # noqa: E402
@@ -103,6 +114,9 @@ FIELDS = [
     "generator",
     "code",
 ]
+# With --rollouts: what was adopted (causes joined by "+"), whether that is right (a right cause of
+# the mechanism adopted; null data: nothing adopted), and round 1's adoption reason.
+ADOPTION_FIELDS = [*FIELDS, "adopted", "adopted_right", "adoption"]
 # A cell backs CI only with at least this many replications, all right.
 CLAIM_REPLICATIONS = 20
 
@@ -138,10 +152,18 @@ GENERATOR = generator_fingerprint()
 CODE = library_fingerprint()
 
 
-def sampler_label(config=DETECTION_CONFIG) -> str:
-    """How many Metropolis-Hastings moves per tempering stage the run's sampler made, and how many
-    rounds the criticism's loop may run (rows of another setting are not reused)."""
+def study_config(rollouts: int) -> CriticizeConfig:
+    """CI's detection settings, with ``rollouts`` rollouts per model (0: naming only)."""
+    return DETECTION_CONFIG._replace(num_rollouts=rollouts)
+
+
+def sampler_label(config: CriticizeConfig) -> str:
+    """How many Metropolis-Hastings moves per tempering stage the run's sampler made, how many
+    rounds the criticism's loop may run and, when adoption is judged, how many rollouts (rows of
+    another setting are not reused)."""
     rounds = f", up to {config.max_rounds} rounds"
+    if config.num_rollouts:
+        rounds += f", {config.num_rollouts} rollouts"
     if config.unmoved_tolerance > 0:
         return f">={config.num_moves} moves until unmoved<={config.unmoved_tolerance}{rounds}"
     return f"{config.num_moves} moves{rounds}"
@@ -174,13 +196,18 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return max(centre - half, 0.0), min(centre + half, 1.0)
 
 
-def run_one(cell: str, size: str, seed: int, workdir: Path) -> dict:
+def runs_file(out: Path, *, dev: bool, rollouts: int) -> Path:
+    """Where a study's rows go: development and adoption rows each in a file of their own."""
+    return out / f"detection{'_dev' if dev else ''}{'_adoption' if rollouts else ''}_runs.csv"
+
+
+def run_one(cell: str, size: str, seed: int, workdir: Path, config: CriticizeConfig) -> dict:
     """One replication: simulate, write, read, criticize."""
     started = time.perf_counter()
     mechanisms = cell_mechanisms(cell, size)
     path = workdir / f"{cell.replace('+', '_')}_{size}_{seed}.csv"
     recording = generate(seed, path, mechanisms, **DETECTION_SCENARIO)
-    report = criticize(read(path, format="ngsim_raw"), seed=seed, config=DETECTION_CONFIG).report
+    report = criticize(read(path, format="ngsim_raw"), seed=seed, config=config).report
     path.unlink()
     right = right_verdicts(tuple(mechanisms))
     found = (
@@ -190,7 +217,7 @@ def run_one(cell: str, size: str, seed: int, workdir: Path) -> dict:
     )
     gains = [c["gain"] for c in report["causes"] if c["name"] in right and c["gain"]]
     best = max(gains, key=lambda g: g["elpd"] if g["elpd"] is not None else -np.inf, default=None)
-    return {
+    row = {
         "cell": cell,
         "size": size,
         "ranges": ";".join(f"{k}={v[0]}-{v[1]}" for k, v in mechanisms.items()),
@@ -204,10 +231,16 @@ def run_one(cell: str, size: str, seed: int, workdir: Path) -> dict:
         "screened_in": int(any(c["screened_in"] for c in report["causes"] if c["name"] in right)),
         "collisions": recording.collisions,
         "seconds": round(time.perf_counter() - started, 1),
-        "sampler": sampler_label(),
+        "sampler": sampler_label(config),
         "generator": GENERATOR,
         "code": CODE,
     }
+    if config.num_rollouts:
+        adopted = report["adopted"]
+        row["adopted"] = "+".join(adopted)
+        row["adopted_right"] = int(bool(set(adopted) & set(right)) if mechanisms else not adopted)
+        row["adoption"] = report["rounds"][0]["adoption"] if report["rounds"] else ""
+    return row
 
 
 def append_rows(path: Path, rows: list[dict], fields: list[str]) -> None:
@@ -242,8 +275,19 @@ def cell_rates(runs: pd.DataFrame) -> pd.DataFrame:
         n, hits = len(group), int(group["right"].sum())
         low, high = wilson(hits, n)
         seeds = sorted(group["seed"].astype(int))
+        adoption = {}
+        if "adopted_right" in group:
+            adopted = int(group["adopted_right"].sum())
+            adoption = dict(
+                zip(
+                    ["adopted", "adopted_low", "adopted_high"],
+                    [adopted, *wilson(adopted, n)],
+                    strict=True,
+                )
+            )
         rows.append(
-            {
+            adoption
+            | {
                 "cell": cell,
                 "size": size,
                 "generator": generator,
@@ -318,25 +362,35 @@ def reruns(runs: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
+def write_report(runs_path: Path, out: Path, *, dev: bool, config: CriticizeConfig) -> str:
     """The markdown table of the current sampler's rows: for the study, of the current generator
-    only; for the development pilot, of every generator version it ran (marked)."""
+    only; for the development pilot, of every generator version it ran (marked). With rollouts,
+    each cell's adoption rate stands beside its naming rate."""
     runs = pd.read_csv(runs_path, dtype={"generator": str, "code": str})
-    runs = runs[runs["sampler"] == sampler_label()]
+    runs = runs[runs["sampler"] == sampler_label(config)]
     if not dev:
         runs = runs[runs["generator"] == GENERATOR]
     rates = cell_rates(runs)
+    judged = bool(config.num_rollouts)
     lines = [
         "| cell | size | generator | library | size ranges | right verdicts | replications | "
-        "right | rate | 95% interval | other verdicts | final models | seeds |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "right | rate | 95% interval | "
+        + ("adopted right | adoption rate | 95% interval | " if judged else "")
+        + "other verdicts | final models | seeds |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        + ("---|---|---|" if judged else ""),
     ]
     for r in rates.itertuples():
+        adoption = (
+            f"{r.adopted} | {r.adopted / r.n:.2f} | [{r.adopted_low:.2f}, {r.adopted_high:.2f}] | "
+            if judged
+            else ""
+        )
         lines.append(
             f"| {r.cell} | {r.size} | {r.generator} | {r.code} | {r.ranges} | {r.right_verdicts.replace('|', ', ')} "
             f"| {r.n} | "
             f"{r.hits} | "
-            f"{r.rate:.2f} | [{r.low:.2f}, {r.high:.2f}] | {r.others or ''} | {r.models} | "
+            f"{r.rate:.2f} | [{r.low:.2f}, {r.high:.2f}] | {adoption}{r.others or ''} | {r.models} | "
             f"{r.seeds} |"
         )
     reliable = rates[
@@ -356,8 +410,8 @@ def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
         f"current generator trafficgen {GENERATOR} and library bayesdrive {CODE} (sha256 "
         "prefixes of their sources; rows of other library versions are listed apart and back "
         "no claim), scenario "
-        f"{DETECTION_SCENARIO}; criticize settings {DETECTION_CONFIG._asdict()}; sampler "
-        f'"{sampler_label()}". A replication is right when the verdict (first round) is one of '
+        f"{DETECTION_SCENARIO}; criticize settings {config._asdict()}; sampler "
+        f'"{sampler_label(config)}". A replication is right when the verdict (first round) is one of '
         "the right verdicts (trafficgen's table, reports/criticism/generator.md); with two "
         "mechanisms, when the final model holds a right verdict of each. Out-of-reach mechanisms "
         "have none, and their row shows what criticize said instead; 'final models' counts the "
@@ -378,7 +432,8 @@ def write_report(runs_path: Path, out: Path, *, dev: bool) -> str:
             "seed; identical = the same verdict, final model, rightness, best right gain and its "
             "SE, and screening):\n\n" + "\n".join(rerun) + "\n"
         )
-    write_text_atomic(out / ("detection_dev.md" if dev else "detection.md"), text)
+    report = runs_path.name.replace("_runs.csv", ".md")  # detection[_dev][_adoption].md
+    write_text_atomic(out / report, text)
     return text
 
 
@@ -391,7 +446,7 @@ def run_shards(args: argparse.Namespace) -> int:
     common += ["--replications", str(args.replications)]
     common += ["--null-replications", str(args.null_replications)]
     common += ["--dev"] if args.dev else []
-    common += ["--first-seed", str(args.first_seed)]
+    common += ["--first-seed", str(args.first_seed), "--rollouts", str(args.rollouts)]
     common += ["--stop-at", str(args.stop_at)] if args.stop_at is not None else []
     shards = []
     for k in range(args.jobs):
@@ -422,6 +477,9 @@ def main(argv: list[str] | None = None) -> int:
         default=STUDY_SEEDS.start,
         help="the study's first seed (fresh seeds for a rerun, fixed before it runs)",
     )
+    parser.add_argument(
+        "--rollouts", type=int, default=0, help="rollouts per model: >0 also judges adoption"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
     parser.add_argument("--shard", default="0/1", help="K/N: every N-th replication from the K-th")
@@ -433,16 +491,18 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    runs_path = args.out / ("detection_dev_runs.csv" if args.dev else "detection_runs.csv")
+    config = study_config(args.rollouts)
+    fields = ADOPTION_FIELDS if args.rollouts else FIELDS
+    runs_path = runs_file(args.out, dev=args.dev, rollouts=args.rollouts)
     if args.report_only:
-        print(write_report(runs_path, args.out, dev=args.dev))
+        print(write_report(runs_path, args.out, dev=args.dev, config=config))
         return 0
     if args.jobs > 1:
         if args.shard != "0/1":
             parser.error("--jobs runs every shard itself; give --shard or --jobs, not both")
         failed = run_shards(args)
         if runs_path.exists():
-            print(write_report(runs_path, args.out, dev=args.dev))
+            print(write_report(runs_path, args.out, dev=args.dev, config=config))
         return 1 if failed else 0
     seeds = DEV_SEEDS if args.dev else range(args.first_seed, args.first_seed + len(STUDY_SEEDS))
     unknown = [
@@ -453,14 +513,14 @@ def main(argv: list[str] | None = None) -> int:
     done = set()
     if runs_path.exists():
         header = runs_path.read_text().splitlines()[0].split(",")
-        if header != FIELDS:
+        if header != fields:
             parser.error(
                 f"{runs_path} has the columns of another version of this study ({header}); "
                 "move it aside to start a new one"
             )
         previous = pd.read_csv(runs_path)
         current = previous[
-            (previous["sampler"] == sampler_label())
+            (previous["sampler"] == sampler_label(config))
             & (previous["generator"] == GENERATOR)
             & (previous["code"] == CODE)
         ]
@@ -487,16 +547,16 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"stopped at --stop-at with {len(todo) - i + 1} to go", flush=True)
                 break
             try:
-                row = run_one(cell, size, seed, Path(tmp))
+                row = run_one(cell, size, seed, Path(tmp), config)
             except Exception as error:  # a crash on independent data is a miss, kept on record
-                row = dict.fromkeys(FIELDS, "")
-                row.update(cell=cell, size=size, seed=seed, right=0, sampler=sampler_label())
+                row = dict.fromkeys(fields, "")
+                row.update(cell=cell, size=size, seed=seed, right=0, sampler=sampler_label(config))
                 row.update(generator=GENERATOR, code=CODE)
                 row["verdict"] = f"error: {type(error).__name__}: {error}"[:200]
-            append_rows(runs_path, [row], FIELDS)
+            append_rows(runs_path, [row], fields)
             print(f"[{i}/{len(todo)}] {row}", flush=True)
     if runs_path.exists():  # a shard stopped before its first row has nothing to report
-        print(write_report(runs_path, args.out, dev=args.dev))
+        print(write_report(runs_path, args.out, dev=args.dev, config=config))
     return 0
 
 
