@@ -90,7 +90,7 @@ START_CANDIDATES = 32
 START_BALL = 1e-4
 # A vehicle that fails fit's checks continues its run, doubling it, up to this many times
 # num_steps (module docstring, "Extension").
-MAX_EXTENSION = 8
+MAX_EXTENSION = 32
 # The ensemble moves with their weights (module docstring, "Moves").
 MOVES = {
     "de": lambda: [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
