@@ -16,11 +16,10 @@ dispersed chains are the check for that).
 
 **Moves.** ``move="stretch"`` (default): Goodman and Weare's stretch move, emcee's default.
 ``move="de"``: differential evolution (``DEMove``) on 80% of the steps and the DE snooker move on
-20%. On trafficgen followers (``reports/convergence.md``) the DE mixture's autocorrelation time
-was a third to a half of the stretch move's, so it passed its checks in fewer steps, but its
-posterior sds came out narrower than smc's and nuts' (a_max, b_pref, sigma: tails it visits too
-rarely for its own autocorrelation estimate to tell): a cross-check must not be fast and wrong,
-so the stretch move stays the default and runs longer (``MAX_EXTENSION``).
+20%. The DE mixture decorrelates in fewer steps, but on trafficgen followers its posterior sds
+came out narrower than smc's and nuts' (tails it visits too rarely for its own autocorrelation
+estimate to tell; ``reports/convergence.md``): a cross-check must not be fast and wrong, so the
+stretch move stays the default and runs longer (``MAX_EXTENSION``).
 
 **Seeding.** Each vehicle's key (the seed with its id folded in,
 :mod:`bayesdrive.inference.core.vehicles`) gives its mode-search candidates, its start ball and a
@@ -44,9 +43,10 @@ lower), taking their latest thinned draws.
 of the stored draws at least 400 (:mod:`bayesdrive.inference.diagnostics.convergence`). A vehicle that fails
 continues the same chains, doubling the run, with the burn-in the same fraction of it, up to
 ``max_steps`` (default :data:`MAX_EXTENSION` times ``num_steps``, or ``num_steps`` when fewer than
-:data:`~bayesdrive.inference.diagnostics.convergence.EXTENSION_MIN_DRAWS` draws are kept). Why (``reports/convergence.md``):
-with six IDM parameters the stretch move's 2000 kept steps were well short of 50 tau on every
-vehicle. ``sample_stats`` records each vehicle's ``num_steps`` and
+:data:`~bayesdrive.inference.diagnostics.convergence.EXTENSION_MIN_DRAWS` draws are kept). Why: the
+stretch move's autocorrelation time grows with the number of parameters and with a long-tailed
+marginal, and it is only known once the run is long enough to estimate it
+(``reports/convergence.md``). ``sample_stats`` records each vehicle's ``num_steps`` and
 ``num_burn``; fit's 50-tau check uses them.
 """
 
