@@ -24,8 +24,8 @@ particles where resampling put them (0.77^4 = 0.35); stage after stage the cloud
 spread, and a posterior that is broad along a curved ridge (the noise sd at standstill against its
 growth with speed, in the speed-dependent-noise extension) can end up one narrow sliver of it.
 The held-out density continued from such a cloud is that of one parameter value, not of the
-posterior: in a detection run one vehicle's held-out density fell 4216 nats below the base
-model's, although the extension nests it: the cloud had collapsed on a slope the fit-window
+posterior: in a detection run one vehicle's held-out density fell thousands of nats below the
+base model's, although the extension nests it: the cloud had collapsed on a slope the fit-window
 likelihood barely constrains, and more moves or particles removed the loss. With
 ``unmoved_tolerance`` c > 0 each stage keeps moving, past ``num_moves``, until the estimated
 probability that a particle has not moved at all, :math:`\prod_m (1 - \text{acceptance}_m)`, is
