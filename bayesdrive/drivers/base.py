@@ -74,6 +74,7 @@ __all__ = [
     "fill_params",
     "observed_lift",
     "parameter_noise_sd",
+    "params_type",
 ]
 
 # ``DriverModel.observation`` of a model whose states are observed exactly.
@@ -179,6 +180,13 @@ class ParamSpec(NamedTuple):
     grid_step: float | None = None
     execution_noise: bool = False
     desired_speed: bool = False
+
+
+def params_type(type_name: str, specs: Sequence[ParamSpec]) -> type:
+    """A parameter NamedTuple with one field per spec, in order (the docstring lists units)."""
+    cls = NamedTuple(type_name, [(s.name, Array) for s in specs])
+    cls.__doc__ = f"{type_name}: " + ", ".join(f"{s.name} ({s.unit}): {s.doc}" for s in specs)
+    return cls
 
 
 class PriorBox(NamedTuple):

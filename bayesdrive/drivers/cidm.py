@@ -72,6 +72,7 @@ from bayesdrive.drivers.base import (
     ParamSpec,
     Series,
     car_following_part,
+    params_type,
 )
 from bayesdrive.drivers.execution_noise import execution_noise_model
 from bayesdrive.drivers.idm import IDM, idm_acceleration
@@ -95,19 +96,9 @@ CIDM_SPECS = (
 )
 
 
-class CIDMParams(NamedTuple):
-    """Cooperative IDM: the IDM's parameters plus cooperation c in [0, 1] (module docstring).
-
-    v_des (m/s), d_min (m), tau (s), a_max (m/s^2), b_pref (m/s^2), sigma (m/s^2), c (--).
-    """
-
-    v_des: Array
-    d_min: Array
-    tau: Array
-    a_max: Array
-    b_pref: Array
-    sigma: Array
-    c: Array
+# Cooperative IDM: the IDM's parameters plus cooperation c in [0, 1] (module docstring).
+CIDMParams = params_type("CIDMParams", CIDM_SPECS)
+CIDMParams.__module__ = __name__  # pickled by reference, as a class statement here would be
 
 
 class MergeInputs(NamedTuple):

@@ -23,7 +23,7 @@ import re
 import stat
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, NamedTuple, TextIO
 
 import numpy as np
 import pandas as pd
@@ -35,6 +35,7 @@ from bayesdrive.data.validate import check_tracks, leader_values, plain
 __all__ = [
     "DEFAULT_LENGTH_M",
     "REPAIR_PREFIX",
+    "FileFormat",
     "Notes",
     "exact_ids",
     "finish",
@@ -505,11 +506,22 @@ def harmonise_lengths(
     return lengths.fillna(default)
 
 
+class FileFormat(NamedTuple):
+    """What :func:`finish` is told of a reader's format, the same for every file it reads: its
+    name, time step (s), the file's names and units of the schema columns (for messages), and
+    whether the file's gap is measured rather than derived from positions."""
+
+    name: str
+    dt: float
+    column_names: Mapping[str, str] | None = None
+    file_units: Mapping[str, float] | None = None
+    measured_gap: bool = False
+
+
 def finish_parts(
     parts: Sequence[tuple[Any, ...]],
-    fmt: str,
+    file_format: FileFormat,
     source: str | Path,
-    dt: float,
     notes: Notes,
     **options,
 ) -> Trajectories:
@@ -517,7 +529,18 @@ def finish_parts(
     scenes tables (anything after them is the reader's own), concatenated in order."""
     tracks = pd.concat([part[0] for part in parts], ignore_index=True)
     scenes = pd.concat([part[1] for part in parts], ignore_index=True)
-    return finish(tracks, fmt=fmt, source=source, dt=dt, scenes=scenes, notes=notes, **options)
+    return finish(
+        tracks,
+        fmt=file_format.name,
+        source=source,
+        dt=file_format.dt,
+        scenes=scenes,
+        notes=notes,
+        column_names=file_format.column_names,
+        file_units=file_format.file_units,
+        measured_gap=file_format.measured_gap,
+        **options,
+    )
 
 
 def finish(

@@ -34,6 +34,7 @@ import pandas as pd
 
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
+    FileFormat,
     Notes,
     finish_parts,
     gaps_from_positions,
@@ -115,11 +116,9 @@ def read_highd(path: str | Path) -> Trajectories:
         raise DataError(f"{path}: recordings have different frame rates ({sorted(rates)})")
     return finish_parts(
         parts,
-        FORMAT,
+        FileFormat(FORMAT, rates.pop(), SCHEMA_NAMES),
         path,
-        rates.pop(),
         notes,
-        column_names=SCHEMA_NAMES,
         extra_inputs=[p for folder, prefix in recordings for p in _companions(folder, prefix)],
     )
 

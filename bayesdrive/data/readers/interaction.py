@@ -40,6 +40,7 @@ from scipy.spatial import cKDTree
 
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
+    FileFormat,
     Notes,
     finish_parts,
     integer_ids,
@@ -72,6 +73,8 @@ COLUMNS = [
     "width",
 ]
 NUMERIC = ["frame_id", "timestamp_ms", "x", "y", "vx", "vy", "psi_rad", "length"]
+SCHEMA_NAMES = {"vehicle_id": "track_id", "t": "timestamp_ms", "x": "x/y", "v": "vx/vy"}
+FILE_FORMAT = FileFormat(FORMAT, DT, SCHEMA_NAMES)
 # Centrelines are densified to this spacing for the nearest-point search, then refined exactly.
 SEARCH_SPACING_M = 0.5
 CANDIDATES = 16
@@ -289,14 +292,11 @@ def read_interaction(
         "lanelet successors not followed (x restarts in each lanelet); no acceleration in format"
     )
     parts = [_read_file(f, lanelets, Path(map_path), notes) for f in files]
-    names = {"vehicle_id": "track_id", "t": "timestamp_ms", "x": "x/y", "v": "vx/vy"}
     return finish_parts(
         parts,
-        FORMAT,
+        FILE_FORMAT,
         path,
-        DT,
         notes,
-        column_names=names,
         extra_inputs=[Path(map_path)],
     )
 

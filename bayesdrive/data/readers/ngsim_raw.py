@@ -29,6 +29,7 @@ import pandas as pd
 
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
+    FileFormat,
     Notes,
     finish_parts,
     input_files,
@@ -104,6 +105,7 @@ SCHEMA_NAMES = {
 }
 # Every length-based schema column is feet in the file (for messages in the file's own units).
 FILE_UNITS = dict.fromkeys(("x", "v", "a", "gap", "length"), FOOT_M)
+FILE_FORMAT = FileFormat(FORMAT, DT, SCHEMA_NAMES, FILE_UNITS, measured_gap=True)
 ID_COLUMNS = ("Vehicle_ID", "Preceding", "Following")
 
 
@@ -120,16 +122,7 @@ def read_ngsim_raw(
         "gap = Space_Headway (front to front) - leader length; t = Frame_ID * 0.1 s"
     )
     parts = [_read_file(f, missing_leaders=missing_leaders, notes=notes) for f in files]
-    return finish_parts(
-        parts,
-        FORMAT,
-        path,
-        DT,
-        notes,
-        column_names=SCHEMA_NAMES,
-        file_units=FILE_UNITS,
-        measured_gap=True,
-    )
+    return finish_parts(parts, FILE_FORMAT, path, notes)
 
 
 def _load(path: Path, notes: Notes) -> pd.DataFrame:

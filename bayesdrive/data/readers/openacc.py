@@ -56,6 +56,7 @@ import pandas as pd
 from bayesdrive.data.errors import DataError
 from bayesdrive.data.readers._common import (
     DEFAULT_LENGTH_M,
+    FileFormat,
     Notes,
     finish_parts,
     integrate_speed,
@@ -88,6 +89,8 @@ EXPECTED = (
 )
 # Column names in messages (the row names the car: row of Speed<i> of car i).
 SCHEMA_NAMES = {"t": "Time", "v": "Speed<i>", "x": "Speed<i> (integrated)", "gap": "IVS<i-1>"}
+# x is integrated speed placed by IVS itself: not independent of it, so the gap is not measured.
+FILE_FORMAT = FileFormat(FORMAT, DT, SCHEMA_NAMES, measured_gap=False)
 # Metadata rows are few; the header must appear this early.
 MAX_METADATA_ROWS = 50
 DRIVERS = {"human": "human", "acc": "acc"}
@@ -138,12 +141,9 @@ def read_openacc(path: str | Path, *, lengths: Mapping[str, float] | None = None
     jumps = [f for _, _, f in parts if f is not None and len(f)]
     return finish_parts(
         parts,
-        FORMAT,
+        FILE_FORMAT,
         path,
-        DT,
         notes,
-        column_names=SCHEMA_NAMES,
-        measured_gap=False,  # x is integrated speed placed by IVS itself: not independent of it
         extra_flags=pd.concat(jumps, ignore_index=True) if jumps else None,
         extra_inputs=specs,
     )

@@ -27,7 +27,7 @@ from typing import Any, NamedTuple
 
 from jax import Array
 
-from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec, params_type
 from bayesdrive.drivers.execution_noise import execution_noise_model
 from bayesdrive.drivers.extensions.inputs import inputs_at
 
@@ -38,7 +38,6 @@ __all__ = [
     "check_white_noise",
     "extended_specs",
     "gaussian_extension",
-    "params_type",
     "params_type_name",
     "state_extension",
 ]
@@ -97,13 +96,6 @@ def extended_specs(base: DriverModel, new: Sequence[ParamSpec]) -> tuple[ParamSp
     if clash:
         raise ValueError(f"model {base.name!r} already has parameter(s) {sorted(clash)}")
     return (*base.specs, *new)
-
-
-def params_type(type_name: str, specs: Sequence[ParamSpec]) -> type:
-    """A parameter NamedTuple with one field per spec, in order (the docstring lists units)."""
-    cls = NamedTuple(type_name, [(s.name, Array) for s in specs])
-    cls.__doc__ = f"{type_name}: " + ", ".join(f"{s.name} ({s.unit}): {s.doc}" for s in specs)
-    return cls
 
 
 def base_params(base: DriverModel, params: Any) -> Any:

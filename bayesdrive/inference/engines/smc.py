@@ -284,25 +284,26 @@ def _smc_vehicle(
         )
         # log sum_i W_i p(y_t | theta_i): exactly 0 on masked steps, where increment == 0.
         log_evidence += info.log_increment
-        return (state, log_evidence), (info.ess, info.resampled, acceptance, unique, mean)
+        # Named as the fields of :class:`_SequentialPass` they fill.
+        per_step = {
+            "ess": info.ess,
+            "resampled": info.resampled,
+            "acceptance": acceptance,
+            "unique": unique,
+            "mean": mean,
+        }
+        return (state, log_evidence), per_step
 
     sequential = None
     if config.sequential:
         start = prior_cloud(key_init, lambda theta: jnp.zeros(n, theta.dtype))
-        (_, log_evidence), (ess, resampled, acceptance, unique, means) = jax.lax.scan(
+        (_, log_evidence), per_step = jax.lax.scan(
             sequential_step,
             (SMCState(start, jnp.zeros(n, start.theta.dtype)), jnp.zeros((), start.theta.dtype)),
             (series, step_index, jax.random.split(key_steps, num_steps)),
         )
-        sequential = _SequentialPass(
-            log_evidence=log_evidence,
-            ess=ess,
-            resampled=resampled,
-            acceptance=acceptance,
-            unique=unique,
-            mean=means,
-            convergence=convergence_curve(means, width),
-        )
+        convergence = convergence_curve(per_step["mean"], width)
+        sequential = _SequentialPass(log_evidence=log_evidence, convergence=convergence, **per_step)
 
     key_prior, key_temper, key_closing = jax.random.split(key_final, 3)
     posterior = Target(tempered(log_lik_whole), log_prior_of, box)
