@@ -139,11 +139,15 @@ def check_model(model: DriverModel, engine: str, *, whole_series: bool = False) 
         )
 
 
-def censoring(model: DriverModel, steps: StepInputs) -> dict[str, Array]:
+def censoring(
+    model: DriverModel, steps: StepInputs, *, usable_only: bool = False
+) -> dict[str, Array]:
     """The keyword a model that declares ``censored`` steps takes in its densities: whether any
     of ``steps`` (one step, or one vehicle's (T,) series) is censored; nothing for another model.
     On a series without a censored step the densities then skip the class probabilities, at run
-    time (a traced flag; :func:`~bayesdrive.drivers.execution_noise.step_logpdf`)."""
+    time (a traced flag; :func:`~bayesdrive.drivers.execution_noise.step_logpdf`).
+    ``usable_only``: only the steps whose mask is set count (for a caller that zeroes the others;
+    padding reads as a stop)."""
     if model.censored is None:
         return {}
     observed = EgoState(jnp.zeros_like(steps.v), steps.v)
@@ -151,20 +155,31 @@ def censoring(model: DriverModel, steps: StepInputs) -> dict[str, Array]:
     censored = model.censored  # of one step: mapped over each axis of the steps
     for _ in range(jnp.ndim(steps.v)):
         censored = jax.vmap(censored)
-    return {"may_be_censored": jnp.any(censored(observed, following, steps.inputs))}
+    flags = censored(observed, following, steps.inputs)
+    if usable_only:
+        flags = flags & (steps.mask > 0)
+    return {"may_be_censored": jnp.any(flags)}
 
 
 def step_loglik(
-    model: DriverModel, names: Sequence[str], fixed: Any, theta: Array, step: StepInputs
+    model: DriverModel,
+    names: Sequence[str],
+    fixed: Any,
+    theta: Array,
+    step: StepInputs,
+    censored: dict[str, Array] | None = None,
 ) -> Array:
     """Log-density of one observed step for one parameter vector ``theta`` (0 where masked).
 
-    The model's full state is lifted from the observed one (identity for memoryless models)."""
+    The model's full state is lifted from the observed one (identity for memoryless models).
+    ``censored`` is the :func:`censoring` keyword to use, where the caller decided it for more
+    than this step (a superset of steps that holds a censored one scores the same)."""
     params = fill_params(model, names, theta, fixed)
     observed = EgoState(x=jnp.zeros_like(step.v), v=step.v)
     state = model.lift(params, observed, step.inputs)
     following = EgoState(x=step.dx, v=step.next_v)
-    logp = model.transition_logpdf(params, state, following, step.inputs, **censoring(model, step))
+    flag = censoring(model, step) if censored is None else censored
+    logp = model.transition_logpdf(params, state, following, step.inputs, **flag)
     return jnp.where(step.mask > 0, logp, 0.0)
 
 
@@ -194,10 +209,18 @@ def step_logpdfs(
 
 
 def particles_loglik(
-    model: DriverModel, names: Sequence[str], fixed: Any, particles: Array, step: StepInputs
+    model: DriverModel,
+    names: Sequence[str],
+    fixed: Any,
+    particles: Array,
+    step: StepInputs,
+    censored: dict[str, Array] | None = None,
 ) -> Array:
-    """One step scored for every particle: (N, d) particles -> (N,)."""
-    return jax.vmap(lambda theta: step_loglik(model, names, fixed, theta, step))(particles)
+    """One step scored for every particle: (N, d) particles -> (N,) (``censored``:
+    :func:`step_loglik`)."""
+    return jax.vmap(lambda theta: step_loglik(model, names, fixed, theta, step, censored))(
+        particles
+    )
 
 
 def series_loglik(

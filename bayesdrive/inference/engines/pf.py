@@ -49,7 +49,7 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.core.likelihood import StepInputs, particles_loglik
+from bayesdrive.inference.core.likelihood import StepInputs, censoring, particles_loglik
 from bayesdrive.inference.core.output import EngineInputs, EngineResult
 from bayesdrive.inference.core.resampling import count_distinct_sorted
 from bayesdrive.inference.core.smc import SMCState
@@ -168,11 +168,12 @@ def _pf_chunk(
     def dither(key, index):
         return jnp.clip(index + dither_steps(key, index.shape), 0, last), None
 
-    def vehicle_step(index, inputs, key):
+    def vehicle_step(index, inputs, key, censored):
         """The SMC core's step: reweight by the step's density, resample every time, dither."""
 
         def potential(index):
-            return particles_loglik(model, names, fixed, first + index * step_size, inputs)
+            values = first + index * step_size
+            return particles_loglik(model, names, fixed, values, inputs, censored)
 
         state = SMCState(index, jnp.zeros(num_particles, first.dtype))
         moved, info = smc_step(key, state, potential, dither, resample_below=float("inf"))
@@ -200,9 +201,15 @@ def _pf_chunk(
 
     def step(index, xs):
         inputs, step_keys = xs
+        # Whether any vehicle of the chunk has a censored usable step here, decided once for the
+        # chunk: not batched, the model's class probabilities are a real branch, skipped on nearly
+        # every step (a step that is not censored scores the same either way).
+        censored = censoring(model, inputs, usable_only=True)
         return jax.lax.cond(
             jnp.any(inputs.mask > 0),
-            lambda: jax.vmap(vehicle_step)(index, inputs, step_keys),
+            lambda: jax.vmap(vehicle_step, in_axes=(0, 0, 0, None))(
+                index, inputs, step_keys, censored
+            ),
             lambda: idle_step(index),
         )
 
