@@ -30,8 +30,10 @@ vehicles (``vmap``) and particles, with a ``lax.scan`` over steps; vehicles are
 sorted by series length into chunks and steps where a whole chunk has no data are skipped. Every
 random draw of a vehicle (its prior draws, its filter, its start in the next epoch) comes from its
 own key, the seed with its id folded in (:mod:`bayesdrive.inference.core.vehicles`), and a vehicle's
-filter never reads its chunk mates: with one epoch its draws are bit-identical whichever vehicles
-it is fitted with, in whatever order or chunk. Later epochs start from the pool of all vehicles'
+filter reads its chunk mates only to decide whether a step computes the model's censored-step
+terms (computed for the whole chunk where any vehicle has a censored step; a step without one
+scores the same either way): with one epoch its draws are bit-identical whichever vehicles it is
+fitted with, in whatever order or chunk. Later epochs start from the pool of all vehicles'
 particles, so they depend on the others by design.
 """
 
@@ -240,8 +242,8 @@ def run(
     """The paper's filter (module docstring) over every vehicle of ``arrays``.
 
     Vehicles are sorted by the length of their series and run ``vehicle_chunk`` at a time,
-    vectorised; steps where no vehicle of a chunk has data are skipped. The default chunk is
-    :data:`CPU_VEHICLE_CHUNK` on a CPU and :data:`ACCELERATOR_VEHICLE_CHUNK` elsewhere. Every vehicle keeps its
+    vectorised (by default :data:`CPU_VEHICLE_CHUNK` on a CPU, :data:`ACCELERATOR_VEHICLE_CHUNK`
+    elsewhere); steps where no vehicle of a chunk has data are skipped. Every vehicle keeps its
     own random stream (module docstring), so with one epoch its results do not depend on the
     other vehicles, their order or the chunk size. ``prior``
     (default the model's uniform box) gives epoch 0's particles, snapped to the grid; those draws,
@@ -265,10 +267,10 @@ def run(
     cache_key = problem.cache_key("pf", static_key(tuple(grid)))
     series = problem.series
     num_vehicles = problem.num_vehicles
-    # Longest series first, then data-free copies of the shortest to fill the last chunk.
     if vehicle_chunk is None:
         on_cpu = jax.default_backend() == "cpu"
         vehicle_chunk = CPU_VEHICLE_CHUNK if on_cpu else ACCELERATOR_VEHICLE_CHUNK
+    # Longest series first, then data-free copies of the shortest to fill the last chunk.
     chunk = max(1, min(vehicle_chunk, num_vehicles))
     live = np.asarray(arrays.mask) > 0
     length = np.where(live.any(axis=1), live.shape[1] - np.argmax(live[:, ::-1], axis=1), 0)
