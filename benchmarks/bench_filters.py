@@ -184,7 +184,7 @@ def main() -> None:
     pf_steps = usable * n
     lines.append(
         row(
-            "pf, JAX (64 vehicles vectorised per chunk, scan over steps)",
+            f"pf, JAX ({pf.CPU_VEHICLE_CHUNK} vehicles vectorised per chunk, scan over steps)",
             pf_steps,
             result.wall_time_s,
             pf_compile,
@@ -328,7 +328,8 @@ def main() -> None:
             "",
             f"The NumPy reference (`benchmarks/numpy_pf_reference.py`) computes the free-road "
             "power by squaring and the stop term only on steps that end in a stop (as the "
-            "model's whole-series density does; `pf` scores step by step and computes both). "
+            "model's whole-series density does, and `pf` wherever no vehicle of its chunk has "
+            "a censored step). "
             "Its log-density matches `IDM.transition_logpdf` to a relative "
             f"{reference_error:.1e} on real steps (float32 model).",
             "",

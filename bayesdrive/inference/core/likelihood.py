@@ -139,11 +139,15 @@ def check_model(model: DriverModel, engine: str, *, whole_series: bool = False) 
         )
 
 
-def censoring(model: DriverModel, steps: StepInputs) -> dict[str, Array]:
+def censoring(
+    model: DriverModel, steps: StepInputs, *, usable_only: bool = False
+) -> dict[str, Array]:
     """The keyword a model that declares ``censored`` steps takes in its densities: whether any
     of ``steps`` (one step, or one vehicle's (T,) series) is censored; nothing for another model.
     On a series without a censored step the densities then skip the class probabilities, at run
-    time (a traced flag; :func:`~bayesdrive.drivers.execution_noise.step_logpdf`)."""
+    time (a traced flag; :func:`~bayesdrive.drivers.execution_noise.step_logpdf`).
+    ``usable_only``: only the steps whose mask is set count (for a caller that zeroes the others;
+    padding reads as a stop)."""
     if model.censored is None:
         return {}
     observed = EgoState(jnp.zeros_like(steps.v), steps.v)
@@ -151,20 +155,31 @@ def censoring(model: DriverModel, steps: StepInputs) -> dict[str, Array]:
     censored = model.censored  # of one step: mapped over each axis of the steps
     for _ in range(jnp.ndim(steps.v)):
         censored = jax.vmap(censored)
-    return {"may_be_censored": jnp.any(censored(observed, following, steps.inputs))}
+    flags = censored(observed, following, steps.inputs)
+    if usable_only:
+        flags = flags & (steps.mask > 0)
+    return {"may_be_censored": jnp.any(flags)}
 
 
 def step_loglik(
-    model: DriverModel, names: Sequence[str], fixed: Any, theta: Array, step: StepInputs
+    model: DriverModel,
+    names: Sequence[str],
+    fixed: Any,
+    theta: Array,
+    step: StepInputs,
+    censored: dict[str, Array] | None = None,
 ) -> Array:
     """Log-density of one observed step for one parameter vector ``theta`` (0 where masked).
 
-    The model's full state is lifted from the observed one (identity for memoryless models)."""
+    The model's full state is lifted from the observed one (identity for memoryless models).
+    ``censored`` is the :func:`censoring` keyword to use, where the caller decided it for more
+    than this step (a superset of steps that holds a censored one scores the same)."""
     params = fill_params(model, names, theta, fixed)
     observed = EgoState(x=jnp.zeros_like(step.v), v=step.v)
     state = model.lift(params, observed, step.inputs)
     following = EgoState(x=step.dx, v=step.next_v)
-    logp = model.transition_logpdf(params, state, following, step.inputs, **censoring(model, step))
+    flag = censoring(model, step) if censored is None else censored
+    logp = model.transition_logpdf(params, state, following, step.inputs, **flag)
     return jnp.where(step.mask > 0, logp, 0.0)
 
 
@@ -194,10 +209,18 @@ def step_logpdfs(
 
 
 def particles_loglik(
-    model: DriverModel, names: Sequence[str], fixed: Any, particles: Array, step: StepInputs
+    model: DriverModel,
+    names: Sequence[str],
+    fixed: Any,
+    particles: Array,
+    step: StepInputs,
+    censored: dict[str, Array] | None = None,
 ) -> Array:
-    """One step scored for every particle: (N, d) particles -> (N,)."""
-    return jax.vmap(lambda theta: step_loglik(model, names, fixed, theta, step))(particles)
+    """One step scored for every particle: (N, d) particles -> (N,) (``censored``:
+    :func:`step_loglik`)."""
+    return jax.vmap(lambda theta: step_loglik(model, names, fixed, theta, step, censored))(
+        particles
+    )
 
 
 def series_loglik(
@@ -209,17 +232,63 @@ def series_loglik(
     return jnp.where(series.mask > 0, logp, 0.0)
 
 
+# Steps scored together by :func:`score_draws`: a vehicle's series is scored in blocks of this many
+# steps up to its last usable one, so padding past it costs at most one block.
+SCORE_BLOCK = 64
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def _score_draws(model, names, fixed, particles, series):
+def _score_series(model, names, fixed, particles, series):
     def one_vehicle(draws, vehicle_series):
         return jax.vmap(lambda th: series_loglik(model, names, fixed, th, vehicle_series))(draws)
 
     return jax.vmap(one_vehicle)(particles, series)
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _score_blocks(model, names, fixed, particles, series, num_blocks):
+    block = SCORE_BLOCK
+
+    def one_vehicle(args):
+        draws, vehicle_series, vehicle_blocks = args
+        # Whether the series holds a censored step is a property of the whole series.
+        flag = censoring(model, vehicle_series).get("may_be_censored")
+
+        def score_block(b, out):
+            steps = jax.tree.map(
+                lambda a: jax.lax.dynamic_slice_in_dim(a, b * block, block), vehicle_series
+            )
+
+            def one_draw(theta):
+                params = fill_params(model, names, theta, fixed)
+                logp = step_logpdfs(model, params, steps, may_be_censored=flag)
+                return jnp.where(steps.mask > 0, logp, 0.0)
+
+            return jax.lax.dynamic_update_slice_in_dim(out, jax.vmap(one_draw)(draws), b * block, 1)
+
+        empty = jnp.zeros((draws.shape[0], vehicle_series.mask.shape[-1]), draws.dtype)
+        return jax.lax.fori_loop(0, vehicle_blocks, score_block, empty)
+
+    # Vehicles one after another (not vmapped), so the censoring flag stays a real branch.
+    return jax.lax.map(one_vehicle, (particles, series, num_blocks))
+
+
 def score_draws(
     model: DriverModel, names: tuple[str, ...], fixed: Any, particles: Array, series: StepInputs
 ) -> np.ndarray:
     """Per-step log-likelihood (vehicle, draw, step) of draws (vehicle, draw, d), on every padded
-    step (the result's ``log_likelihood`` group keeps the unmasked ones)."""
-    return np.asarray(_score_draws(model, names, fixed, jnp.asarray(particles, float), series))
+    step (the result's ``log_likelihood`` group keeps the unmasked ones; steps past a vehicle's
+    last usable one are 0 without being scored)."""
+    particles = jnp.asarray(particles, float)
+    if model.filter is not None:  # a state filter runs over the whole series
+        return np.asarray(_score_series(model, names, fixed, particles, series))
+    num_steps = series.mask.shape[-1]
+    padded = -(-num_steps // SCORE_BLOCK) * SCORE_BLOCK
+    series = jax.tree.map(
+        lambda a: jnp.pad(a, [(0, 0), (0, padded - num_steps)] + [(0, 0)] * (a.ndim - 2)), series
+    )
+    live = np.asarray(series.mask) > 0
+    length = np.where(live.any(axis=1), padded - np.argmax(live[:, ::-1], axis=1), 0)
+    num_blocks = jnp.asarray(-(-length // SCORE_BLOCK), jnp.int32)
+    scores = _score_blocks(model, names, fixed, particles, series, num_blocks)
+    return np.asarray(scores)[..., :num_steps]

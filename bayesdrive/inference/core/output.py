@@ -166,7 +166,11 @@ def _observations(log_likelihood: np.ndarray, arrays: FollowerArrays) -> xr.Data
     """The padded (chain, draw, vehicle, step) scores at the usable steps with a full history
     only: (chain, draw, obs)."""
     vehicle, step = np.nonzero(arrays.full_history_mask)
-    values = np.asarray(log_likelihood)[:, :, vehicle, step].astype(np.float32)
+    scores = np.asarray(log_likelihood)
+    # One take along the flattened (vehicle, step) axis: indexing two axes with index arrays
+    # makes NumPy gather element by element, many times slower on this large array.
+    flat = scores.reshape(*scores.shape[:2], -1)
+    values = np.take(flat, vehicle * scores.shape[3] + step, axis=2).astype(np.float32, copy=False)
     return xr.Dataset(
         {OBSERVED_VARIABLE: (("chain", "draw", "obs"), values)},
         coords={

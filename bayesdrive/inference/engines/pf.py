@@ -30,8 +30,10 @@ vehicles (``vmap``) and particles, with a ``lax.scan`` over steps; vehicles are
 sorted by series length into chunks and steps where a whole chunk has no data are skipped. Every
 random draw of a vehicle (its prior draws, its filter, its start in the next epoch) comes from its
 own key, the seed with its id folded in (:mod:`bayesdrive.inference.core.vehicles`), and a vehicle's
-filter never reads its chunk mates: with one epoch its draws are bit-identical whichever vehicles
-it is fitted with, in whatever order or chunk. Later epochs start from the pool of all vehicles'
+filter reads its chunk mates only to decide whether a step computes the model's censored-step
+terms (computed for the whole chunk where any vehicle has a censored step; a step without one
+scores the same either way): with one epoch its draws are bit-identical whichever vehicles it is
+fitted with, in whatever order or chunk. Later epochs start from the pool of all vehicles'
 particles, so they depend on the others by design.
 """
 
@@ -49,7 +51,7 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.core.likelihood import StepInputs, particles_loglik
+from bayesdrive.inference.core.likelihood import StepInputs, censoring, particles_loglik
 from bayesdrive.inference.core.output import EngineInputs, EngineResult
 from bayesdrive.inference.core.resampling import count_distinct_sorted
 from bayesdrive.inference.core.smc import SMCState
@@ -63,10 +65,23 @@ from bayesdrive.inference.core.vehicles import (
 )
 from bayesdrive.inference.core.weights import convergence_curve
 
-__all__ = ["MAX_DITHERED", "Grid", "dither_steps", "make_grid", "run"]
+__all__ = [
+    "ACCELERATOR_VEHICLE_CHUNK",
+    "CPU_VEHICLE_CHUNK",
+    "MAX_DITHERED",
+    "Grid",
+    "dither_steps",
+    "make_grid",
+    "run",
+]
 
 # One 32-bit word holds this many base-3 dithering digits (3^20 < 2^32).
 MAX_DITHERED = 20
+# Vehicles vectorised per chunk. On a CPU a small chunk keeps a step's particles in cache and
+# computes few padded steps (a chunk runs to its longest series); a power of two, as other sizes
+# vectorise worse. An accelerator needs wide chunks to fill it.
+CPU_VEHICLE_CHUNK = 8
+ACCELERATOR_VEHICLE_CHUNK = 64
 
 
 class Grid(NamedTuple):
@@ -155,11 +170,12 @@ def _pf_chunk(
     def dither(key, index):
         return jnp.clip(index + dither_steps(key, index.shape), 0, last), None
 
-    def vehicle_step(index, inputs, key):
+    def vehicle_step(index, inputs, key, censored):
         """The SMC core's step: reweight by the step's density, resample every time, dither."""
 
         def potential(index):
-            return particles_loglik(model, names, fixed, first + index * step_size, inputs)
+            values = first + index * step_size
+            return particles_loglik(model, names, fixed, values, inputs, censored)
 
         state = SMCState(index, jnp.zeros(num_particles, first.dtype))
         moved, info = smc_step(key, state, potential, dither, resample_below=float("inf"))
@@ -187,9 +203,15 @@ def _pf_chunk(
 
     def step(index, xs):
         inputs, step_keys = xs
+        # Whether any vehicle of the chunk has a censored usable step here, decided once for the
+        # chunk: not batched, the model's class probabilities are a real branch, skipped on nearly
+        # every step (a step that is not censored scores the same either way).
+        censored = censoring(model, inputs, usable_only=True)
         return jax.lax.cond(
             jnp.any(inputs.mask > 0),
-            lambda: jax.vmap(vehicle_step)(index, inputs, step_keys),
+            lambda: jax.vmap(vehicle_step, in_axes=(0, 0, 0, None))(
+                index, inputs, step_keys, censored
+            ),
             lambda: idle_step(index),
         )
 
@@ -214,13 +236,14 @@ def run(
     *,
     epochs: int = 1,
     grid_steps: Mapping[str, float] | None = None,
-    vehicle_chunk: int = 64,
+    vehicle_chunk: int | None = None,
     **inputs: Unpack[EngineInputs],
 ) -> EngineResult:
     """The paper's filter (module docstring) over every vehicle of ``arrays``.
 
     Vehicles are sorted by the length of their series and run ``vehicle_chunk`` at a time,
-    vectorised; steps where no vehicle of a chunk has data are skipped. Every vehicle keeps its
+    vectorised (by default :data:`CPU_VEHICLE_CHUNK` on a CPU, :data:`ACCELERATOR_VEHICLE_CHUNK`
+    elsewhere); steps where no vehicle of a chunk has data are skipped. Every vehicle keeps its
     own random stream (module docstring), so with one epoch its results do not depend on the
     other vehicles, their order or the chunk size. ``prior``
     (default the model's uniform box) gives epoch 0's particles, snapped to the grid; those draws,
@@ -244,6 +267,9 @@ def run(
     cache_key = problem.cache_key("pf", static_key(tuple(grid)))
     series = problem.series
     num_vehicles = problem.num_vehicles
+    if vehicle_chunk is None:
+        on_cpu = jax.default_backend() == "cpu"
+        vehicle_chunk = CPU_VEHICLE_CHUNK if on_cpu else ACCELERATOR_VEHICLE_CHUNK
     # Longest series first, then data-free copies of the shortest to fill the last chunk.
     chunk = max(1, min(vehicle_chunk, num_vehicles))
     live = np.asarray(arrays.mask) > 0
