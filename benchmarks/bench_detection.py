@@ -117,6 +117,8 @@ FIELDS = [
 # With --rollouts: what was adopted (causes joined by "+"), whether that is right (a right cause of
 # the mechanism adopted; null data: nothing adopted), and round 1's adoption reason.
 ADOPTION_FIELDS = [*FIELDS, "adopted", "adopted_right", "adoption"]
+# What follows this line in a report is written by hand and kept when the table is redrawn.
+FINDINGS_MARKER = "<!-- findings: written by hand below, kept when the tables are regenerated -->"
 # A cell backs CI only with at least this many replications, all right.
 CLAIM_REPLICATIONS = 20
 
@@ -419,7 +421,16 @@ def write_report(runs_path: Path, out: Path, *, dev: bool, config: CriticizeConf
         "later round). Intervals: Wilson 95%. Seeds: replication r of every cell uses the r-th seed of "
         f"the range ({'development' if dev else 'study'} seeds from "
         f"{(DEV_SEEDS if dev else STUDY_SEEDS).start}, or where a rerun's --first-seed put "
-        "them; each row names its seeds).\n\n"
+        "them; each row names its seeds)."
+        + (
+            " With rollouts, 'adopted right' counts the replications whose loop adopted a right "
+            "cause of the mechanism (null data: adopted nothing), by criticize's adoption rule "
+            "(the 5 s energy score from the filtered start better by a paired test with Holm over "
+            "the round's causes, the predictive mean not worse, no added collisions)."
+            if judged
+            else ""
+        )
+        + "\n\n"
         + "\n".join(lines)
         + f"\n\nCells right in all of at least {CLAIM_REPLICATIONS} replications: "
         + (", ".join(f"{r.cell} {r.size}" for r in reliable.itertuples()) or "none yet")
@@ -432,8 +443,10 @@ def write_report(runs_path: Path, out: Path, *, dev: bool, config: CriticizeConf
             "seed; identical = the same verdict, final model, rightness, best right gain and its "
             "SE, and screening):\n\n" + "\n".join(rerun) + "\n"
         )
-    report = runs_path.name.replace("_runs.csv", ".md")  # detection[_dev][_adoption].md
-    write_text_atomic(out / report, text)
+    target = out / runs_path.name.replace("_runs.csv", ".md")  # detection[_dev][_adoption].md
+    if target.exists() and FINDINGS_MARKER in target.read_text():
+        text += "\n" + FINDINGS_MARKER + target.read_text().split(FINDINGS_MARKER, 1)[1]
+    write_text_atomic(target, text)
     return text
 
 
