@@ -74,13 +74,13 @@ def test_exported_drivers_in_sumo_match_bayesdrives_rollouts_and_the_wrong_tau_f
 
 
 def test_a_model_sumo_cannot_run_or_a_bad_window_is_refused_before_any_work(tmp_path):
-    extended = MODELS / "ngsim_i80_chains_idm_reaction_delay_autocorrelated_noise_smc.nc"
+    merging = MODELS / "ngsim_merge_episodes_cidm_smc.nc"  # the Cooperative IDM: no SUMO type
     out = tmp_path / "refused"
     done = runner.invoke(
-        app, ["validate", "sumo", str(extended), "ngsim_i80_chains", "--out", str(out)]
+        app, ["validate", "sumo", str(merging), "ngsim_i80_chains", "--out", str(out)]
     )
     assert done.exit_code == 2
-    assert "'idm+reaction_delay+autocorrelated_noise'" in " ".join(done.output.split())
+    assert "the result is of 'cidm'" in " ".join(done.output.split())
     done = runner.invoke(
         app,
         ["validate", "sumo", str(MODEL), "ngsim_i80_chains", "--window", "late", "--out", str(out)],
