@@ -75,6 +75,16 @@ FINDINGS_MARKER = "<!-- findings: written by hand below, kept when the tables ar
 BOUND_MARGIN = 0.02
 
 
+def write_keeping_findings(target: Path, text: str) -> None:
+    """Write a regenerated report atomically, keeping what follows :data:`FINDINGS_MARKER` in the
+    one it replaces (the hand-written reading of the tables)."""
+    from bayesdrive.data.atomic import write_text_atomic
+
+    if target.exists() and FINDINGS_MARKER in target.read_text():
+        text += "\n" + FINDINGS_MARKER + target.read_text().split(FINDINGS_MARKER, 1)[1]
+    write_text_atomic(target, text)
+
+
 def generate_data(data: str, seed: int, followers: int, duration: float, folder: Path) -> Path:
     from trafficgen import generate
 
@@ -302,12 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
     )
     args.out.mkdir(parents=True, exist_ok=True)
-    from bayesdrive.data.atomic import write_text_atomic
-
-    target = args.out / "convergence.md"
-    if target.exists() and FINDINGS_MARKER in target.read_text():
-        text += "\n" + FINDINGS_MARKER + target.read_text().split(FINDINGS_MARKER, 1)[1]
-    write_text_atomic(target, text)
+    write_keeping_findings(args.out / "convergence.md", text)
     print(text)
     return 0
 

@@ -76,8 +76,8 @@ from bayesdrive.criticism.criticize import (  # noqa: E402
     CriticizeConfig,
     criticize,
 )
-from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
 from bayesdrive.data.readers import read  # noqa: E402
+from benchmarks.bench_crosscheck_convergence import write_keeping_findings  # noqa: E402
 from trafficgen import (  # noqa: E402
     DETECTION_SCENARIO,
     MECHANISMS,
@@ -117,8 +117,6 @@ FIELDS = [
 # With --rollouts: what was adopted (causes joined by "+"), whether that is right (a right cause of
 # the mechanism adopted; null data: nothing adopted), and round 1's adoption reason.
 ADOPTION_FIELDS = [*FIELDS, "adopted", "adopted_right", "adoption"]
-# What follows this line in a report is written by hand and kept when the table is redrawn.
-FINDINGS_MARKER = "<!-- findings: written by hand below, kept when the tables are regenerated -->"
 # A cell backs CI only with at least this many replications, all right.
 CLAIM_REPLICATIONS = 20
 
@@ -443,10 +441,8 @@ def write_report(runs_path: Path, out: Path, *, dev: bool, config: CriticizeConf
             "seed; identical = the same verdict, final model, rightness, best right gain and its "
             "SE, and screening):\n\n" + "\n".join(rerun) + "\n"
         )
-    target = out / runs_path.name.replace("_runs.csv", ".md")  # detection[_dev][_adoption].md
-    if target.exists() and FINDINGS_MARKER in target.read_text():
-        text += "\n" + FINDINGS_MARKER + target.read_text().split(FINDINGS_MARKER, 1)[1]
-    write_text_atomic(target, text)
+    # detection[_dev][_adoption].md, its hand-written reading kept
+    write_keeping_findings(out / runs_path.name.replace("_runs.csv", ".md"), text)
     return text
 
 
