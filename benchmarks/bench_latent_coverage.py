@@ -71,7 +71,7 @@ from bayesdrive.drivers.base import fill_params  # noqa: E402
 from bayesdrive.drivers.idm import IDM  # noqa: E402
 from bayesdrive.drivers.measurement_noise import with_measurement_noise  # noqa: E402
 from bayesdrive.drivers.video_noise import with_video_noise  # noqa: E402
-from bayesdrive.inference import smc  # noqa: E402, F401  (in the fingerprint)
+from bayesdrive.inference.engines import smc  # noqa: E402, F401  (in the fingerprint)
 from bayesdrive.inference.engines.pmmh import latent_data, state_filter_loglik  # noqa: E402
 from bayesdrive.inference.engines.pmmh import run as run_pmmh  # noqa: E402
 from bayesdrive.inference.fit import fit  # noqa: E402
