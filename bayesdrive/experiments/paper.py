@@ -121,19 +121,20 @@ FINAL = "final"
 class Settings:
     """Sizes of one run; ``quick`` keeps every step but shrinks it to run in minutes."""
 
-    name: str
-    smc_particles: int
-    pf_particles: int
-    pf_epochs: int
-    rollouts: int
-    max_scenarios: int | None
-    generated_scenes: int
-    holdout_max_scenarios: int | None
-    prior_sensitivity_vehicles: int
-    criticism_scenes: int | None
-    criticism_particles: int
-    criticism_rollouts: int
-    criticism_seconds: float
+    # The defaults are the full run's sizes.
+    name: str = "full"
+    smc_particles: int = 1024
+    pf_particles: int = 1024
+    pf_epochs: int = 3
+    rollouts: int = 100
+    max_scenarios: int | None = None
+    generated_scenes: int = 20
+    holdout_max_scenarios: int | None = 30
+    prior_sensitivity_vehicles: int = 10
+    criticism_scenes: int | None = 8
+    criticism_particles: int = 128
+    criticism_rollouts: int = 32
+    criticism_seconds: float = 120.0
     # Held-out data sets evaluated (None: every one of registry.HOLDOUT).
     holdout_sets: tuple[str, ...] | None = None
     # Rounds of the criticism's loop (each extends the model by the round before's verdict).
@@ -144,21 +145,7 @@ class Settings:
     turing_permutations: int = 99
 
 
-FULL = Settings(
-    name="full",
-    smc_particles=1024,
-    pf_particles=1024,
-    pf_epochs=3,
-    rollouts=100,
-    max_scenarios=None,
-    generated_scenes=20,
-    holdout_max_scenarios=30,
-    prior_sensitivity_vehicles=10,
-    criticism_scenes=8,
-    criticism_particles=128,
-    criticism_rollouts=32,
-    criticism_seconds=120.0,
-)
+FULL = Settings()
 # The quick run criticises NGSIM I-80 alone and evaluates one held-out set, the first NGSIM one:
 # every step runs, but the long series (OpenACC recordings, the ACC platoon's 1400 s fitting
 # windows) are left to the full run, which takes every one.
