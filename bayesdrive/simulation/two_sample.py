@@ -24,9 +24,11 @@ also approximate.
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import numpy as np
+from joblib import Parallel, delayed
 from scipy import special
 from sklearn.ensemble import HistGradientBoostingClassifier
 from sklearn.model_selection import GroupKFold
@@ -74,6 +76,11 @@ HEADWAY_CAP_S = 10.0
 # seed; otherwise scikit-learn's defaults, fixed before any comparison was run. A leaf holds at
 # least min_samples_leaf rows, so a fold that trains on fewer than twice that cannot split.
 BOOSTING = {"max_iter": 100, "learning_rate": 0.1, "min_samples_leaf": 20, "early_stopping": False}
+
+
+# From this many fits on, the boosted test spreads them over worker processes (the GIL keeps
+# threads from running scikit-learn's small fits at once).
+PARALLEL_FITS = 200
 
 
 class TwoSampleResult(NamedTuple):
@@ -297,6 +304,22 @@ def _cluster_interval(correct: np.ndarray, groups: np.ndarray) -> tuple[float, f
     return _wilson(accuracy * effective, effective)
 
 
+def _fold_hits(
+    features: np.ndarray, test: np.ndarray, labellings: np.ndarray, seed: int
+) -> np.ndarray:
+    """For each labelling (rows of ``labellings``), whether the classifier trained on the rows
+    outside ``test`` predicts each ``test`` row's label."""
+    train = ~test
+    hits = np.zeros((len(labellings), int(test.sum())), dtype=bool)
+    # One thread: these fits are small, and OpenMP's start-up on every fit costs more than it saves.
+    with threadpool_limits(limits=1):
+        for labelling, row in zip(labellings, hits, strict=True):
+            classifier = HistGradientBoostingClassifier(**BOOSTING, random_state=seed)
+            classifier.fit(features[train], labelling[train])
+            row[:] = classifier.predict(features[test]) == labelling[test]
+    return hits
+
+
 def boosted_two_sample_test(
     real: np.ndarray,
     generated: np.ndarray,
@@ -329,15 +352,21 @@ def boosted_two_sample_test(
     rng = np.random.default_rng(seed)
     labellings = np.vstack([labels[None], permuted_labellings(rng, labels, groups, permutations)])
     fold_of = grouped_folds(groups, folds)
+    # Every (fold, labelling) fit is independent and seeded, so the work is split over the cores
+    # in slices of labellings; the hits are the same however it is split.
+    workers = min(os.cpu_count() or 1, len(labellings))
+    slices = np.array_split(np.arange(len(labellings)), workers)
+    tasks = [(fold, chosen) for fold in range(folds) for chosen in slices]
+    # Worker processes take seconds to start: a small test runs its fits here.
+    if len(labellings) * folds < PARALLEL_FITS:
+        workers = 1
+    hits = Parallel(n_jobs=workers)(
+        delayed(_fold_hits)(features, fold_of == fold, labellings[chosen], seed)
+        for fold, chosen in tasks
+    )
     correct = np.zeros(labellings.shape, dtype=bool)
-    # One thread: these fits are small, and OpenMP's start-up on every fit costs more than it saves.
-    with threadpool_limits(limits=1):
-        for fold in range(folds):
-            train, test = fold_of != fold, fold_of == fold
-            for labelling, hits in zip(labellings, correct, strict=True):
-                classifier = HistGradientBoostingClassifier(**BOOSTING, random_state=seed)
-                classifier.fit(features[train], labelling[train])
-                hits[test] = classifier.predict(features[test]) == labelling[test]
+    for (fold, chosen), fold_hits in zip(tasks, hits, strict=True):
+        correct[np.ix_(chosen, fold_of == fold)] = fold_hits
     return TwoSampleResult.from_scores(
         correct.sum(axis=1),
         _cluster_interval(correct[0], groups),

@@ -5,6 +5,7 @@ import pytest
 
 import trafficgen
 from bayesdrive.data import registry
+from bayesdrive.simulation import two_sample
 from bayesdrive.simulation.scenarios import platoon_scenarios
 from bayesdrive.simulation.two_sample import (
     TRAJECTORY_FEATURE_NAMES,
@@ -217,3 +218,20 @@ def test_boosted_classifier_is_at_chance_on_two_halves_of_real_data(data_dir):
     result = boosted_between(features, vehicles, first_half, seed=0, folds=4, permutations=19)
     assert abs(result.accuracy - 0.5) < 0.12 and result.p_value > 0.05
     assert result.groups == len(distinct)
+
+
+def test_the_boosted_tests_result_does_not_depend_on_how_many_cores_share_it(monkeypatch):
+    # The fits are split over the cores in slices of labellings: one core and two worker
+    # processes give the same hits, so the same accuracy and p-value. Seeds 12 (data) and 13
+    # (test).
+    monkeypatch.setattr(two_sample, "PARALLEL_FITS", 0)
+    rng = np.random.default_rng(12)
+    vehicles = np.repeat(np.arange(20), 4)
+    features = rng.normal(size=(80, 3)) + 2.0 * (vehicles % 2 == 0)[:, None]
+    real = vehicles % 2 == 0
+    results = []
+    for cores in (1, 2):
+        monkeypatch.setattr("os.cpu_count", lambda cores=cores: cores)
+        results.append(boosted_between(features, vehicles, real, seed=13, permutations=7))
+    assert results[0] == results[1]
+    assert results[0].permutations == 7 and results[0].accuracy > 0.6
