@@ -187,6 +187,28 @@ def test_change_points():
     assert white.p_value > 1e-3
 
 
+def test_change_points_are_not_short_range_autocorrelation():
+    """AR(1) residuals (rho 0.3) without a shift flag about 5% of vehicles once the CUSUM is scaled
+    by the long-run sd; scaled by the one-step sd they flag many. A shift on top is still found.
+    Seed 10; 40 vehicles."""
+    many = 40
+    rng = np.random.default_rng(10)
+    z = np.empty((many, STEPS))
+    z[:, 0] = rng.normal(size=many)
+    for t in range(1, STEPS):
+        z[:, t] = 0.3 * z[:, t - 1] + np.sqrt(1 - 0.3**2) * rng.normal(size=many)
+    scaled = change_point_check(residuals_from(z))
+    assert scaled.p_value > 1e-3 and scaled.summary["flagged"] <= 6
+    one_step = [
+        stats.kstwobign.sf(np.abs(np.cumsum(r - r.mean()) / (r.std() * np.sqrt(STEPS))).max())
+        for r in z
+    ]
+    assert np.mean(np.asarray(one_step) < 0.05) > 0.1
+    shifted = z.copy()
+    shifted[:, STEPS // 2 :] += 1.0
+    assert change_point_check(residuals_from(shifted)).p_value < 1e-12
+
+
 def fit_with(log_z_held) -> FitResult:
     n = len(log_z_held)
     zeros = np.zeros(n)
