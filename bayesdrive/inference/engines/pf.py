@@ -276,9 +276,9 @@ def run(
     length = np.where(live.any(axis=1), live.shape[1] - np.argmax(live[:, ::-1], axis=1), 0)
     by_length = np.argsort(-length, kind="stable")
     order = np.concatenate([by_length, np.full(-num_vehicles % chunk, by_length[-1])])
-    is_padding = np.arange(len(order)) >= num_vehicles
-    ordered = jax.tree.map(lambda a: a[order], series)
-    ordered = ordered._replace(mask=jnp.where(is_padding[:, None], 0.0, ordered.mask))
+    # Reordered on the host: a JAX op per array would compile a program for each.
+    ordered = jax.tree.map(lambda a: np.asarray(a)[order], series)
+    ordered.mask[num_vehicles:] = 0
     restore = np.argsort(by_length, kind="stable")  # each vehicle's row in the sorted order
 
     def grouped(values):  # (vehicle, ...) in sorted order -> (chunk, vehicle in chunk, ...)
@@ -290,10 +290,11 @@ def run(
 
     # Each vehicle's key gives its prior draws and, per epoch, its filter's and its redraw's keys.
     streams = jax.vmap(lambda k: jax.random.split(k, 1 + 2 * epochs))(problem.keys(key))
-    draws = jax.vmap(lambda k: problem.prior.sample(k, (num_particles,)))(streams[:, 0])
-    start = jnp.clip(jnp.round((draws - grid.first) / grid.step), 0, grid.size - 1).astype(
-        jnp.int32
-    )
+    draws = np.asarray(jax.vmap(lambda k: problem.prior.sample(k, (num_particles,)))(streams[:, 0]))
+    # Snapped in the draws' precision, as JAX would, on the host to compile nothing.
+    first, step_size = grid.first.astype(draws.dtype), grid.step.astype(draws.dtype)
+    last = (grid.size - 1).astype(draws.dtype)
+    start = np.clip(np.round((draws - first) / step_size), 0, last).astype(np.int32)
     compile_time, run_time = 0.0, 0.0
     epoch_log_evidence, pooled_means = [], []
     for epoch in range(epochs):
@@ -311,10 +312,11 @@ def run(
         run_time += ran_s
         epoch_log_evidence.append(out.log_evidence)
         pooled_means.append(grid.values(out.index).mean(axis=(0, 1)))
-        # The paper's epochs: every vehicle's next start is drawn from all final particles.
-        pool = jnp.asarray(out.index.reshape(-1, len(names)))
-        picks = functools.partial(jax.random.randint, shape=(num_particles,), minval=0)
-        start = pool[jax.vmap(functools.partial(picks, maxval=len(pool)))(pool_keys)]
+        if epoch + 1 < epochs:
+            # The paper's epochs: every vehicle's next start is drawn from all final particles.
+            pool = jnp.asarray(out.index.reshape(-1, len(names)))
+            picks = functools.partial(jax.random.randint, shape=(num_particles,), minval=0)
+            start = pool[jax.vmap(functools.partial(picks, maxval=len(pool)))(pool_keys)]
 
     particles = grid.values(out.index)
     log_lik = problem.score(particles)
