@@ -201,12 +201,15 @@ def runs_file(out: Path, *, dev: bool, rollouts: int) -> Path:
     return out / f"detection{'_dev' if dev else ''}{'_adoption' if rollouts else ''}_runs.csv"
 
 
-def run_one(cell: str, size: str, seed: int, workdir: Path, config: CriticizeConfig) -> dict:
-    """One replication: simulate, write, read, criticize."""
+def run_one(
+    cell: str, size: str, seed: int, workdir: Path, config: CriticizeConfig, scenario: dict
+) -> dict:
+    """One replication of ``scenario`` (trafficgen's keyword arguments): simulate, write, read,
+    criticize."""
     started = time.perf_counter()
     mechanisms = cell_mechanisms(cell, size)
     path = workdir / f"{cell.replace('+', '_')}_{size}_{seed}.csv"
-    recording = generate(seed, path, mechanisms, **DETECTION_SCENARIO)
+    recording = generate(seed, path, mechanisms, **scenario)
     report = criticize(read(path, format="ngsim_raw"), seed=seed, config=config).report
     path.unlink()
     right = right_verdicts(tuple(mechanisms))
@@ -362,7 +365,9 @@ def reruns(runs: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(runs_path: Path, out: Path, *, dev: bool, config: CriticizeConfig) -> str:
+def write_report(
+    runs_path: Path, out: Path, *, dev: bool, config: CriticizeConfig, scenario: dict
+) -> str:
     """The markdown table of the current sampler's rows: for the study, of the current generator
     only; for the development pilot, of every generator version it ran (marked). With rollouts,
     each cell's adoption rate stands beside its naming rate."""
@@ -410,7 +415,7 @@ def write_report(runs_path: Path, out: Path, *, dev: bool, config: CriticizeConf
         f"current generator trafficgen {GENERATOR} and library bayesdrive {CODE} (sha256 "
         "prefixes of their sources; rows of other library versions are listed apart and back "
         "no claim), scenario "
-        f"{DETECTION_SCENARIO}; criticize settings {config._asdict()}; sampler "
+        f"{scenario}; criticize settings {config._asdict()}; sampler "
         f'"{sampler_label(config)}". A replication is right when the verdict (first round) is one of '
         "the right verdicts (trafficgen's table, reports/criticism/generator.md); with two "
         "mechanisms, when the final model holds a right verdict of each. Out-of-reach mechanisms "
@@ -456,6 +461,7 @@ def run_shards(args: argparse.Namespace) -> int:
     common += ["--null-replications", str(args.null_replications)]
     common += ["--dev"] if args.dev else []
     common += ["--first-seed", str(args.first_seed), "--rollouts", str(args.rollouts)]
+    common += ["--platoons", str(args.platoons)]
     common += ["--stop-at", str(args.stop_at)] if args.stop_at is not None else []
     shards = []
     for k in range(args.jobs):
@@ -489,6 +495,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--rollouts", type=int, default=0, help="rollouts per model: >0 also judges adoption"
     )
+    parser.add_argument(
+        "--platoons",
+        type=int,
+        default=DETECTION_SCENARIO["platoons"],
+        help="platoons per replication (CI's scenario by default); another size needs its own --out",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
     parser.add_argument("--shard", default="0/1", help="K/N: every N-th replication from the K-th")
@@ -501,17 +513,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     config = study_config(args.rollouts)
+    scenario = {**DETECTION_SCENARIO, "platoons": args.platoons}
     fields = ADOPTION_FIELDS if args.rollouts else FIELDS
     runs_path = runs_file(args.out, dev=args.dev, rollouts=args.rollouts)
     if args.report_only:
-        print(write_report(runs_path, args.out, dev=args.dev, config=config))
+        print(write_report(runs_path, args.out, dev=args.dev, config=config, scenario=scenario))
         return 0
     if args.jobs > 1:
         if args.shard != "0/1":
             parser.error("--jobs runs every shard itself; give --shard or --jobs, not both")
         failed = run_shards(args)
         if runs_path.exists():
-            print(write_report(runs_path, args.out, dev=args.dev, config=config))
+            print(write_report(runs_path, args.out, dev=args.dev, config=config, scenario=scenario))
         return 1 if failed else 0
     seeds = DEV_SEEDS if args.dev else range(args.first_seed, args.first_seed + len(STUDY_SEEDS))
     unknown = [
@@ -556,7 +569,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"stopped at --stop-at with {len(todo) - i + 1} to go", flush=True)
                 break
             try:
-                row = run_one(cell, size, seed, Path(tmp), config)
+                row = run_one(cell, size, seed, Path(tmp), config, scenario)
             except Exception as error:  # a crash on independent data is a miss, kept on record
                 row = dict.fromkeys(fields, "")
                 row.update(cell=cell, size=size, seed=seed, right=0, sampler=sampler_label(config))
@@ -565,7 +578,7 @@ def main(argv: list[str] | None = None) -> int:
             append_rows(runs_path, [row], fields)
             print(f"[{i}/{len(todo)}] {row}", flush=True)
     if runs_path.exists():  # a shard stopped before its first row has nothing to report
-        print(write_report(runs_path, args.out, dev=args.dev, config=config))
+        print(write_report(runs_path, args.out, dev=args.dev, config=config, scenario=scenario))
     return 0
 
 
