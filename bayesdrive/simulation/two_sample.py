@@ -353,13 +353,13 @@ def boosted_two_sample_test(
     labellings = np.vstack([labels[None], permuted_labellings(rng, labels, groups, permutations)])
     fold_of = grouped_folds(groups, folds)
     # Every (fold, labelling) fit is independent and seeded, so the work is split over the cores
-    # in slices of labellings; the hits are the same however it is split.
+    # in slices of labellings; the hits are the same however it is split. Worker processes take
+    # seconds to start: a small test runs its fits here, in one slice.
     workers = min(os.cpu_count() or 1, len(labellings))
-    slices = np.array_split(np.arange(len(labellings)), workers)
-    tasks = [(fold, chosen) for fold in range(folds) for chosen in slices]
-    # Worker processes take seconds to start: a small test runs its fits here.
     if len(labellings) * folds < PARALLEL_FITS:
         workers = 1
+    slices = np.array_split(np.arange(len(labellings)), workers)
+    tasks = [(fold, chosen) for fold in range(folds) for chosen in slices]
     hits = Parallel(n_jobs=workers)(
         delayed(_fold_hits)(features, fold_of == fold, labellings[chosen], seed)
         for fold, chosen in tasks
