@@ -96,6 +96,14 @@ class Grid(NamedTuple):
         """Parameter values (float64) of grid indices (..., d)."""
         return self.first + np.asarray(index) * self.step
 
+    def indices(self, values) -> np.ndarray:
+        """The nearest grid indices (int32) of parameter values (..., d), in the values'
+        precision (as JAX would round them), clipped to the grid."""
+        values = np.asarray(values)
+        first, step = self.first.astype(values.dtype), self.step.astype(values.dtype)
+        last = (self.size - 1).astype(values.dtype)
+        return np.clip(np.round((values - first) / step), 0, last).astype(np.int32)
+
 
 def make_grid(
     model: DriverModel, names: Sequence[str], steps: Mapping[str, float] | None = None
@@ -290,11 +298,8 @@ def run(
 
     # Each vehicle's key gives its prior draws and, per epoch, its filter's and its redraw's keys.
     streams = jax.vmap(lambda k: jax.random.split(k, 1 + 2 * epochs))(problem.keys(key))
-    draws = np.asarray(jax.vmap(lambda k: problem.prior.sample(k, (num_particles,)))(streams[:, 0]))
-    # Snapped in the draws' precision, as JAX would, on the host to compile nothing.
-    first, step_size = grid.first.astype(draws.dtype), grid.step.astype(draws.dtype)
-    last = (grid.size - 1).astype(draws.dtype)
-    start = np.clip(np.round((draws - first) / step_size), 0, last).astype(np.int32)
+    draws = jax.vmap(lambda k: problem.prior.sample(k, (num_particles,)))(streams[:, 0])
+    start = grid.indices(draws)  # on the host, to compile nothing
     compile_time, run_time = 0.0, 0.0
     epoch_log_evidence, pooled_means = [], []
     for epoch in range(epochs):
