@@ -511,6 +511,9 @@ def main(argv: list[str] | None = None) -> int:
         "--jobs", type=int, default=1, help="N: run shards 0/N..N-1/N at once, one per core"
     )
     args = parser.parse_args(argv)
+    # The rows do not record the scenario: rows of another size must not join CI's study.
+    if args.platoons != DETECTION_SCENARIO["platoons"] and args.out == parser.get_default("out"):
+        parser.error(f"--platoons {args.platoons} is not CI's scenario: give it its own --out")
     args.out.mkdir(parents=True, exist_ok=True)
     config = study_config(args.rollouts)
     scenario = {**DETECTION_SCENARIO, "platoons": args.platoons}
