@@ -37,6 +37,7 @@ equals ``gap`` wherever both are present; readers either take ``gap`` from the s
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 from typing import Any
 
@@ -103,12 +104,18 @@ class Trajectories:
     def scene_ids(self) -> list[str]:
         return list(pd.unique(self.scenes["scene_id"]))
 
+    @functools.cached_property
+    def _vehicle_rows(self) -> dict[Any, np.ndarray]:
+        # Each vehicle's row positions, found once: comparing the whole id column for every
+        # vehicle asked for made a pass over all vehicles quadratic in their number.
+        return self.tracks.groupby("vehicle_id", sort=False).indices
+
     def vehicle(self, vehicle_id: str) -> pd.DataFrame:
         """The rows of one vehicle, in time order."""
-        rows = self.tracks[self.tracks["vehicle_id"] == vehicle_id]
-        if rows.empty:
+        positions = self._vehicle_rows.get(vehicle_id)
+        if positions is None:
             raise KeyError(f"{self.source}: no vehicle {vehicle_id!r}")
-        return rows
+        return self.tracks.iloc[positions]
 
     def scene_vehicles(self, scene_id: str) -> list[str]:
         return list(self.scenes.loc[self.scenes["scene_id"] == scene_id, "vehicle_id"])

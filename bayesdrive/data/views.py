@@ -210,7 +210,10 @@ def follower_arrays(
     """
     tracks = traj.tracks
     ids = list(vehicle_ids) if vehicle_ids is not None else traj.vehicle_ids
-    speed_of = tracks.set_index(["vehicle_id", "t"])["v"]
+    # A dict, not a MultiIndex lookup: the speeds are read sample by sample below.
+    speed_of = dict(
+        zip(zip(tracks["vehicle_id"], tracks["t"], strict=True), tracks["v"], strict=True)
+    )
     flagged = set(zip(traj.flags["vehicle_id"], np.round(traj.flags["t"], 6), strict=True))
 
     per_vehicle = []
@@ -355,7 +358,7 @@ def _ahead_arrays(traj: Trajectories, arrays: FollowerArrays) -> AheadArrays:
     no_lead_acc = 0
     for row, vid in enumerate(arrays.vehicle_ids):
         frames = np.round(traj.vehicle(vid)["t"].to_numpy()[:-1] / dt).astype(np.int64)
-        rows = extras.loc[[(vid, f) for f in frames]]
+        rows = extras.iloc[extras.index.get_indexer([(vid, f) for f in frames])]
         n = len(frames)
         lead_acc = rows["lead_acc"].to_numpy()
         no_lead_acc += int((~np.isfinite(lead_acc) & (arrays.mask[row, :n] > 0)).sum())

@@ -37,6 +37,7 @@ decodes them. Opening a result needs nothing but xarray or ArviZ: ``xarray.open_
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 from collections.abc import Callable, Mapping, Sequence
@@ -167,10 +168,13 @@ def _observations(log_likelihood: np.ndarray, arrays: FollowerArrays) -> xr.Data
     only: (chain, draw, obs)."""
     vehicle, step = np.nonzero(arrays.full_history_mask)
     scores = np.asarray(log_likelihood)
-    # One take along the flattened (vehicle, step) axis: indexing two axes with index arrays
-    # makes NumPy gather element by element, many times slower on this large array.
-    flat = scores.reshape(*scores.shape[:2], -1)
-    values = np.take(flat, vehicle * scores.shape[3] + step, axis=2).astype(np.float32, copy=False)
+    # A vehicle at a time: the engines' scores are vehicle-major underneath (a moved-axis view),
+    # so each vehicle's (chain, draw, step) block is contiguous and gathered in place. Reshaping
+    # the whole view first copied every padded score into draw-major order, then gathered.
+    values = np.empty((*scores.shape[:2], len(vehicle)), np.float32)
+    bounds = np.searchsorted(vehicle, np.arange(scores.shape[2] + 1))
+    for v, (start, stop) in enumerate(itertools.pairwise(bounds)):
+        values[:, :, start:stop] = scores[:, :, v, step[start:stop]]
     return xr.Dataset(
         {OBSERVED_VARIABLE: (("chain", "draw", "obs"), values)},
         coords={

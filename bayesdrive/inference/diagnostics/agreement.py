@@ -32,7 +32,6 @@ import itertools
 from collections.abc import Mapping
 from typing import NamedTuple
 
-import arviz
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -116,6 +115,8 @@ def mcse_mean(tree: xr.DataTree) -> xr.Dataset:
     if replicates > 1:
         means = _posterior(tree).mean("draw")
         return means.std("chain", ddof=1) / np.sqrt(replicates)
+    import arviz  # here, not at the top: a fit whose checks need no ArviZ does not import it
+
     return arviz.mcse(tree, method="mean").to_dataset()
 
 
@@ -130,6 +131,8 @@ def convergence_table(tree: xr.DataTree, *, statistics: bool = True) -> pd.DataF
     multi_chain = posterior.sizes["chain"] >= 2
     stats = {}
     if statistics:
+        import arviz  # here, not at the top: one-chain filters need no ArviZ
+
         stats = {
             "ess_bulk": arviz.ess(tree, method="bulk"),
             "ess_tail": arviz.ess(tree, method="tail"),

@@ -26,7 +26,6 @@ import logging
 import math
 from typing import Any, NamedTuple
 
-import arviz
 import numpy as np
 import xarray as xr
 
@@ -96,6 +95,8 @@ def chain_problems(
     """The R-hat (with ``rhat`` and two or more chains), bulk- and tail-ESS checks of
     :func:`check_convergence` on one vehicle's draws (chain, draw, parameter), with the same
     estimators and limits: what an engine that extends its own run must pass."""
+    import arviz  # here, not at the top: a fit whose checks need no ArviZ does not import it
+
     dataset = xr.Dataset({"theta": (("chain", "draw", "param"), np.asarray(draws, np.float64))})
     checks = [("ess_bulk", arviz.ess(dataset, method="bulk"), ESS_MIN, False)]
     checks.append(("ess_tail", arviz.ess(dataset, method="tail"), ESS_MIN, False))
