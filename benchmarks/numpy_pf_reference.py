@@ -1,6 +1,6 @@
 """The paper's particle filter in plain vectorised NumPy: the reference `bench_filters.py` times
 `pf` against, in the same process (filter time) and as a whole process of its own (start-up,
-reading the data, filtering, writing the particles).
+reading the data, filtering, writing the posterior and its summary).
 
 It imports no JAX: a benchmark reference has to restate the IDM, and `bench_filters.py` checks
 this restatement (constants and log-density) against `bayesdrive.drivers.idm` before anything is
@@ -9,6 +9,10 @@ term's normal log-CDF only on the steps that end in a stop, one `searchsorted` f
 systematic resampling of every vehicle.
 
     python benchmarks/numpy_pf_reference.py DATA --particles N --grid GRID.json --out FILE.npz
+
+writes the posterior draws (vehicle, particle, parameter) to FILE.npz and, as `bayesdrive fit`'s
+summary.json does, each vehicle's and parameter's posterior mean, sd and 5%/95% quantiles to
+FILE.json.
 """
 
 from __future__ import annotations
@@ -115,7 +119,8 @@ def trimmed(arrays: FollowerArrays) -> FollowerArrays:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The whole-process reference: read, filter every follower's 'all' window, save particles."""
+    """The whole-process reference: read, filter every follower's 'all' window, save the
+    posterior and its summary."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data", help="a data set name or path, as `bayesdrive fit` takes it")
     parser.add_argument("--particles", type=int, required=True)
@@ -132,7 +137,20 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     index = filter_particles(rng, arrays, spec["grid"], spec["fixed"], start)
     print(f"filter {time.perf_counter() - started:.2f} s", flush=True)
-    np.savez(args.out, index=index, vehicles=np.asarray(arrays.vehicle_ids, dtype=str))
+    grid = spec["grid"]
+    draws = np.asarray(grid["first"]) + index * np.asarray(grid["step"])
+    vehicles = [str(v) for v in arrays.vehicle_ids]
+    np.savez(args.out, posterior=draws, names=grid["names"], vehicles=vehicles)
+    q05, q95 = np.quantile(draws, [0.05, 0.95], axis=1)
+    mean, sd = draws.mean(axis=1), draws.std(axis=1)
+    summary = {
+        vehicle: {
+            name: {"mean": mean[i, k], "sd": sd[i, k], "q05": q05[i, k], "q95": q95[i, k]}
+            for k, name in enumerate(grid["names"])
+        }
+        for i, vehicle in enumerate(vehicles)
+    }
+    args.out.with_suffix(".json").write_text(json.dumps({"vehicles": summary}, indent=1))
     return 0
 
 

@@ -152,6 +152,13 @@ def fit(
         "hundreds). Draws then differ from the default's in the last bits, not with the device "
         "count.",
     ),
+    pointwise: bool = typer.Option(
+        True,
+        "--pointwise/--no-pointwise",
+        help="Keep result.nc's log_likelihood group: every draw scored on every usable step, "
+        "which PSIS-LOO and arviz.compare read. --no-pointwise leaves it out: a smaller file, "
+        "less time after sampling.",
+    ),
     data_dir: str | None = typer.Option(
         None, "--data-dir", help="Folder holding data sets (held-out ones for a held-out name)."
     ),
@@ -246,6 +253,7 @@ def fit(
                 "seed": seed,
                 "max_vehicles": vehicles,
                 "source": traj.source,
+                "pointwise": pointwise,
                 "progress": lambda done, total: bar.update(task, completed=done, total=total),
                 **options,
             }

@@ -127,6 +127,7 @@ def fit(
     vehicle_ids: Sequence[str] | None = None,
     progress: Callable[[int, int], None] | None = None,
     source: str = "FollowerArrays",
+    pointwise: bool = True,
     **engine_options: Any,
 ) -> xr.DataTree:
     """Infer per-vehicle distributions over ``params`` of ``model`` from ``data``.
@@ -143,7 +144,9 @@ def fit(
     ``num_particles`` (smc, pf; default 1000) or ``draws`` (the other engines: posterior draws in
     all, default 1000; ``num_particles`` is taken as ``draws`` there, as before), ``chains`` and
     ``warmup`` (MCMC engines, :data:`MCMC_OPTIONS`) size the run. ``engine_options`` go to the engine (e.g.
-    ``ess_threshold`` for smc, ``epochs`` for pf). Returns the result tree
+    ``ess_threshold`` for smc, ``epochs`` for pf). ``pointwise=False`` leaves the log_likelihood
+    group out (every draw scored on every step: PSIS-LOO and ``arviz.compare`` need it, and for
+    many vehicles it is most of the file and of the time after sampling). Returns the result tree
     (:mod:`bayesdrive.inference.core.output`); its metadata ``convergence`` holds the checks of
     :func:`~bayesdrive.inference.diagnostics.convergence.check_convergence`, whose problems are also logged
     as warnings.
@@ -176,6 +179,7 @@ def fit(
         num_particles=size,
         prior=prior,
         progress=progress,
+        pointwise=pointwise,
         **sizes,
         **engine_options,
     )
@@ -183,7 +187,8 @@ def fit(
     tree = build_tree(
         posterior=result.posterior,
         sample_stats=result.sample_stats,
-        log_likelihood=result.log_likelihood,
+        # Engines that score inside their sampler (nuts, pmmh, hierarchical) still have scores.
+        log_likelihood=result.log_likelihood if pointwise else None,
         arrays=arrays,
         specs=model.specs,
         prior=result.prior,

@@ -57,14 +57,16 @@ def test_fit_writes_result_summary_and_plots(data_dir, tmp_path):
 
 
 @pytest.mark.realdata
-def test_fit_runs_the_paper_filter_with_epochs(data_dir, tmp_path):
-    args = ["fit", str(data_dir / CHAIN), "--engine", "pf", "--epochs", "2"]
+def test_fit_runs_the_paper_filter_with_epochs_and_without_pointwise_scores(data_dir, tmp_path):
+    args = ["fit", str(data_dir / CHAIN), "--engine", "pf", "--epochs", "2", "--no-pointwise"]
     args += ["--vehicles", "2", "--particles", "64", "--params", "v_des,sigma"]
     result = runner.invoke(app, [*args, "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     tree = load_result(tmp_path / "result.nc")
     meta = metadata(tree)
     assert meta["engine"] == "pf" and meta["engine_options"]["epochs"] == 2
+    assert "log_likelihood" not in tree.children
+    assert meta["psis_loo"]["problems"] == ["no log_likelihood group: fitted with pointwise=False"]
     # Epoch 0's prior draws are kept as ArviZ's prior group, inside the prior box.
     prior = tree["prior"]["v_des"]
     assert prior.shape == (1, 64, 2) and prior.attrs["units"] == "m/s"

@@ -37,8 +37,7 @@ def arrays():
     return simulate_following(jax.random.key(21), IDM, params, num_steps=STEPS)
 
 
-@pytest.fixture(scope="module")
-def tree(arrays):
+def fit_smc(arrays, **options):
     return fit(
         jax.random.key(5),
         arrays,
@@ -48,7 +47,13 @@ def tree(arrays):
         fixed={"tau": 1.0, "b_pref": 2.0},
         seed=5,
         sequential=True,  # the per-step statistics are part of the layout checked here
+        **options,
     )
+
+
+@pytest.fixture(scope="module")
+def tree(arrays):
+    return fit_smc(arrays)
 
 
 def test_tree_has_the_shared_layout(tree, arrays):
@@ -140,6 +145,22 @@ def test_psis_loo_metadata_names_copied_draws_and_constant_observations(arrays):
         "3 observation(s) score the same under every draw (vehicles b): PSIS cannot fit their "
         "tail and arviz.loo raises"
     ]
+
+
+def test_a_fit_without_pointwise_scores_has_the_same_draws_and_no_log_likelihood(
+    tree, arrays, tmp_path
+):
+    slim = fit_smc(arrays, pointwise=False)
+    assert "log_likelihood" in tree.children  # the default keeps the group
+    assert "log_likelihood" not in slim.children
+    for name in PARAMS:
+        np.testing.assert_array_equal(
+            slim["posterior"][name].values, tree["posterior"][name].values
+        )
+    psis = metadata(slim)["psis_loo"]
+    assert not psis["reliable"] and "pointwise=False" in psis["problems"][0]
+    save_result(slim, tmp_path / "slim.nc")
+    assert "log_likelihood" not in load_result(tmp_path / "slim.nc").children
 
 
 def test_metadata_is_complete_and_decodes(tree):

@@ -19,6 +19,8 @@ Groups (dims in brackets):
   coordinates ``vehicle``, ``step`` and ``t`` (s), so ``arviz.loo``, ``arviz.compare`` and
   ArviZ's comparison plots work on a result as it is. Root metadata ``psis_loo``
   (:func:`psis_loo_check`) says whether PSIS-LOO can be trusted on it, and what to use if not.
+  A fit with ``pointwise=False`` has no such group (a smaller file, no scoring; nothing to
+  compare models by).
 * ``observed_data``: the :class:`~bayesdrive.data.views.FollowerArrays` the engine saw [vehicle, step].
 
 ``posterior``, ``prior`` and ``sample_stats`` carry ArviZ's ``inference_library`` and
@@ -104,8 +106,10 @@ class EngineInputs(TypedDict, total=False):
     (required), the inferred ``params`` (None: all of the model's), ``fixed`` values of the others
     (None: the model's defaults), ``num_particles`` (the run's size: particles, or posterior draws
     in all; each engine has its own default), the ``prior`` (None: the model's uniform box; it
-    needs ``logpdf(theta)`` and, for the engines that draw from it, ``sample(key, shape)``) and
-    ``progress(done, total)``, called as vehicles finish."""
+    needs ``logpdf(theta)`` and, for the engines that draw from it, ``sample(key, shape)``),
+    ``progress(done, total)``, called as vehicles finish, and ``pointwise`` (default True): whether
+    the result holds the log_likelihood group (False: an engine that scores its draws after
+    sampling skips the scoring)."""
 
     model: DriverModel
     params: Sequence[str] | None
@@ -113,6 +117,7 @@ class EngineInputs(TypedDict, total=False):
     num_particles: int
     prior: Any
     progress: Callable[[int, int], None] | None
+    pointwise: bool
 
 
 class EngineResult(NamedTuple):
@@ -121,7 +126,7 @@ class EngineResult(NamedTuple):
     posterior: parameter name -> (chain, draw, vehicle).
     sample_stats: name -> (dims, values) with dims among vehicle, step, param, epoch, ...
     log_likelihood: (chain, draw, vehicle, step), every posterior draw scored on every padded step
-    (values on masked steps are dropped by :func:`build_tree`).
+    (values on masked steps are dropped by :func:`build_tree`); None without ``pointwise``.
     compile_time_s: time spent compiling; wall_time_s: the inference itself, compilation excluded.
     options: the engine's settings, recorded in the metadata.
     prior: parameter name -> (chain, draw, vehicle) prior draws, where the engine makes them.
@@ -129,7 +134,7 @@ class EngineResult(NamedTuple):
 
     posterior: dict[str, np.ndarray]
     sample_stats: dict[str, tuple[tuple[str, ...], np.ndarray]]
-    log_likelihood: np.ndarray
+    log_likelihood: np.ndarray | None
     compile_time_s: float
     wall_time_s: float
     options: dict[str, Any]
@@ -203,8 +208,15 @@ def psis_loo_check(tree: xr.DataTree, *, markov_chains: bool) -> dict[str, Any]:
     two-stage draws): PSIS takes every draw as an independent one, so copies make its Pareto k
     and elpd unreliable (repeats in a Markov chain are rejections, which ArviZ's relative
     efficiency accounts for). And observations scored the same under every draw: PSIS cannot fit
-    their tail, and ``arviz.loo`` raises.
+    their tail, and ``arviz.loo`` raises. A result without the group (``pointwise=False``) is not
+    checked: there is nothing to compute PSIS-LOO from.
     """
+    if "log_likelihood" not in tree.children:
+        return {
+            "reliable": False,
+            "problems": ["no log_likelihood group: fitted with pointwise=False"],
+            "instead": "refit with the pointwise log-likelihood (the default)",
+        }
     problems = []
     if not markov_chains:
         posterior = tree["posterior"].to_dataset()
@@ -227,16 +239,15 @@ def psis_loo_check(tree: xr.DataTree, *, markov_chains: bool) -> dict[str, Any]:
                 f"vehicles {_named(vehicles)}): PSIS takes every draw as independent, so its "
                 "Pareto k and elpd are unreliable"
             )
-    if "log_likelihood" in tree.children:
-        scores = tree["log_likelihood"][OBSERVED_VARIABLE]
-        values = scores.transpose("chain", "draw", "obs").values
-        constant = np.all(values == values[:1, :1], axis=(0, 1))
-        if constant.any():
-            vehicles = list(dict.fromkeys(str(v) for v in scores["vehicle"].values[constant]))
-            problems.append(
-                f"{int(constant.sum())} observation(s) score the same under every draw "
-                f"(vehicles {_named(vehicles)}): PSIS cannot fit their tail and arviz.loo raises"
-            )
+    scores = tree["log_likelihood"][OBSERVED_VARIABLE]
+    values = scores.transpose("chain", "draw", "obs").values
+    constant = np.all(values == values[:1, :1], axis=(0, 1))
+    if constant.any():
+        vehicles = list(dict.fromkeys(str(v) for v in scores["vehicle"].values[constant]))
+        problems.append(
+            f"{int(constant.sum())} observation(s) score the same under every draw "
+            f"(vehicles {_named(vehicles)}): PSIS cannot fit their tail and arviz.loo raises"
+        )
     if problems:
         log.warning("PSIS-LOO cannot be trusted on this result: %s", "; ".join(problems))
     return {
@@ -257,7 +268,7 @@ def build_tree(
     *,
     posterior: Mapping[str, np.ndarray],
     sample_stats: Mapping[str, tuple[tuple[str, ...], np.ndarray]],
-    log_likelihood: np.ndarray,
+    log_likelihood: np.ndarray | None,
     arrays: FollowerArrays,
     metadata: Mapping[str, Any],
     specs: Sequence[ParamSpec] = (),
@@ -278,7 +289,7 @@ def build_tree(
     posterior_ds = _draws_dataset(posterior, vehicles, specs, "posterior")
     num_chains, num_draws = posterior_ds.sizes["chain"], posterior_ds.sizes["draw"]
     expected = (num_chains, num_draws, num_vehicles, num_steps)
-    if np.shape(log_likelihood) != expected:
+    if log_likelihood is not None and np.shape(log_likelihood) != expected:
         raise ValueError(
             f"log_likelihood has shape {np.shape(log_likelihood)}, expected every posterior draw "
             f"on every padded step: (chain, draw, vehicle, step) = {expected}"
@@ -299,12 +310,10 @@ def build_tree(
         attrs={"dt": float(arrays.dt)},
     )
 
-    groups = {
-        "posterior": posterior_ds,
-        "sample_stats": stats_ds,
-        "log_likelihood": _observations(log_likelihood, arrays),
-        "observed_data": observed_ds,
-    }
+    groups = {"posterior": posterior_ds, "sample_stats": stats_ds}
+    if log_likelihood is not None:
+        groups["log_likelihood"] = _observations(log_likelihood, arrays)
+    groups["observed_data"] = observed_ds
     if prior is not None:
         groups["prior"] = _draws_dataset(prior, vehicles, specs, "prior")
     provenance = {

@@ -85,8 +85,9 @@ class VehicleProblem(NamedTuple):
     """One engine's view of a fit: the model, the inferred ``names`` (in order), the full
     parameter tuple ``fixed`` (defaults where not given), the model's uniform ``box`` over
     ``names``, the ``prior`` (the box unless one was given), every vehicle's ``series``
-    (vehicle, step), the ``vehicle_ids``, the run's size ``num_particles`` and the ``progress``
-    callback (:class:`~bayesdrive.inference.core.output.EngineInputs`)."""
+    (vehicle, step), the ``vehicle_ids``, the run's size ``num_particles``, the ``progress``
+    callback and whether the result keeps the ``pointwise`` log-likelihood
+    (:class:`~bayesdrive.inference.core.output.EngineInputs`)."""
 
     model: DriverModel
     names: tuple[str, ...]
@@ -97,6 +98,7 @@ class VehicleProblem(NamedTuple):
     vehicle_ids: tuple[str, ...]
     num_particles: int
     progress: Callable[[int, int], None] | None
+    pointwise: bool
 
     @property
     def num_vehicles(self) -> int:
@@ -147,6 +149,11 @@ class VehicleProblem(NamedTuple):
     def score(self, draws: Array | np.ndarray) -> np.ndarray:
         """Per-step log-likelihood (vehicle, draw, step) of draws (vehicle, draw, d)."""
         return score_draws(self.model, self.names, self.fixed, draws, self.series)
+
+    def pointwise_scores(self, draws: Array | np.ndarray) -> np.ndarray | None:
+        """:meth:`score` for the result's log_likelihood group; None (nothing scored) where the
+        fit leaves the group out."""
+        return self.score(draws) if self.pointwise else None
 
 
 def _engine_model(engine: str, inputs: EngineInputs) -> DriverModel:
@@ -200,6 +207,7 @@ def prepare(
         vehicle_ids=vehicle_ids,
         num_particles=inputs.get("num_particles", num_particles),
         progress=inputs.get("progress"),
+        pointwise=inputs.get("pointwise", True),
     )
 
 
@@ -209,20 +217,23 @@ def posterior_draws(names: Sequence[str], theta: np.ndarray) -> dict[str, np.nda
     return {name: values[..., i] for i, name in enumerate(names)}
 
 
-def log_likelihood_draws(values: np.ndarray) -> np.ndarray:
-    """Scores (vehicle, chain, draw, step) in the result's (chain, draw, vehicle, step) layout."""
-    return np.moveaxis(np.asarray(values), 0, 2)
+def log_likelihood_draws(values: np.ndarray | None) -> np.ndarray | None:
+    """Scores (vehicle, chain, draw, step) in the result's (chain, draw, vehicle, step) layout
+    (None, for a fit without the pointwise log-likelihood, stays None)."""
+    return None if values is None else np.moveaxis(np.asarray(values), 0, 2)
 
 
 def one_chain_result(
-    names: Sequence[str], draws: np.ndarray, log_likelihood: np.ndarray, **fields: Any
+    names: Sequence[str], draws: np.ndarray, log_likelihood: np.ndarray | None, **fields: Any
 ) -> EngineResult:
     """The result of an engine whose draws of a vehicle form one chain: ``draws``
-    (vehicle, draw, d) and their scores ``log_likelihood`` (vehicle, draw, step) get the chain
-    axis; ``fields`` are the other :class:`~bayesdrive.inference.core.output.EngineResult` fields."""
+    (vehicle, draw, d) and their scores ``log_likelihood`` (vehicle, draw, step; or None) get the
+    chain axis; ``fields`` are the other :class:`~bayesdrive.inference.core.output.EngineResult`
+    fields."""
+    scores = None if log_likelihood is None else np.asarray(log_likelihood)[:, None]
     return EngineResult(
         posterior=posterior_draws(names, np.asarray(draws)[:, None]),
-        log_likelihood=log_likelihood_draws(np.asarray(log_likelihood)[:, None]),
+        log_likelihood=log_likelihood_draws(scores),
         **fields,
     )
 

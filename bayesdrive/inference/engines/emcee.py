@@ -233,7 +233,7 @@ def run(
     started = time.perf_counter()
     common = min(*kept, num_particles)
     theta = np.stack([draws[-common:] for draws in chains])  # (vehicle, draw, d)
-    log_lik = problem.score(theta)  # (vehicle, draw, step)
+    log_lik = problem.pointwise_scores(theta)  # (vehicle, draw, step)
     run_time += time.perf_counter() - started
     tau_array = np.asarray(taus)
     steps_array, burn_array = np.asarray(run_steps).T

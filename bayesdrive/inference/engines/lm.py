@@ -329,7 +329,7 @@ def run(
     margin = AT_BOUND * (edges[:, 1] - edges[:, 0])
     at_bound = (estimate <= edges[:, 0] + margin) | (estimate >= edges[:, 1] - margin)
 
-    log_likelihood = np.asarray(problem.score(draws), np.float64)
+    log_likelihood = problem.pointwise_scores(draws)
     wall_time = time.perf_counter() - started
 
     vehicle = ("vehicle",)

@@ -324,7 +324,7 @@ def run(
             start = pool[jax.vmap(functools.partial(picks, maxval=len(pool)))(pool_keys)]
 
     particles = grid.values(out.index)
-    log_lik = problem.score(particles)
+    log_lik = problem.pointwise_scores(particles)
     vehicle_step = ("vehicle", "step")
     return one_chain_result(
         names,

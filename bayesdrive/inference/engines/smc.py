@@ -446,7 +446,7 @@ def run(
     stage_options = engine_options.pop("tempering")._asdict()
     stage_options["temper_moves"] = stage_options.pop("num_moves")
     theta = np.moveaxis(out.theta, 0, 1)  # (vehicle, replicate, particle, d)
-    log_lik = problem.score(theta.reshape(problem.num_vehicles, -1, theta.shape[-1]))
+    log_lik = problem.pointwise_scores(theta.reshape(problem.num_vehicles, -1, theta.shape[-1]))
     per_replicate = ("chain", "vehicle")
     sample_stats = {
         # The mean of unbiased evidence estimates is one, with the replicates' spread shown.
@@ -476,7 +476,9 @@ def run(
     return EngineResult(
         posterior=posterior_draws(problem.names, theta),
         sample_stats=sample_stats,
-        log_likelihood=log_likelihood_draws(log_lik.reshape(*theta.shape[:3], -1)),
+        log_likelihood=log_likelihood_draws(
+            None if log_lik is None else log_lik.reshape(*theta.shape[:3], -1)
+        ),
         compile_time_s=compile_time,
         wall_time_s=run_time,
         options={
