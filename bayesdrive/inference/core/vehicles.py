@@ -22,6 +22,7 @@ likely coincide and give two vehicles one random stream.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import time
 from collections import Counter
@@ -121,27 +122,40 @@ class VehicleProblem(NamedTuple):
 
     def run(
         self,
-        kernel: Callable[[Array, StepInputs], Any],
+        kernel: Callable[..., Any],
         key: Array,
         *,
+        settings: tuple[Any, ...],
         replicates: int = 1,
         chunk: int,
         batch: int | None,
         progress: Callable[[int, int], None] | None = None,
-        cache_key: Any = None,
+        **options: Any,
     ) -> tuple[Any, float, float]:
-        """``kernel(key, series)`` on every vehicle, ``replicates`` times with independent keys.
+        """``kernel(key, series, model=, names=, fixed=, **options)``, this problem's model,
+        inferred names and fixed values bound, on every vehicle, ``replicates`` times with
+        independent keys.
 
-        Outputs are numpy arrays with leading axes (replicate, vehicle); the compile and run
-        times as :func:`map_vehicles` gives them. Replicates run as extra vehicles, replicate-major
+        ``settings`` (the engine's name and whatever determines ``options``, hashable) key the
+        compiled program with the model, names and fixed values (:meth:`cache_key`). Outputs are
+        numpy arrays with leading axes (replicate, vehicle); the compile and run times as
+        :func:`map_vehicles` gives them. Replicates run as extra vehicles, replicate-major
         (``progress`` counts them as vehicles).
         """
+        per_vehicle = functools.partial(
+            kernel, model=self.model, names=self.names, fixed=self.fixed, **options
+        )
         keys = vehicle_keys(key, self.vehicle_ids, replicates)
         keys = keys.reshape(-1, *keys.shape[2:])  # raw uint32 keys keep their trailing axis
         # Repeat along the vehicle axis only (merge scenes carry a trailing merge-slot axis).
         copies = jax.tree.map(lambda a: jnp.concatenate([a] * replicates), self.series)
         out, compile_time, run_time = map_vehicles(
-            kernel, (keys, copies), chunk=chunk, batch=batch, progress=progress, cache_key=cache_key
+            per_vehicle,
+            (keys, copies),
+            chunk=chunk,
+            batch=batch,
+            progress=progress,
+            cache_key=self.cache_key(*settings),
         )
         out = jax.tree.map(lambda a: a.reshape(replicates, self.num_vehicles, *a.shape[1:]), out)
         return out, compile_time, run_time

@@ -422,22 +422,16 @@ def _run_vehicles(
     progress: Callable[[int, int], None] | None,
 ) -> tuple[_VehicleOutput, float, float]:
     """One NUTS run of ``config`` on every vehicle of ``problem``: outputs (vehicle, ...)."""
-    per_vehicle = functools.partial(
-        _nuts_vehicle,
-        model=problem.model,
-        names=problem.names,
-        fixed=problem.fixed,
-        box=problem.box,
-        prior=problem.given_prior,
-        config=config,
-    )
     out, compile_time, run_time = problem.run(
-        per_vehicle,
+        _nuts_vehicle,
         key,
+        settings=("nuts", config, static_key(problem.given_prior)),
         chunk=chunk,
         batch=batch,
         progress=progress,
-        cache_key=problem.cache_key("nuts", config, static_key(problem.given_prior)),
+        box=problem.box,
+        prior=problem.given_prior,
+        config=config,
     )
     return jax.tree.map(lambda a: a[0], out), compile_time, run_time  # the one replicate
 

@@ -380,7 +380,7 @@ def run(
     # Tempering scores whole series, so a model with a state filter fits; the sequential pass
     # scores one step at a time from lifted states, which such a model does not have.
     problem = prepare("smc", arrays, inputs, num_particles=1000, whole_series=not sequential)
-    model, num_particles = problem.model, problem.num_particles
+    num_particles = problem.num_particles
     if not 0.0 < ess_threshold <= 1.0:
         raise ValueError(f"ess_threshold must be in (0, 1], got {ess_threshold}")
     if not 0.0 < decorrelation < 1.0:
@@ -421,24 +421,18 @@ def run(
         sequential=sequential,
     )
     score_lengths = _lengths_taken(np.asarray(problem.series.mask)) if vehicle_batch <= 1 else ()
-    per_vehicle = functools.partial(
-        _smc_vehicle,
-        model=model,
-        names=problem.names,
-        fixed=problem.fixed,
-        prior=problem.prior,
-        width=problem.box.upper - problem.box.lower,
-        config=config,
-        score_lengths=score_lengths,
-    )
     out, compile_time, run_time = problem.run(
-        per_vehicle,
+        _smc_vehicle,
         key,
+        settings=("smc", config, static_key(problem.prior), score_lengths),
         replicates=replicates,
         chunk=vehicle_chunk,
         batch=vehicle_batch,
         progress=problem.progress,
-        cache_key=problem.cache_key("smc", config, static_key(problem.prior), score_lengths),
+        prior=problem.prior,
+        width=problem.box.upper - problem.box.lower,
+        config=config,
+        score_lengths=score_lengths,
     )
     check_finished(out.final_temperature, problem.vehicle_ids, "smc", max_stages)
     # The options under their engine names: a stage's moves are smc's temper_moves.
