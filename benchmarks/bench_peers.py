@@ -77,7 +77,7 @@ from bayesdrive.inference.core.vehicles import (
     prepare,
     vehicle_keys,
 )
-from bayesdrive.inference.diagnostics.agreement import CRITERION, judge, mcse_mean
+from bayesdrive.inference.diagnostics.agreement import CRITERION, judge, mcse_mean, mcse_sd
 from bayesdrive.inference.engines import nuts, smc
 
 DATA = "ngsim_i80_chains"
@@ -204,13 +204,15 @@ def against_reference(tree: xr.DataTree, vehicle: str, reference: pd.DataFrame) 
     """Per parameter: this run's mean, sd and standard error beside the reference's, and the
     criterion's verdict (module docstring)."""
     posterior = tree["posterior"].to_dataset()
-    mcse = mcse_mean(tree)
+    mcse, sd_mcse = mcse_mean(tree), mcse_sd(tree)
     rows = []
     for ref in reference[reference["vehicle"] == vehicle].itertuples():
         draws = np.asarray(posterior[ref.param].values, dtype=np.float64).ravel()
         mean, sd = draws.mean(), draws.std()
         se = float(mcse[ref.param].sel(vehicle=vehicle))
-        verdict = judge(ref.mean, ref.sd, ref.se, mean, sd, se)
+        sd_se = float(sd_mcse[ref.param].sel(vehicle=vehicle))
+        # The reference table holds no sd error: it counts as 0 (the stricter side).
+        verdict = judge(ref.mean, ref.sd, ref.se, mean, sd, se, mcse_sd_a=0.0, mcse_sd_b=sd_se)
         rows.append(
             {
                 "param": ref.param,

@@ -33,7 +33,12 @@ from bayesdrive.data.registry import load  # noqa: E402
 from bayesdrive.data.views import follower_arrays  # noqa: E402
 from bayesdrive.drivers.idm import IDM  # noqa: E402
 from bayesdrive.inference.core.output import metadata  # noqa: E402
-from bayesdrive.inference.diagnostics.agreement import CRITERION, judge, mcse_mean  # noqa: E402
+from bayesdrive.inference.diagnostics.agreement import (  # noqa: E402
+    CRITERION,
+    judge,
+    mcse_mean,
+    mcse_sd,
+)
 from bayesdrive.inference.fit import fit  # noqa: E402
 from benchmarks.bench_agreement import DATA, choose_vehicles, markdown  # noqa: E402
 from benchmarks.bench_scaling import commit  # noqa: E402
@@ -54,12 +59,24 @@ SETTINGS = {"defaults": {}, "paired": PAIRED, "random walk": RANDOM_WALK}
 def judged(tree, reference: pd.DataFrame, label: str) -> pd.DataFrame:
     """One row per vehicle and parameter: this run against the reference's NUTS columns."""
     posterior = tree["posterior"].to_dataset()
-    errors = mcse_mean(tree)
+    errors, sd_errors = mcse_mean(tree), mcse_sd(tree)
     rows = []
     for ref in reference.itertuples(index=False):
         draws = posterior[ref.param].sel(vehicle=str(ref.vehicle)).values.ravel()
         mcse = float(errors[ref.param].sel(vehicle=str(ref.vehicle)))
-        verdict = judge(draws.mean(), draws.std(), mcse, ref.mean_b, ref.sd_b, ref.mcse_b)
+        sd_mcse = float(sd_errors[ref.param].sel(vehicle=str(ref.vehicle)))
+        # NUTS rows saved before the sd criterion counted Monte Carlo error carry no sd error:
+        # it counts as 0 there (the stricter side).
+        verdict = judge(
+            draws.mean(),
+            draws.std(),
+            mcse,
+            ref.mean_b,
+            ref.sd_b,
+            ref.mcse_b,
+            mcse_sd_a=sd_mcse,
+            mcse_sd_b=getattr(ref, "mcse_sd_b", 0.0),
+        )
         rows.append(
             {
                 "setting": label,

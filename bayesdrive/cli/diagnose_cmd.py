@@ -5,7 +5,7 @@ parameter (ArviZ), NUTS divergences, emcee autocorrelation times (see
 :mod:`bayesdrive.inference.diagnostics.agreement`); for a hierarchical result also how drivers differ
 (:func:`~bayesdrive.inference.population.summary.how_drivers_differ`). With two or more results on the
 same data and model, the agreement table of every pair: difference of means in posterior sds, sd ratio, Wasserstein
-distance, and the verdict |Δmean| <= max(0.1 sd, 3 combined MCSE) with sds within 10%.
+distance, and the verdict |Δmean| <= max(0.1 sd, 3 combined MCSE) with sds within max(10%, 3 combined MCSE of the sds).
 ``--out DIR`` writes the tables as CSV and the pictures (marginal overlays, agreement heat map).
 """
 

@@ -184,3 +184,28 @@ def test_replicate_runs_take_their_standard_error_from_the_replicate_means():
     assert np.all(mcse_mean(plain)["tau"].values < 0.5 * expected)
     table = convergence_table(replicated)
     assert np.allclose(table["ess_mean"], (table["sd"] / expected) ** 2)
+
+
+def test_the_sd_criterion_allows_for_monte_carlo_error_and_still_catches_a_wrong_spread():
+    # Two exact samplers of one skewed marginal (lognormal, sigma 0.5): 1000 independent draws
+    # each, for 300 vehicles (seed 20261127). Their sds differ by over 10% in about one pair in
+    # seven, so a fixed 10% rule calls correct engines wrong; allowing 3 combined Monte Carlo
+    # standard errors of the sds, at most 2% of the pairs may disagree. The negative control: a
+    # sampler whose spread is 30% too wide must be caught in at least 80% of the pairs.
+    rng = np.random.default_rng(20261127)
+    vehicles = [f"v{i}" for i in range(300)]
+
+    def sampler(scale=1.0):
+        draws = scale * rng.lognormal(0.0, 0.5, size=(1, 1000, len(vehicles)))
+        return result({"tau": draws}, "exact", vehicles=vehicles)
+
+    exact_a, exact_b, too_wide = sampler(), sampler(), sampler(scale=1.3)
+    both_exact = agreement_table({"a": exact_a, "b": exact_b})
+    fixed_rule_misses = np.mean(
+        np.maximum(both_exact["sd_ratio"], 1 / both_exact["sd_ratio"]) > 1.1
+    )
+    assert fixed_rule_misses > 0.05
+    assert np.mean(~both_exact["agree_sd"]) <= 0.02
+    assert (both_exact["sd_mc_tolerance"] > 0.1 * both_exact[["sd_a", "sd_b"]].min(axis=1)).any()
+    wrong = agreement_table({"a": exact_a, "wide": too_wide})
+    assert np.mean(~wrong["agree_sd"]) >= 0.8
