@@ -114,6 +114,21 @@ def test_ngsim_raw_matches_column_names_case_insensitively(tmp_path):
 # --- bad inputs: every error names file, row and column --------------------------------------
 
 
+def test_a_vehicles_rows_are_its_rows_in_time_order_and_an_unknown_id_is_named(tmp_path):
+    traj = read_ngsim_raw(write(tmp_path, ngsim_table(lane_change=True)))
+    for vehicle in traj.vehicle_ids:
+        expected = traj.tracks[traj.tracks["vehicle_id"] == vehicle]
+        pd.testing.assert_frame_equal(traj.vehicle(vehicle), expected)
+        assert expected["t"].is_monotonic_increasing
+    with pytest.raises(KeyError, match="no vehicle '9'"):
+        traj.vehicle("9")
+    # A subset finds its own rows, not the positions of the data it came from.
+    last = traj.vehicle_ids[-1]
+    pd.testing.assert_frame_equal(
+        traj.subset([last]).vehicle(last), traj.vehicle(last).reset_index(drop=True)
+    )
+
+
 def test_missing_column_is_named(tmp_path):
     path = write(tmp_path, ngsim_table().drop(columns=["Local_Y"]))
     with pytest.raises(DataError, match=r"missing column\(s\) Local_Y") as err:
