@@ -135,6 +135,18 @@ def test_an_emcee_run_shorter_than_50_autocorrelation_times_is_flagged(tau, fail
     )
 
 
+@pytest.mark.parametrize("stuck", [(0, 0), (0, 2)])
+def test_an_emcee_vehicle_with_stuck_walkers_is_named(stuck):
+    """The engine's count of walkers stuck in the kept steps: vehicle b with 2 is a problem
+    whose message says so; with none (the negative control), no vehicle is named."""
+    stats = {"stuck_walkers": (("vehicle",), np.array(stuck))}
+    report = check_convergence(tree(independent(6, chains=1, draws=4000), "emcee", stats))
+    assert "stuck_walkers" in report.checks
+    found = [p for p in report.problems if p.check == "stuck_walkers"]
+    assert [(p.vehicle, p.value) for p in found] == ([("b", 2.0)] if stuck[1] else [])
+    assert all("2 walker(s) stuck" in p.message() for p in found)
+
+
 def test_smc_replicates_that_disagree_are_flagged_and_one_replicate_is_unchecked():
     single = check_convergence(tree(independent(6, chains=1), "smc"))
     assert single.checks == ["spread"] and single.problems == []

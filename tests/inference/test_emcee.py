@@ -9,6 +9,7 @@ The same check must fail for the deliberately wrong sd-doubled likelihood.
 
 import logging
 
+import emcee as emcee_lib
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -115,3 +116,44 @@ def test_a_short_run_extends_to_fifty_tau_and_a_capped_one_warns_with_the_next_s
     }
     warnings = [r.getMessage() for r in caplog.records if "not converged" in r.getMessage()]
     assert warnings and all("next: " in w and "--steps 600" in w for w in warnings)
+
+
+def _trap_target(points: np.ndarray) -> np.ndarray:
+    """A standard normal in 2-D with a far, narrow local mode of tiny mass at (20, 20): a
+    walker there proposes only points of far lower density, so it stays."""
+    main = -0.5 * np.sum(points**2, axis=-1)
+    trap = -20.0 - 0.5 * np.sum(((points - 20.0) / 0.05) ** 2, axis=-1) + 2 * np.log(1 / 0.05)
+    return np.logaddexp(main, trap)
+
+
+def _ensemble(seed: int, trapped: bool, steps: int = 600):
+    rng = np.random.default_rng(seed)
+    start = rng.normal(size=(32, 2))
+    if trapped:
+        start[5] = 20.0 + 0.01 * rng.normal(size=2)
+    sampler = emcee_lib.EnsembleSampler(32, 2, _trap_target, vectorize=True)
+    sampler.run_mcmc(
+        emcee_lib.State(start, random_state=np.random.RandomState(seed).get_state()), steps
+    )
+    return sampler
+
+
+def test_a_walker_stranded_in_a_local_mode_is_found_and_restarted_beside_the_others():
+    """Seeds 0-4: walker 5 starts in the trap and is still there after 600 steps (the failure
+    the rule is for); the rule flags it and no other, and the restart puts it among the free
+    walkers. Negative control: the same ensemble started without the trap flags no walker."""
+    for seed in range(5):
+        sampler = _ensemble(seed, trapped=True)
+        assert np.all(sampler.get_last_sample().coords[5] > 19)
+        assert np.flatnonzero(emcee.stuck_walkers(sampler.get_log_prob(discard=300))) == [5]
+        state, count = emcee.restart_stuck(sampler, 300, np.random.default_rng(seed))
+        assert count == 1 and np.all(np.abs(state.coords) < 6)
+        free = _ensemble(seed, trapped=False)
+        assert not emcee.stuck_walkers(free.get_log_prob(discard=300)).any()
+        state, count = emcee.restart_stuck(free, 300, np.random.default_rng(seed))
+        assert count == 0 and np.array_equal(state.coords, free.get_last_sample().coords)
+
+
+def test_a_window_too_short_for_the_quantile_flags_nothing():
+    sampler = _ensemble(0, trapped=True, steps=emcee.STUCK_MIN_WINDOW - 1)
+    assert not emcee.stuck_walkers(sampler.get_log_prob()).any()

@@ -10,6 +10,8 @@ Each check applies where it means something, per vehicle and parameter (numbers 
   order along which autocorrelation would mean anything;
 * ``autocorr``: an emcee run shorter than 50 integrated autocorrelation times of the parameter
   after burn-in (:data:`AUTOCORR_RELIABLE_FACTOR`);
+* ``stuck_walkers``: an emcee vehicle whose kept draws hold walkers stuck far below the others'
+  log posterior (the engine's ``stuck_walkers``; :mod:`bayesdrive.inference.engines.emcee`);
 * ``replicate_spread``: with several SMC replicates, the ESS that the spread of their means
   implies (:func:`~bayesdrive.inference.diagnostics.agreement.mcse_mean`) below :data:`ESS_MIN`;
 * ``spread``, for every engine: a parameter whose draws are all equal has collapsed onto one
@@ -74,6 +76,11 @@ class ConvergenceProblem(NamedTuple):
             return (
                 f"vehicle {self.vehicle}, parameter {self.param}: every draw is the same value "
                 "(the posterior collapsed onto one point)"
+            )
+        if self.check == "stuck_walkers":
+            return (
+                f"vehicle {self.vehicle}: {self.value:.0f} walker(s) stuck far below the others' "
+                "log posterior in the kept steps"
             )
         relation = "above" if self.check == "rhat" else "below"
         what = {
@@ -198,6 +205,15 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
             sampled = options["num_steps"] - options["num_burn"]
         table["run_over_tau"] = sampled / table["autocorr_time"]
         flag("autocorr", "run_over_tau", AUTOCORR_RELIABLE_FACTOR, above=False)
+    stats = tree["sample_stats"]
+    if "stuck_walkers" in stats:
+        checks.append("stuck_walkers")
+        stuck = stats["stuck_walkers"]
+        problems += [
+            ConvergenceProblem(str(vehicle), "all", "stuck_walkers", float(count), 0.0)
+            for vehicle, count in zip(stuck["vehicle"].values, stuck.values, strict=True)
+            if count > 0
+        ]
     if replicated_smc:
         flag("replicate_spread", "ess_mean", ESS_MIN, above=False)
     unchecked = None

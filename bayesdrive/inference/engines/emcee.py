@@ -48,6 +48,18 @@ stretch move's autocorrelation time grows with the number of parameters and with
 marginal, and it is only known once the run is long enough to estimate it
 (``reports/convergence.md``). ``sample_stats`` records each vehicle's ``num_steps`` and
 ``num_burn``; fit's 50-tau check uses them.
+
+**Stuck walkers.** A walker can strand in a region of far lower posterior density (a local mode,
+a plateau of a parameter the data do not reach), where every stretch towards the others is
+rejected; one such walker of 32 puts 3% of the draws there. Hou et al. (2012) drop such walkers;
+here they restart: a walker is stuck in a window of steps when its median log posterior lies
+below the typical walker's 1% quantile (the median over walkers of their ``STUCK_QUANTILE``
+quantiles), which a walker at stationarity all but never does. At the end of the burn-in, and at
+each extension where the whole run so far becomes burn-in, stuck walkers (judged on the last half
+of the burn-in, or on the kept steps before the extension) move next to a randomly chosen free
+walker; the kept steps are a Markov chain from that start, as from any other. A vehicle whose kept
+steps still hold a stuck walker extends as one that fails its checks, and at the cap fit reports
+it (``stuck_walkers``; ``restarted_walkers`` counts the restarts).
 """
 
 from __future__ import annotations
@@ -80,8 +92,12 @@ __all__ = [
     "MOVES",
     "START_BALL",
     "START_CANDIDATES",
+    "STUCK_MIN_WINDOW",
+    "STUCK_QUANTILE",
     "num_walkers_for",
+    "restart_stuck",
     "run",
+    "stuck_walkers",
 ]
 
 # Prior draws per walker searched for the optimiser's starting point, and the start ball's radius
@@ -91,6 +107,11 @@ START_BALL = 1e-4
 # A vehicle that fails fit's checks continues its run, doubling it, up to this many times
 # num_steps (module docstring, "Extension").
 MAX_EXTENSION = 32
+# A walker is stuck when its median log posterior over a window lies below what the typical
+# walker of the ensemble falls to this rarely (module docstring, "Stuck walkers"); the window must
+# hold enough steps for that quantile to mean something.
+STUCK_QUANTILE = 0.01
+STUCK_MIN_WINDOW = 100
 # The ensemble moves with their weights (module docstring, "Moves").
 MOVES = {
     "de": lambda: [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)],
@@ -181,6 +202,8 @@ def run(
     balls, seeds = np.asarray(balls), np.asarray(seeds).astype(np.int64)
 
     chains, taus, thins, kept, acceptance, run_steps = [], [], [], [], [], []
+    stuck_counts, restarts = [], []
+    rngs = [np.random.default_rng(seed) for seed in seeds]
     run_time = 0.0
     for i in range(num_vehicles):
         vehicle = vehicle_series(i)
@@ -203,22 +226,36 @@ def run(
         )
         sampler = emcee.EnsembleSampler(walkers, dim, log_prob, moves=MOVES[move](), vectorize=True)
         state = emcee.State(start, random_state=np.random.RandomState(seeds[i]).get_state())
-        sampler.run_mcmc(state, num_steps, progress=False)
+        restarted = 0
+        if burn:
+            sampler.run_mcmc(state, burn, progress=False)
+            state, restarted = restart_stuck(sampler, burn // 2, rngs[i])
+        sampler.run_mcmc(state, num_steps - burn, progress=False)
         steps, vehicle_burn = num_steps, burn
         while True:
             # tol=0: the 50-tau check is recorded per vehicle (autocorr_reliable), not logged.
             tau = sampler.get_autocorr_time(discard=vehicle_burn, tol=0)
             thin = max(1, math.ceil(float(np.max(tau))))
             draws = sampler.get_chain(discard=vehicle_burn, thin=thin, flat=True)
-            if steps >= max_steps or _converged(
-                problem.vehicle_ids[i], names, draws[-num_particles:], tau, steps - vehicle_burn
+            stuck = stuck_walkers(sampler.get_log_prob(discard=vehicle_burn))
+            if steps >= max_steps or (
+                not stuck.any()
+                and _converged(
+                    problem.vehicle_ids[i], names, draws[-num_particles:], tau, steps - vehicle_burn
+                )
             ):
                 break
             # Extension: double the run, continuing the same chains; the burn-in stays the
             # same fraction of it, so the first steps, furthest from stationarity, are dropped.
+            # Where all that ran so far becomes burn-in, stuck walkers restart there.
             more = min(steps, max_steps - steps)
-            sampler.run_mcmc(None, more, progress=False)
-            vehicle_burn = (steps + more) * burn // num_steps
+            new_burn = (steps + more) * burn // num_steps
+            state = None
+            if new_burn >= steps:
+                state, count = restart_stuck(sampler, vehicle_burn, rngs[i])
+                restarted += count
+            sampler.run_mcmc(state, more, progress=False)
+            vehicle_burn = new_burn
             steps += more
         run_time += time.perf_counter() - started
         chains.append(draws)
@@ -226,6 +263,8 @@ def run(
         thins.append(thin)
         run_steps.append((steps, vehicle_burn))
         kept.append(len(draws))
+        stuck_counts.append(int(stuck.sum()))
+        restarts.append(restarted)
         acceptance.append(float(np.mean(sampler.acceptance_fraction)))
         if progress is not None:
             progress(i + 1, num_vehicles)
@@ -252,6 +291,8 @@ def run(
             "num_steps": (("vehicle",), steps_array),
             "num_burn": (("vehicle",), burn_array),
             "acceptance_fraction": (("vehicle",), np.asarray(acceptance)),
+            "stuck_walkers": (("vehicle",), np.asarray(stuck_counts)),
+            "restarted_walkers": (("vehicle",), np.asarray(restarts)),
             "seed": (("vehicle",), seeds),
         },
         compile_time_s=compile_time,
@@ -264,6 +305,32 @@ def run(
             "move": move,
         },
     )
+
+
+def stuck_walkers(log_prob: np.ndarray) -> np.ndarray:
+    """(steps, walkers) log posteriors -> which walkers are stuck (module docstring): a walker
+    whose median lies below the median over walkers of their STUCK_QUANTILE quantiles. None is,
+    in a window shorter than STUCK_MIN_WINDOW steps."""
+    if len(log_prob) < STUCK_MIN_WINDOW:
+        return np.zeros(log_prob.shape[1], bool)
+    floor = np.median(np.quantile(log_prob, STUCK_QUANTILE, axis=0))
+    return np.median(log_prob, axis=0) < floor
+
+
+def restart_stuck(
+    sampler: emcee.EnsembleSampler, window_start: int, rng: np.random.Generator
+) -> tuple[emcee.State, int]:
+    """The ensemble's last state, with each walker stuck since ``window_start`` moved next to a
+    randomly chosen free walker (a tiny ball, as at the start), and how many moved."""
+    stuck = stuck_walkers(sampler.get_log_prob(discard=window_start))
+    coords = sampler.get_last_sample().coords.copy()
+    count = int(stuck.sum())
+    if count == 0 or count == len(stuck):
+        return emcee.State(coords), 0
+    free = coords[~stuck]
+    donors = free[rng.choice(len(free), size=count)]
+    coords[stuck] = donors + START_BALL * free.std(axis=0) * rng.standard_normal(donors.shape)
+    return emcee.State(coords), count
 
 
 def _converged(
