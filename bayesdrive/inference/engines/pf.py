@@ -140,8 +140,15 @@ def dither_steps(key: Array, shape: tuple[int, int]) -> Array:
     """
     num, dims = shape
     word = jax.random.bits(key, (num,), dtype=jnp.uint32)
-    powers = jnp.asarray([3**k for k in range(dims)], dtype=jnp.uint32)
-    return ((word[:, None] // powers) % 3).astype(jnp.int32) - 1
+    # Digit k is (word // 3^k) % 3, peeled off one division by the constant 3 at a time: a
+    # division by one constant compiles to a multiply and a shift, by a vector of powers it does not.
+    three = jnp.uint32(3)
+    digits = []
+    for _ in range(dims):
+        quotient = word // three
+        digits.append(word - quotient * three)
+        word = quotient
+    return jnp.stack(digits, axis=-1).astype(jnp.int32) - 1
 
 
 class _ChunkOutput(NamedTuple):
