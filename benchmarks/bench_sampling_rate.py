@@ -8,8 +8,9 @@ IDM's error in level, and the loop named a cause whose closed-loop forecast was 
 steps the smoothing's correlation has mostly decayed.
 
 Protocol (fixed before the run): the criticism's data of ``bayesdrive reproduce`` (its full
-settings: the first ``criticism_scenes`` scenes of NGSIM I-80 chains and OpenACC's human
-recordings, their first ``criticism_seconds``), every sample (10 Hz) and every fifth (2 Hz,
+settings: the scenes ``experiments.paper.criticised_scenes`` names of NGSIM I-80 chains and
+OpenACC's human recordings, their first ``criticism_seconds``; the run of
+``reports/sampling_rate.md`` read NGSIM I-80's first 8 scenes, the settings then), every sample (10 Hz) and every fifth (2 Hz,
 :meth:`~bayesdrive.data.trajectories.Trajectories.every`). At each rate one round of
 ``criticize`` (the reproduction's particles and rollouts, seed 20261127) with the family
 ``autocorrelated_noise`` and ``reaction_delay``, both fitted whatever the screening says
@@ -53,7 +54,7 @@ DATA = ("ngsim_i80_chains", "openacc_vicolungo:human")
 
 def criticised(label: str):
     """The reproduction's criticism data for ``label`` (``experiments.paper.criticism_data``)."""
-    return criticism_data(highway_data(label.split(":")[0])[label], FULL)
+    return criticism_data(label, highway_data(label.split(":")[0])[label], FULL)
 
 
 def cause_row(entry: dict, dt: float) -> dict:

@@ -131,7 +131,11 @@ class Settings:
     generated_scenes: int = 20
     holdout_max_scenarios: int | None = 30
     prior_sensitivity_vehicles: int = 10
-    criticism_scenes: int | None = 8
+    # The criticism reads this many scenes of each data set (None: all), from its first scene or
+    # from the one ``criticism_first_scene`` names. NGSIM I-80's first 8 scenes were the pilot
+    # run whose forecast gain sized this one (models/README.md): the run reads the next 32.
+    criticism_scenes: int | None = 32
+    criticism_first_scene: tuple[tuple[str, int], ...] = (("ngsim_i80_chains", 8),)
     criticism_particles: int = 128
     criticism_rollouts: int = 32
     criticism_seconds: float = 120.0
@@ -160,6 +164,7 @@ QUICK = Settings(
     holdout_max_scenarios=1,
     prior_sensitivity_vehicles=2,
     criticism_scenes=1,
+    criticism_first_scene=(),
     criticism_particles=64,
     criticism_rollouts=4,
     criticism_seconds=25.0,
@@ -806,31 +811,35 @@ def prior_sensitivity_step(traj: Trajectories, vehicle_ids: list[str], settings:
     }
 
 
-def criticised_scenes(traj: Trajectories, settings: Settings) -> list[str]:
-    """The scenes the criticism reads: the first ``criticism_scenes`` (None: all)."""
-    return list(pd.unique(traj.scenes["scene_id"]))[: settings.criticism_scenes]
+def criticised_scenes(label: str, traj: Trajectories, settings: Settings) -> list[str]:
+    """The scenes the criticism reads on highway data set ``label``: ``criticism_scenes`` of them
+    (None: all), from its first or from the one ``criticism_first_scene`` names for it."""
+    first = dict(settings.criticism_first_scene).get(label, 0)
+    count = settings.criticism_scenes
+    scenes = list(pd.unique(traj.scenes["scene_id"]))
+    return scenes[first : None if count is None else first + count]
 
 
-def criticism_data(traj: Trajectories, settings: Settings) -> Trajectories:
+def criticism_data(label: str, traj: Trajectories, settings: Settings) -> Trajectories:
     """The criticism's data (:func:`criticism_step`): every vehicle of its scenes, so each
     follower's leader is in the data, cut to their first ``criticism_seconds``."""
-    scenes = criticised_scenes(traj, settings)
+    scenes = criticised_scenes(label, traj, settings)
     chosen = traj.scenes.loc[traj.scenes["scene_id"].isin(scenes), "vehicle_id"]
     return traj.subset(chosen).first_seconds(settings.criticism_seconds)
 
 
-def criticism_step(out: Path, traj: Trajectories, settings: Settings) -> dict:
+def criticism_step(out: Path, label: str, traj: Trajectories, settings: Settings) -> dict:
     """What the stochastic IDM gets wrong on real data, the named cause and its gain.
 
-    Uses whole scenes (all vehicles of the first ``criticism_scenes`` scenes), so every follower's
+    Uses whole scenes (all vehicles of the scenes :func:`criticised_scenes` names), so every follower's
     leader is in the data, cut to their first ``criticism_seconds`` (an OpenACC recording lasts
     374 s; the fits' cost grows faster than the series length).
     """
     from bayesdrive.criticism.criticize import CriticizeConfig, criticize
     from bayesdrive.reports.criticism_plots import plot_criticism
 
-    scenes = criticised_scenes(traj, settings)
-    chosen = criticism_data(traj, settings)
+    scenes = criticised_scenes(label, traj, settings)
+    chosen = criticism_data(label, traj, settings)
     config = CriticizeConfig(
         num_particles=settings.criticism_particles,
         num_rollouts=settings.criticism_rollouts,
@@ -965,7 +974,10 @@ def run_all(
         progress(f"criticism: {label}")
         folder = out / "criticism" / label.replace(":", "_")
         criticism[label] = cached(
-            folder, "criticism", lambda t=traj, f=folder: criticism_step(f, t, settings), force
+            folder,
+            "criticism",
+            lambda t=traj, f=folder, lab=label: criticism_step(f, lab, t, settings),
+            force,
         )
     results["criticism"] = criticism
     results["criticism_left_out_by_settings"] = [k for k in main_data if k not in criticism]

@@ -107,3 +107,22 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
         mixed.output.split()
     )
     assert (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns == stamp
+
+
+@pytest.mark.realdata
+def test_the_criticism_reads_ngsim_scenes_after_the_pilots_and_every_other_set_from_its_first(
+    data_dir, monkeypatch
+):
+    """The full run's criticism: NGSIM I-80's scenes 9-40 (the first 8 were the pilot), every
+    scene of OpenACC's human recordings (fewer than 32); the quick run reads the first scene."""
+    from bayesdrive.experiments.paper import FULL, QUICK, criticised_scenes, highway_data
+
+    monkeypatch.setenv("BAYESDRIVE_DATA_DIR", str(data_dir))
+    ngsim = registry.load("ngsim_i80_chains")
+    order = list(dict.fromkeys(ngsim.scenes["scene_id"]))
+    assert criticised_scenes("ngsim_i80_chains", ngsim, FULL) == order[8:40]
+    assert criticised_scenes("ngsim_i80_chains", ngsim, QUICK) == order[:1]
+    human = highway_data("openacc_vicolungo")["openacc_vicolungo:human"]
+    assert criticised_scenes("openacc_vicolungo:human", human, FULL) == list(
+        dict.fromkeys(human.scenes["scene_id"])
+    )
