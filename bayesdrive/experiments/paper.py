@@ -54,6 +54,7 @@ from bayesdrive.inference.core.output import load_result, metadata, save_result
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.fit import summary as fit_summary
 from bayesdrive.reports.model_card import model_card
+from bayesdrive.reports.paper_report import criticism_folder
 from bayesdrive.simulation.baselines import baseline_policy
 from bayesdrive.simulation.generate import (
     draw_pooled,
@@ -594,7 +595,7 @@ def scenes_step(
             path,
             f"leader-follower sweep over desired-speed difference ({preset.name}, median draws)",
         )
-        sweeps.append(str(path))
+        sweeps.append(path.name)
     for label, tree in trees.items():
         meta = metadata(tree)
         names = tuple(meta["params"])
@@ -621,7 +622,7 @@ def scenes_step(
             samples[name] = (np.asarray(generated.v)[:, 1:], np.asarray(generated.gap)[:, 1:])
         path = out / f"scenes_{label.replace(':', '_')}.png"
         plot_speed_gap_kde(samples, path, f"speeds and gaps: generated scenes vs {label}")
-        figures.append(str(path))
+        figures.append(path.name)
     for name, generated in sources.items():
         v = np.asarray(generated.v)[:, 1:]
         g = np.asarray(generated.gap)[:, 1:]
@@ -846,7 +847,7 @@ def criticism_step(out: Path, label: str, traj: Trajectories, settings: Settings
         max_rounds=settings.criticism_rounds,
     )
     result = criticize(chosen, seed=SEEDS["criticism"], config=config)
-    figures = [str(p) for p in plot_criticism(result, out)]
+    figures = [p.name for p in plot_criticism(result, out)]
     return {
         "scenes": len(scenes),
         "seconds_per_scene": settings.criticism_seconds,
@@ -972,7 +973,7 @@ def run_all(
         if settings.criticised is not None and label not in settings.criticised:
             continue
         progress(f"criticism: {label}")
-        folder = out / "criticism" / label.replace(":", "_")
+        folder = criticism_folder(out, label)
         criticism[label] = cached(
             folder,
             "criticism",

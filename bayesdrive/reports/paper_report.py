@@ -278,6 +278,18 @@ def calibration_section(section: Section, calibration: dict[str, Any], figures: 
     )
 
 
+def criticism_folder(out: Path, label: str) -> Path:
+    """Where a reproduction's criticism of highway data set ``label`` keeps its JSON and figures."""
+    return out / "criticism" / label.replace(":", "_")
+
+
+def figure_paths(recorded: list[str], folder: Path) -> list[Path]:
+    """A step's figures in ``folder``: a step records them by name (as it records its fits), so a
+    results folder may move or be staged elsewhere and renamed into place; results written
+    before recorded whole paths, whose names are the same."""
+    return [folder / Path(name).name for name in recorded]
+
+
 def holdout_section(section: Section, holdout: dict[str, Any]) -> None:
     """The held-out section: the protocol, then one table per data set (why a set was not
     evaluated, where it was not) with its training population and who drives."""
@@ -551,8 +563,9 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         ),
         caption="Generated scenes",
     )
-    for path in results["scenes"]["figures"] + results["scenes"]["sweeps"]:
-        scenes.figure(Path(path), Path(path).stem.replace("_", " "))
+    recorded = results["scenes"]["figures"] + results["scenes"]["sweeps"]
+    for path in figure_paths(recorded, out / "scenes"):
+        scenes.figure(path, path.stem.replace("_", " "))
 
     holdout_section(report.section("Generalisation to held-out data sets"), results["holdout"])
     if "holdout_calibration" in results:
@@ -590,7 +603,7 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         "The final model joins the highway "
         "tables, the Turing test and models/ beside the IDM, fitted by smc on the fitting windows "
         "and scored on the held-out windows. It was chosen on the held-out windows of the "
-        "criticised vehicles (the first scenes of the same data set), so its held-out scores "
+        "criticised vehicles (scenes of the same data set, named below), so its held-out scores "
         "here are not wholly independent of the choice; the held-out data sets are. The merge "
         "episodes are not criticised: the criticism reads car-following series, and the "
         "Cooperative IDM's merge scene is not among them."
@@ -601,6 +614,7 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
             f"{', '.join(results['criticism'])}: "
             f"{', '.join(results['criticism_left_out_by_settings'])}."
         )
+    first_scenes = dict(map(tuple, results["settings"].get("criticism_first_scene", ())))
     for label, found in results.get("criticism", {}).items():
         artefact = found.get("verdict_is_possible_processing_artefact")
         sampler = found["settings"]
@@ -611,8 +625,9 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
             else f"{sampler['num_moves']} moves"
         )
         criticism.text(
-            f"{label} ({found['data']['vehicles']} vehicles of {found['scenes']} scenes, the "
-            f"first {found['seconds_per_scene']:.0f} s of each; {sampler['num_particles']} "
+            f"{label} ({found['data']['vehicles']} vehicles of {found['scenes']} scenes from its "
+            f"scene {first_scenes.get(label, 0) + 1}, the first {found['seconds_per_scene']:.0f} s "
+            f"of each; {sampler['num_particles']} "
             f"particles per vehicle and model, {moves} per tempering stage): verdict "
             f"'{found['verdict']}', final model '{found.get('model', 'idm')}'."
         )
@@ -646,8 +661,8 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
             ),
             caption=f"{label}: checks on the held-out windows",
         )
-        for path in found.get("figures", []):
-            criticism.figure(Path(path), f"{label}: {Path(path).stem.replace('_', ' ')}")
+        for path in figure_paths(found.get("figures", []), criticism_folder(out, label)):
+            criticism.figure(path, f"{label}: {path.stem.replace('_', ' ')}")
 
     if "step_times" in results:
         report.section("Steps and their times").table(

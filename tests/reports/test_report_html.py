@@ -2,6 +2,7 @@
 
 import base64
 from html.parser import HTMLParser
+from pathlib import Path
 
 import matplotlib
 
@@ -94,3 +95,20 @@ def test_hostile_vehicle_ids_are_escaped_wherever_a_report_shows_them(tmp_path):
     # note, table cell, column header, figure alt text and caption, and the command.
     assert sum(text.count(script) for text in page.texts) == 11
     assert sum(text.count(attribute) for text in page.texts) == 7
+
+
+def test_a_moved_results_folder_finds_its_figures_by_name(tmp_path):
+    """A reproduction records a step's figures by name (earlier runs: whole paths inside their
+    staging folder, ``.results.partial``); after the folder is renamed or moved, the report
+    finds them in the step's folder where they now are. Negative control: the whole path an
+    earlier run recorded no longer exists."""
+    from bayesdrive.reports.paper_report import criticism_folder, figure_paths
+
+    moved = criticism_folder(tmp_path / "moved", "openacc_vicolungo:human")
+    moved.mkdir(parents=True)
+    (moved / "causes.png").write_bytes(b"png")
+    recorded_then = str(tmp_path / ".results.partial" / "criticism" / "x" / "causes.png")
+    assert not Path(recorded_then).exists()
+    for recorded in (["causes.png"], [recorded_then]):
+        assert figure_paths(recorded, moved) == [moved / "causes.png"]
+        assert figure_paths(recorded, moved)[0].read_bytes() == b"png"
