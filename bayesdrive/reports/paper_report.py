@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.drivers.closed_loop import FILTERED, STATIONARY
@@ -214,6 +215,10 @@ def plot_pit_histograms(data_sets: dict[str, Any], path: Path) -> Path:
     horizons = sorted(
         {h for e in shown.values() for m in e["models"].values() for h in filtered(m)}, key=float
     )
+    # One colour per model in every panel, and every model in the legend: a set where only the
+    # IDM was fitted would otherwise leave the others out of a legend read from one panel.
+    models = list(dict.fromkeys(m for e in shown.values() for m in e["models"]))
+    colours = {model: f"C{i}" for i, model in enumerate(models)}
     fig = Figure(figsize=(4.2 * len(horizons), 2.2 * len(shown) + 0.6), layout="constrained")
     axes = np.atleast_2d(fig.subplots(len(shown), len(horizons), squeeze=False))
     for row, (name, entry) in enumerate(shown.items()):
@@ -226,17 +231,17 @@ def plot_pit_histograms(data_sets: dict[str, Any], path: Path) -> Path:
                 counts = np.asarray(h["pit_counts"], float)
                 density = counts / counts.sum() * len(counts)
                 edges = np.linspace(0.0, 1.0, len(counts) + 1)
-                ax.stairs(density, edges, label=model, lw=1.5)
+                ax.stairs(density, edges, color=colours[model], lw=1.5)
             ax.axhline(1.0, color="grey", lw=0.8, ls="--")
             ax.set_title(f"{name}, {horizon} s ahead ({FILTERED})", fontsize=9)
             ax.set(xlabel="PIT of the observed position", ylabel="density")
     # Below the panels: inside one it hides the histogram's bars at its edges.
-    handles, labels = axes[0, 0].get_legend_handles_labels()
+    handles = [Line2D([], [], color=colours[model], lw=1.5) for model in models]
     fig.legend(
         handles,
-        labels,
+        models,
         loc="outside lower center",
-        ncols=len(labels),
+        ncols=len(models),
         fontsize=LEGEND_FONTSIZE,
         title="model",
     )

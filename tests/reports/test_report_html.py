@@ -112,3 +112,25 @@ def test_a_moved_results_folder_finds_its_figures_by_name(tmp_path):
     for recorded in (["causes.png"], [recorded_then]):
         assert figure_paths(recorded, moved) == [moved / "causes.png"]
         assert figure_paths(recorded, moved)[0].read_bytes() == b"png"
+
+
+def test_the_pit_legend_names_every_model_even_when_the_first_set_has_one(tmp_path, monkeypatch):
+    """The first held-out set forecast by the IDM alone, the second by the IDM and an adopted
+    extension: the legend names both, and each model keeps its colour in every panel."""
+    from bayesdrive.reports import paper_report
+
+    def forecast(counts):
+        return {"starts": {"filtered": {"horizons": {"5": {"windows": 4, "pit_counts": counts}}}}}
+
+    data_sets = {
+        "a": {"models": {"idm": forecast([1, 1, 1, 1])}},
+        "b": {"models": {"idm": forecast([2, 0, 0, 2]), "idm+x": forecast([0, 2, 2, 0])}},
+    }
+    saved = []
+    monkeypatch.setattr(paper_report, "_save", lambda fig, path: saved.append(fig) or path)
+    paper_report.plot_pit_histograms(data_sets, tmp_path / "pit.png")
+    (legend,) = saved[0].legends
+    assert [t.get_text() for t in legend.get_texts()] == ["idm", "idm+x"]
+    first, second = saved[0].axes
+    colours = [[p.get_edgecolor() for p in ax.patches] for ax in (first, second)]
+    assert colours[0][0] == colours[1][0] != colours[1][1]
