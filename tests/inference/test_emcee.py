@@ -145,12 +145,14 @@ def test_a_walker_stranded_in_a_local_mode_is_found_and_restarted_beside_the_oth
     for seed in range(5):
         sampler = _ensemble(seed, trapped=True)
         assert np.all(sampler.get_last_sample().coords[5] > 19)
-        assert np.flatnonzero(emcee.stuck_walkers(sampler.get_log_prob(discard=300))) == [5]
-        state, count = emcee.restart_stuck(sampler, 300, np.random.default_rng(seed))
+        stuck = emcee.stuck_walkers(sampler.get_log_prob(discard=300))
+        assert np.flatnonzero(stuck) == [5]
+        state, count = emcee.restart_stuck(sampler, stuck, np.random.default_rng(seed))
         assert count == 1 and np.all(np.abs(state.coords) < 6)
         free = _ensemble(seed, trapped=False)
-        assert not emcee.stuck_walkers(free.get_log_prob(discard=300)).any()
-        state, count = emcee.restart_stuck(free, 300, np.random.default_rng(seed))
+        none_stuck = emcee.stuck_walkers(free.get_log_prob(discard=300))
+        assert not none_stuck.any()
+        state, count = emcee.restart_stuck(free, none_stuck, np.random.default_rng(seed))
         assert count == 0 and np.array_equal(state.coords, free.get_last_sample().coords)
 
 

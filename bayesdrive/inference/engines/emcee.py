@@ -229,7 +229,8 @@ def run(
         restarted = 0
         if burn:
             sampler.run_mcmc(state, burn, progress=False)
-            state, restarted = restart_stuck(sampler, burn // 2, rngs[i])
+            late_burn = stuck_walkers(sampler.get_log_prob(discard=burn // 2))
+            state, restarted = restart_stuck(sampler, late_burn, rngs[i])
         sampler.run_mcmc(state, num_steps - burn, progress=False)
         steps, vehicle_burn = num_steps, burn
         while True:
@@ -252,7 +253,7 @@ def run(
             new_burn = (steps + more) * burn // num_steps
             state = None
             if new_burn >= steps:
-                state, count = restart_stuck(sampler, vehicle_burn, rngs[i])
+                state, count = restart_stuck(sampler, stuck, rngs[i])
                 restarted += count
             sampler.run_mcmc(state, more, progress=False)
             vehicle_burn = new_burn
@@ -318,11 +319,10 @@ def stuck_walkers(log_prob: np.ndarray) -> np.ndarray:
 
 
 def restart_stuck(
-    sampler: emcee.EnsembleSampler, window_start: int, rng: np.random.Generator
+    sampler: emcee.EnsembleSampler, stuck: np.ndarray, rng: np.random.Generator
 ) -> tuple[emcee.State, int]:
-    """The ensemble's last state, with each walker stuck since ``window_start`` moved next to a
-    randomly chosen free walker (a tiny ball, as at the start), and how many moved."""
-    stuck = stuck_walkers(sampler.get_log_prob(discard=window_start))
+    """The ensemble's last state, with each ``stuck`` walker (:func:`stuck_walkers`) moved next to
+    a randomly chosen free walker (a tiny ball, as at the start), and how many moved."""
     coords = sampler.get_last_sample().coords.copy()
     count = int(stuck.sum())
     if count == 0 or count == len(stuck):
