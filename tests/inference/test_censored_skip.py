@@ -1,5 +1,7 @@
-"""The likelihood skips the censored classes' probabilities on a series without a censored step,
-for the extensions as for the base models, and no density changes.
+"""The likelihood computes the censored classes' probabilities only where they are needed, for
+the extensions as for the base models, and no density changes: a model scored step by step gets
+them on its usable censored steps alone, a model with a state filter on a series with a censored
+step.
 
 Real NGSIM I-80 series: vehicle 210 has no censored step; vehicle 252 of the same chain has steps
 at the collision-free ceiling (its reconstructed gap shrinks to about 1 m and below); 210 with
@@ -21,6 +23,7 @@ import pytest
 
 from bayesdrive.data.readers import read
 from bayesdrive.data.views import FollowerArrays, scored_series
+from bayesdrive.drivers.base import EgoState
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.core.likelihood import (
     StepInputs,
@@ -84,7 +87,7 @@ def marked(model):
 
 @pytest.mark.realdata
 @pytest.mark.parametrize("name", list(CASES))
-def test_the_skip_changes_no_series_density_and_is_taken_only_without_a_censored_step(chain, name):
+def test_the_skip_changes_no_series_density_and_is_taken_only_off_censored_steps(chain, name):
     extension, censors_limits = CASES[name]
     model = get_model(name)
     params = model.defaults()._replace(**{k: jnp.asarray(v) for k, v in extension.items()})
@@ -113,16 +116,33 @@ def test_the_skip_changes_no_series_density_and_is_taken_only_without_a_censored
         chosen, full, skipped, branch = map(np.asarray, (chosen, full, skipped, branch))
         usable = np.asarray(steps.mask) > 0
         assert np.all(np.isfinite(full[usable])), kind
-        np.testing.assert_allclose(chosen, full, **TOLERANCE, err_msg=kind)
+        # Masked steps are zeroed by every caller; padding reads as a stop.
+        np.testing.assert_allclose(chosen[usable], full[usable], **TOLERANCE, err_msg=kind)
         if one_by_one is not None:
             masked = np.where(usable, full, 0.0)
             np.testing.assert_allclose(one_by_one, masked, **TOLERANCE, err_msg=kind)
-        # The skip is taken exactly on the series without a censored step.
-        expected = MARK if kind == "clean" else 0.0
-        np.testing.assert_allclose(branch, expected, **TOLERANCE, err_msg=kind)
-        if kind == "stop" or (kind == "ceiling" and censors_limits):
-            # Negative control: the skip forced on a censored series is wrong (on every step the
-            # density returns: the ceiling's steps lack the history a delay or memory is scored with).
-            assert np.nanmax(np.abs(skipped - full)) > 1.0, kind
+        if model.filter is not None:
+            # The skip is taken exactly on the series without a censored step.
+            expected = MARK if kind == "clean" else 0.0
+            censored_usable = kind != "clean"
         else:
-            np.testing.assert_allclose(skipped, full, **TOLERANCE, err_msg=kind)
+            # Step by step: the classes on the usable censored steps alone.
+            flags = jax.vmap(model.censored)(
+                EgoState(jnp.zeros_like(steps.v), steps.v),
+                EgoState(steps.dx, steps.next_v),
+                steps.inputs,
+            )
+            censored = usable & np.asarray(flags)
+            # The edited stop is usable; the ceiling's steps lack the history some models need.
+            censored_usable = bool(censored.any())
+            assert censored_usable or kind != "stop", kind
+            expected = np.where(censored, 0.0, MARK)
+            branch = np.where(usable, branch, expected)
+        np.testing.assert_allclose(branch, expected, **TOLERANCE, err_msg=kind)
+        # Where a filter scores the series, every step it returns; step by step, the usable ones.
+        compared = slice(None) if model.filter is not None else usable
+        if kind == "stop" or (kind == "ceiling" and censors_limits and censored_usable):
+            # Negative control: the skip forced on a censored series is wrong.
+            assert np.nanmax(np.abs(skipped - full)[compared]) > 1.0, kind
+        else:
+            np.testing.assert_allclose(skipped[compared], full[compared], **TOLERANCE, err_msg=kind)

@@ -136,7 +136,10 @@ def test_log_evidence_is_the_sum_of_log_mean_weights(arrays):
         )
         for i in range(3)
     ]
-    assert np.allclose(result.sample_stats["log_evidence"][1], expected, rtol=1e-5)
+    # Two compiled programs round one step's density differently in float32: the residual of a
+    # position increment of about 2.5 m carries an ulp of about 2e-7 m, magnified by the Gaussian
+    # exponent (1e-3 nats here); a wrong evidence is off by whole nats (log N, a missed step).
+    assert np.allclose(result.sample_stats["log_evidence"][1], expected, rtol=1e-4, atol=1e-3)
 
 
 def test_pf_same_seed_is_bit_identical_and_seeds_differ(arrays):

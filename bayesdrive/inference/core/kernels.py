@@ -132,9 +132,13 @@ class WalkInfo(NamedTuple):
 
 
 def _normal(key: Array, shape: tuple[int, ...], dtype) -> Array:
-    """Standard normals of ``shape``, drawn as one flat vector: the partitionable threefry
-    generator is several times slower for a 2-d shape than for the same count in 1-d on CPU."""
-    return jax.random.normal(key, (math.prod(shape),), dtype=dtype).reshape(shape)
+    """Standard normals of ``shape``, the bits of ``jax.random.normal`` for the flat shape, made
+    as one flat vector before the reshape. On CPU the compiler otherwise fuses the inverse-erf
+    transform into the consumer of the (N, d) array, whose short rows do not vectorise: the draw
+    then costs several times more than the flat one (partitionable threefry is slower for a 2-d
+    shape too), more than a move's likelihood."""
+    flat = jax.random.normal(key, (math.prod(shape),), dtype=dtype)
+    return jax.lax.optimization_barrier(flat).reshape(shape)
 
 
 def _metropolis(

@@ -150,15 +150,24 @@ def censoring(
     padding reads as a stop)."""
     if model.censored is None:
         return {}
+    flags = _censored_steps(model, steps)
+    if usable_only:
+        flags = flags & (steps.mask > 0)
+    return {"may_be_censored": jnp.any(flags)}
+
+
+def _censored_steps(model: DriverModel, steps: StepInputs) -> Array:
+    """Whether each of ``steps`` (any leading shape) is censored (``model.censored``)."""
     observed = EgoState(jnp.zeros_like(steps.v), steps.v)
     following = EgoState(steps.dx, steps.next_v)
     censored = model.censored  # of one step: mapped over each axis of the steps
     for _ in range(jnp.ndim(steps.v)):
         censored = jax.vmap(censored)
-    flags = censored(observed, following, steps.inputs)
-    if usable_only:
-        flags = flags & (steps.mask > 0)
-    return {"may_be_censored": jnp.any(flags)}
+    return censored(observed, following, steps.inputs)
+
+
+# Censored steps are scored in blocks of this many (:func:`step_logpdfs`).
+CENSORED_BLOCK = 16
 
 
 def step_loglik(
@@ -191,7 +200,14 @@ def step_logpdfs(
     Exactly observed models score each step on its own (from the lifted state); models with a
     hidden state run their filter over the vehicle's steps in order. A model that declares which
     steps are ``censored`` is told whether the series has one (:func:`censoring`), or
-    ``may_be_censored`` where given (False: a promise that no step is). Nothing is masked here."""
+    ``may_be_censored`` where given (False: a promise that no step is). Nothing is masked here.
+
+    A step-by-step model scores every step by its density, then only the usable censored steps
+    (``steps.mask`` set) by their class probability, gathered in blocks of ``CENSORED_BLOCK``: the
+    classes' normal log-CDFs cost many times the density, and a series rarely holds more than a
+    few censored steps. A masked step keeps its density (callers zero it): padding reads as a
+    stop. The loops run a fixed number of times, skipping empty blocks, so the function stays
+    differentiable in reverse mode."""
     if may_be_censored is None:
         flag = censoring(model, steps)
     elif model.censored is None:
@@ -201,11 +217,39 @@ def step_logpdfs(
     if model.filter is not None:
         return model.filter(params, steps, **flag)
 
-    def one(v, next_v, dx, inputs):
+    def one(v, next_v, dx, inputs, **censored):
         state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
-        return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs, **flag)
+        return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs, **censored)
 
-    return jax.vmap(one)(steps.v, steps.next_v, steps.dx, steps.inputs)
+    columns = (steps.v, steps.next_v, steps.dx, steps.inputs)
+    if not flag or flag["may_be_censored"] is False:
+        return jax.vmap(functools.partial(one, **flag))(*columns)
+    logp = jax.vmap(functools.partial(one, may_be_censored=False))(*columns)
+    censored = _censored_steps(model, steps) & (steps.mask > 0)
+    num_steps = censored.shape[0]
+    # Every usable censored step's index, then past-the-end ones: a whole number of blocks.
+    num_blocks = -(-num_steps // CENSORED_BLOCK)
+    where_censored = jnp.nonzero(censored, size=num_blocks * CENSORED_BLOCK, fill_value=num_steps)[
+        0
+    ]
+    blocks_used = -(-jnp.sum(censored) // CENSORED_BLOCK)
+
+    def score_block(logp: Array, block: Array) -> tuple[Array, None]:
+        def with_classes() -> Array:
+            index = jax.lax.dynamic_slice_in_dim(
+                where_censored, block * CENSORED_BLOCK, CENSORED_BLOCK
+            )
+            rows = jax.tree.map(lambda a: a[jnp.minimum(index, num_steps - 1)], columns)
+            classes = jax.vmap(functools.partial(one, may_be_censored=True))(*rows)
+            return logp.at[index].set(classes, mode="drop")  # past-the-end slots write nothing
+
+        return jax.lax.cond(block < blocks_used, with_classes, lambda: logp), None
+
+    return jax.lax.cond(
+        blocks_used > 0,
+        lambda: jax.lax.scan(score_block, logp, jnp.arange(num_blocks))[0],
+        lambda: logp,
+    )
 
 
 def particles_loglik(
