@@ -27,8 +27,9 @@ ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and
   takes a keyword ``may_be_censored`` (a bool or a boolean scalar array, default True) in
   ``transition_logpdf`` and, where it has one, ``filter``: False promises that no step they score
   is censored, so they skip the class probabilities, whose normal log-CDFs cost more than the rest
-  of the density. The likelihood tells them once per series, for every model alike
-  (:func:`bayesdrive.inference.core.likelihood.censoring`). None: the densities are always called
+  of the density. The likelihood tells them, for every model alike: a step-by-step density on
+  each step (True only on a series' usable censored steps), a filter once per series
+  (:func:`bayesdrive.inference.core.likelihood.step_logpdfs`). None: the densities are always called
   without the keyword. A model made by replacing ``transition_logpdf`` or ``filter`` must keep
   that keyword or clear ``censored``.
 
