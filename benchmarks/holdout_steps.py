@@ -87,7 +87,9 @@ def main() -> None:
         results["calibration"] = calibration
     if not args.calibration_only:
         fits = committed_smc_fits(args.models)
-        results["evaluation"] = holdout_step(args.out, fits, FULL, False, load, names)
+        results["evaluation"] = holdout_step(
+            args.out, fits, FULL, False, load, names, final_models=final_models
+        )
     args.report.mkdir(parents=True, exist_ok=True)
     for name, result in results.items():
         path = args.report / f"holdout_{name}.json"

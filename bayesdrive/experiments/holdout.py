@@ -42,6 +42,14 @@ with the documented defaults and scoring them on their later held-out windows is
    mean and a 95% percentile bootstrap interval over scenarios (:data:`BOOTSTRAP_DRAWS`
    resamples, seeded), for the per-vehicle and the population-predictive model against every
    other method.
+8. **The final model's forecast** (with ``final``: the model ``criticize`` chose on the training
+   data set of the same kind, when it is not the IDM): fitted like the IDM, it forecasts the
+   scenarios whose follower has the observed history the ``filtered`` start reads
+   (:func:`~bayesdrive.simulation.scenarios.with_history`), from that start, beside the per-vehicle
+   IDM and the baselines on the same scenarios (each from its own forecast start). Paired, per
+   scenario at the horizon: the CRPS of the position and the squared error of the predictive
+   mean's position (:data:`FORECAST_METRICS`), final model minus each method, with the bootstrap
+   interval of point 7.
 """
 
 from __future__ import annotations
@@ -57,6 +65,7 @@ import xarray as xr
 from bayesdrive.data.trajectories import Trajectories
 from bayesdrive.data.views import scored_series
 from bayesdrive.drivers.base import DriverModel
+from bayesdrive.drivers.closed_loop import forecast_start
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.core.output import load_result, metadata, save_result
 from bayesdrive.inference.fit import fit
@@ -66,12 +75,13 @@ from bayesdrive.simulation.blackbox import TrainConfig
 from bayesdrive.simulation.calibration import LEAD_TIMES_S, predictive_calibration
 from bayesdrive.simulation.metrics import evaluate_policy
 from bayesdrive.simulation.posterior import pooled_policy, population_policy, posterior_policy
-from bayesdrive.simulation.scenarios import ScenarioSet, platoon_scenarios
+from bayesdrive.simulation.scenarios import ScenarioSet, platoon_scenarios, with_history
 
 __all__ = [
     "ACC_NOTES",
     "BASELINES",
     "BOOTSTRAP_DRAWS",
+    "FORECAST_METRICS",
     "HORIZON_S",
     "LEARNED",
     "PROTOCOL",
@@ -93,6 +103,8 @@ LEARNED = (PER_VEHICLE, POPULATION)
 BASELINES = ("idm-default", "idm-lm", "cv", "blackbox")
 BOOTSTRAP_DRAWS = 2000
 METRICS = ("rmse_position_m", "rmse_speed_mps")
+FORECAST_METRICS = ("crps_position_m", "predictive_mean_sq_error_m2")
+"""What the final model's forecast comparison pairs per scenario (module docstring, point 8)."""
 
 TRAINING_DATA = {
     "acc_platoon_fhwa": "openacc_vicolungo",
@@ -238,15 +250,19 @@ def evaluate_data_set(
     population: xr.DataTree,
     pooled: xr.DataTree | None = None,
     fit_path: Path | None = None,
+    final: DriverModel | None = None,
+    final_fit_path: Path | None = None,
 ) -> dict[str, Any]:
     """The protocol (module docstring) on one held-out data set ``name`` read as ``traj``, with
     ``population`` the population of its training data set (:func:`population_from`) and
     ``pooled`` the NGSIM I-80 per-vehicle smc fit for the earlier pooled row (None: no such row);
-    the per-vehicle fit is kept in ``fit_path`` (:func:`fit_followers`).
+    the per-vehicle fit is kept in ``fit_path`` (:func:`fit_followers`), ``final``'s in
+    ``final_fit_path``.
 
     Returns ``{"error": reason}`` when the data hold no scenario, else the scenario set, the
     per-method rows (``models``), the paired differences (``paired[learned][other]`` for each
-    metric) and the ACC note (None for human drivers).
+    metric), the ACC note (None for human drivers) and, with ``final``, its forecast comparison
+    (``final_model``, point 8).
     """
     found = holdout_scenarios(traj, config.max_scenarios)
     if not found.scenarios:
@@ -297,6 +313,17 @@ def evaluate_data_set(
         }
         for learned in LEARNED
     }
+    forecast = None
+    if final is not None:
+        final_tree = fit_followers(traj, config, final, scenarios, final_fit_path)
+        label = f"{final.name}-smc"
+        compared = {
+            label: posterior_policy(label, final, final_tree, metadata(final_tree)),
+            PER_VEHICLE: policies[PER_VEHICLE],
+            **{baseline: policies[baseline] for baseline in BASELINES},
+        }
+        fitted = {str(v) for v in final_tree["posterior"]["vehicle"].values}
+        forecast = _forecast_comparison(traj, config, label, compared, scenarios.within(fitted))
     return {
         "scenario_set": scenarios.summary(),
         "scenarios_dropped_without_fit": len(found.scenarios) - len(scenarios.scenarios),
@@ -308,6 +335,63 @@ def evaluate_data_set(
         "population_min_importance_ess": float(population["sample_stats"]["importance_ess"].min()),
         "acc": _acc_note(name, scenarios),
         "models": models,
+        "paired": paired,
+        **({} if forecast is None else {"final_model": forecast}),
+    }
+
+
+def _forecast_comparison(
+    traj: Trajectories,
+    config: HoldoutConfig,
+    final: str,
+    policies: Mapping[str, Policy],
+    scenarios: ScenarioSet,
+) -> dict[str, Any]:
+    """Point 8 of the protocol: ``policies`` (the final model's labelled ``final``) on the
+    ``scenarios`` with the observed history, each from its forecast start, and the paired
+    differences of :data:`FORECAST_METRICS`, final model minus each other method."""
+    forecast_set, without_history = with_history(scenarios, traj)
+    if not forecast_set.scenarios:
+        return {"error": "no scenario's follower has the observed history the filtered start reads"}
+    rows = {}
+    for label, policy in policies.items():
+        start = forecast_start(policy.model)
+        result = evaluate_policy(
+            jax.random.key(config.rollout_seed),
+            policy,
+            forecast_set,
+            num_rollouts=config.rollouts,
+            start=start,
+        )
+        rows[label] = {
+            "policy": policy.description,
+            "start": start,
+            "scenarios": result["scenarios"],
+            "crps_position_m": result["crps_position_m"],
+            "predictive_mean_rmse_position_m": result["predictive_mean_rmse_position_m"],
+            "rmse_position_m": result["rmse_position_m"]["mean"],
+            "collisions": result["collisions"]["total"],
+            "by_scenario": {
+                metric: [s[metric] for s in result["by_scenario"]] for metric in FORECAST_METRICS
+            },
+        }
+    paired = {
+        other: {
+            metric: paired_difference(
+                rows[final]["by_scenario"][metric],
+                rows[other]["by_scenario"][metric],
+                config.rollout_seed,
+            )
+            for metric in FORECAST_METRICS
+        }
+        for other in rows
+        if other != final
+    }
+    return {
+        "label": final,
+        "scenarios": len(forecast_set.scenarios),
+        "left_out_without_history": without_history,
+        "models": rows,
         "paired": paired,
     }
 

@@ -664,6 +664,19 @@ def _kept_fit(path: Path, force: bool) -> Path:
     return path
 
 
+def _final_model(name: str, final_models: dict[str, str]) -> DriverModel | None:
+    """The final model the criticism chose on held-out set ``name``'s training data set (by
+    highway label in ``final_models``), None where that is the IDM or nothing was chosen."""
+    training = TRAINING_DATA[name]
+    final = next((m for label, m in final_models.items() if label.split(":")[0] == training), None)
+    return None if final in (None, IDM.name) else get_model(final)
+
+
+def _holdout_fit_path(folder: Path, name: str, model: DriverModel) -> Path:
+    """Where the held-out steps keep ``model``'s smc fit of set ``name``'s followers."""
+    return folder / f"{name}_{model.name.replace('+', '_')}_smc.nc"
+
+
 def calibration_step(
     out: Path,
     final_models: dict[str, str],
@@ -676,29 +689,21 @@ def calibration_step(
     """Calibration on the held-out windows (:func:`~bayesdrive.experiments.holdout.calibrate_data_set`)
     of every held-out data set (read by ``load``; ``names``: only these), for the IDM and the final
     model the criticism chose on the training data set of the same kind (``final_models``, by
-    highway label), each set cached in ``out``. The IDM's fits are the evaluation's, kept in
+    highway label), each set cached in ``out``. The fits are the evaluation's, kept in
     ``evaluation_fits``."""
     out.mkdir(parents=True, exist_ok=True)
     config = _holdout_config(settings)
     rows = {}
     for name in holdout_names(settings) if names is None else names:
         training = TRAINING_DATA[name]
-        final = next(
-            (m for label, m in final_models.items() if label.split(":")[0] == training), None
-        )
-        models = (IDM,) if final in (None, IDM.name) else (IDM, get_model(final))
+        final = _final_model(name, final_models)
+        models = (IDM,) if final is None else (IDM, final)
         try:
             traj = load(name)
         except DataError as error:
             rows[name] = {"error": str(error)}
             continue
-        fits = {IDM.name: evaluation_fits / f"{name}_idm_smc.nc"}
-        fits.update(
-            {
-                m.name: _kept_fit(out / f"{name}_{m.name.replace('+', '_')}_smc.nc", force)
-                for m in models[1:]
-            }
-        )
+        fits = {m.name: _holdout_fit_path(evaluation_fits, name, m) for m in models}
         rows[name] = cached(
             out,
             name,
@@ -718,14 +723,17 @@ def holdout_step(
     force: bool,
     load: Callable[[str], Trajectories],
     names: Sequence[str] | None = None,
+    final_models: dict[str, str] | None = None,
 ) -> dict:
     """Generalisation to new drivers and new roads: the protocol of
     :mod:`bayesdrive.experiments.holdout` on every held-out data set (read by ``load``; ``names``:
     only these), each set's result cached in ``out`` beside the population fits and the
     per-vehicle fits.
     ``smc_trees`` are the highway experiment's per-vehicle fits: their vehicles are the
-    populations' training drivers, and the NGSIM I-80 one gives the earlier pooled row. Nothing is
-    tuned here: the held-out fits use the fixed defaults."""
+    populations' training drivers, and the NGSIM I-80 one gives the earlier pooled row. With
+    ``final_models`` (by highway label), the final model the criticism chose on a set's training
+    data forecasts it too (point 8 of the protocol). Nothing is tuned here: the held-out fits use
+    the fixed defaults."""
     out.mkdir(parents=True, exist_ok=True)
     config = _holdout_config(settings)
     evaluated = holdout_names(settings) if names is None else names
@@ -746,12 +754,25 @@ def holdout_step(
             rows[name] = {"error": str(error)}
             continue
         population = load_result(populations[TRAINING_DATA[name]])
-        fit_path = _kept_fit(out / f"{name}_idm_smc.nc", force)
+        final = _final_model(name, final_models or {})
+        fit_path = _kept_fit(_holdout_fit_path(out, name, IDM), force)
+        final_path = (
+            None if final is None else _kept_fit(_holdout_fit_path(out, name, final), force)
+        )
         rows[name] = cached(
             out,
             name,
-            lambda n=name, t=traj, p=population, f=fit_path: evaluate_data_set(
-                n, t, config, p, smc_trees["ngsim_i80_chains"], fit_path=f
+            lambda n=name, t=traj, p=population, f=fit_path, m=final, g=final_path: (
+                evaluate_data_set(
+                    n,
+                    t,
+                    config,
+                    p,
+                    smc_trees["ngsim_i80_chains"],
+                    fit_path=f,
+                    final=m,
+                    final_fit_path=g,
+                )
             ),
             force,
         )
@@ -1021,16 +1042,18 @@ def run_all(
     progress("generalisation on held-out data sets")
     # Both held-out steps read every held-out set: once.
     load_holdout = functools.cache(registry.load_holdout)
+    # Only the highway labels the criticism ran on: their final models are the chosen ones.
+    chosen = {k: v for k, v in results["final_models"].items() if k in criticism}
     # Not "holdout": results of the earlier layout (one pooled row, no fits) are not reused.
     results["holdout"] = cached(
         out,
         "holdout_evaluation",
-        lambda: holdout_step(out / "holdout", smc_trees, settings, force, load_holdout),
+        lambda: holdout_step(
+            out / "holdout", smc_trees, settings, force, load_holdout, final_models=chosen
+        ),
         force,
     )
     progress("calibration on held-out data sets")
-    # Only the highway labels the criticism ran on: their final models are the chosen ones.
-    chosen = {k: v for k, v in results["final_models"].items() if k in criticism}
     results["holdout_calibration"] = cached(
         out,
         "holdout_calibration",

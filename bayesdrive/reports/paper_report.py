@@ -153,6 +153,35 @@ def holdout_table(entry: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def forecast_table(forecast: dict[str, Any]) -> pd.DataFrame:
+    """The final model's forecast comparison on one held-out data set: per method its start, the
+    CRPS of the position at the horizon, the predictive mean's RMSE beside the RMSE over rollouts,
+    collisions, and the final model minus the method: per-scenario mean and 95% bootstrap
+    interval of the CRPS and of the predictive mean's squared error."""
+    rows = []
+    for name, r in forecast["models"].items():
+        against = forecast["paired"].get(name)
+        rows.append(
+            {
+                "method": name,
+                "start": r["start"],
+                "CRPS position (m)": _mean_sd(r["crps_position_m"]),
+                "predictive-mean RMSE (m)": f"{r['predictive_mean_rmse_position_m']:.2f}",
+                "RMSE over rollouts (m)": f"{r['rmse_position_m']:.2f}",
+                "collisions": r["collisions"],
+                "final minus this, CRPS [95%]": _interval(against["crps_position_m"])
+                if against
+                else "-",
+                "final minus this, squared error of the mean (m^2) [95%]": _interval(
+                    against["predictive_mean_sq_error_m2"]
+                )
+                if against
+                else "-",
+            }
+        )
+    return pd.DataFrame(rows)
+
+
 def calibration_table(entry: dict[str, Any]) -> pd.DataFrame:
     """One held-out data set's forecast scores: per model, start and lead time, the windows, the
     proper scores (CRPS of gap, position and speed; energy score of the (gap, speed) path), the
@@ -322,6 +351,22 @@ def holdout_section(section: Section, holdout: dict[str, Any]) -> None:
             caption=f"{name}: population from {entry['training_data']} "
             f"({entry['population_vehicles']} drivers, two-stage; smallest importance ESS of a "
             f"vehicle {entry['population_min_importance_ess']:.0f}{diverged}){drivers}",
+        )
+        forecast = entry.get("final_model")
+        if forecast is None:
+            continue
+        if "error" in forecast:
+            section.note(
+                f"{name}: the final model's forecast was not compared: {forecast['error']}"
+            )
+            continue
+        section.table(
+            forecast_table(forecast),
+            caption=f"{name}: the final model chosen on {entry['training_data']} "
+            f"({forecast['label']}) against the per-vehicle IDM and the baselines, "
+            f"{forecast['scenarios']} scenario(s) with the observed history the filtered start "
+            f"reads ({forecast['left_out_without_history']} without it left out); negative: the "
+            "final model is closer",
         )
 
 

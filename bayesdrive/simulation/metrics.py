@@ -19,6 +19,8 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   path (steps 1..T, gap in 1 m, speed in 1 m/s; a step without a leader has no gap to forecast
   and adds 0), averaged over vehicles (:mod:`bayesdrive.simulation.calibration`, scoringrules).
   Lower is better; unlike the RMSE over rollouts they do not penalise a calibrated spread.
+  Beside them the **predictive mean's** last-step position error (squared, averaged over
+  vehicles; its root over scenarios is the predictive-mean RMSE).
 * **Off road**: vehicle-steps past the end of the vehicle's lane. No simulated vehicle of the
   current scene types drives on a lane that ends (in merge scenes the merging car replays), so
   this is 0 by construction there; it counts for scenes that simulate merging cars.
@@ -103,6 +105,7 @@ class ScenarioMetrics(NamedTuple):
     crps_position_last: float
     crps_speed_last: float
     energy_score_path: float
+    predictive_mean_sq_error_last: float
 
     @property
     def last_step(self) -> int:
@@ -182,6 +185,10 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
         crps_position_last=float(crps((x[:, :, last] - observed.x[None, :, last]).T).mean()),
         crps_speed_last=float(crps((v[:, :, last] - observed.v[None, :, last]).T).mean()),
         energy_score_path=float(energy_score(gap_error, speed_error).mean()),
+        # The predictive mean's error, not the rollouts' (which penalises a calibrated spread).
+        predictive_mean_sq_error_last=float(
+            np.mean((x[:, :, last].mean(axis=0) - observed.x[:, last]) ** 2)
+        ),
     )
 
 
@@ -303,6 +310,9 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
         "crps_position_m": _mean_sd([m.crps_position_last for m in metrics]),
         "crps_speed_mps": _mean_sd([m.crps_speed_last for m in metrics]),
         "energy_score_path": _mean_sd([m.energy_score_path for m in metrics]),
+        "predictive_mean_rmse_position_m": float(
+            np.sqrt(np.mean([m.predictive_mean_sq_error_last for m in metrics]))
+        ),
         "undesirable_events": final("undesirable_by_step"),
         "speed_distribution_mps": distribution_distance(
             pooled("simulated_speed"), pooled("observed_speed")
@@ -316,6 +326,8 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
                 "scenario": m.scenario_id,
                 "rmse_position_m": float(m.rmse_position_by_step[m.last_step]),
                 "rmse_speed_mps": float(m.rmse_speed_by_step[m.last_step]),
+                "crps_position_m": m.crps_position_last,
+                "predictive_mean_sq_error_m2": m.predictive_mean_sq_error_last,
                 "collisions": m.collisions,
                 "hard_braking": m.hard_braking,
             }

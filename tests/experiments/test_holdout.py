@@ -19,6 +19,7 @@ from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.experiments.holdout import (
     BASELINES,
+    FORECAST_METRICS,
     LEARNED,
     POOLED,
     PROTOCOL,
@@ -114,7 +115,8 @@ def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir,
         baseline_seed=3,
         blackbox=TrainConfig(hidden=(8,), steps=20, batch_size=64),
     )
-    result = evaluate_data_set(HELD_OUT, traj, config, population, pooled=population)
+    final = get_model("idm+autocorrelated_noise")
+    result = evaluate_data_set(HELD_OUT, traj, config, population, pooled=population, final=final)
 
     models = result["models"]
     assert set(models) == {*LEARNED, POOLED, *BASELINES}
@@ -146,6 +148,22 @@ def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir,
     assert PROTOCOL in html.unescape(page) and "none: not evaluated: no leaders" in page
     assert "idm-smc minus this, position (m) [95%]" in page
     assert "idm-population minus this, position (m) [95%]" in page
+    # The final model's forecast, from the filtered start, against the IDM and every baseline on
+    # the same scenarios; its paired differences are the per-scenario means' differences.
+    forecast = result["final_model"]
+    label = f"{final.name}-smc"
+    assert forecast["label"] == label and forecast["scenarios"] >= 1
+    assert set(forecast["models"]) == {label, "idm-smc", *BASELINES}
+    assert forecast["models"][label]["start"] == "filtered"
+    assert set(forecast["paired"]) == set(forecast["models"]) - {label}
+    for other, metrics in forecast["paired"].items():
+        for metric in FORECAST_METRICS:
+            ours = forecast["models"][label]["by_scenario"][metric]
+            theirs = forecast["models"][other]["by_scenario"][metric]
+            assert len(ours) == len(theirs) == forecast["scenarios"]
+            assert metrics[metric]["mean"] == pytest.approx(np.mean(ours) - np.mean(theirs))
+            assert metrics[metric]["low"] <= metrics[metric]["mean"] <= metrics[metric]["high"]
+    assert "final minus this, CRPS [95%]" in page
 
 
 def test_pit_summary_counts_coverage_exactly():

@@ -90,6 +90,8 @@ def test_scenario_metrics_by_hand():
     # Equal members: the energy score is the norm of the path error; gaps are exact, vehicle 1's
     # speed errors are 0.4, 1.0, 1.2 (m/s, in the 1 m/s unit).
     assert m.energy_score_path == pytest.approx(np.sqrt(0.4**2 + 1.0 + 1.2**2) / 2)
+    # The predictive mean's last-step position errors: (0 + 2) / 2 and (0 + 4) / 2.
+    assert m.predictive_mean_sq_error_last == pytest.approx((1.0**2 + 2.0**2) / 2)
 
 
 def test_steps_past_the_end_of_a_scene_are_not_scored():
