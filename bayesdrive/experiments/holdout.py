@@ -196,6 +196,23 @@ def paired_difference(
     }
 
 
+def _paired_against(
+    rows: Mapping[str, Any], learned: str, metrics: tuple[str, ...], seed: int
+) -> dict[str, dict[str, Any]]:
+    """:func:`paired_difference` of method ``learned`` minus every other method of ``rows`` (each
+    with its per-scenario ``by_scenario`` values), for each of ``metrics``."""
+    return {
+        other: {
+            metric: paired_difference(
+                rows[learned]["by_scenario"][metric], rows[other]["by_scenario"][metric], seed
+            )
+            for metric in metrics
+        }
+        for other in rows
+        if other != learned
+    }
+
+
 def _acc_note(name: str, scenarios: ScenarioSet) -> str | None:
     note = ACC_NOTES.get(name)
     human = HUMAN_SCENES.get(name)
@@ -299,18 +316,7 @@ def evaluate_data_set(
         for label, policy in policies.items()
     }
     paired = {
-        learned: {
-            other: {
-                metric: paired_difference(
-                    models[learned]["by_scenario"][metric],
-                    models[other]["by_scenario"][metric],
-                    config.rollout_seed,
-                )
-                for metric in METRICS
-            }
-            for other in models
-            if other != learned
-        }
+        learned: _paired_against(models, learned, METRICS, config.rollout_seed)
         for learned in LEARNED
     }
     forecast = None
@@ -375,24 +381,12 @@ def _forecast_comparison(
                 metric: [s[metric] for s in result["by_scenario"]] for metric in FORECAST_METRICS
             },
         }
-    paired = {
-        other: {
-            metric: paired_difference(
-                rows[final]["by_scenario"][metric],
-                rows[other]["by_scenario"][metric],
-                config.rollout_seed,
-            )
-            for metric in FORECAST_METRICS
-        }
-        for other in rows
-        if other != final
-    }
     return {
         "label": final,
         "scenarios": len(forecast_set.scenarios),
         "left_out_without_history": without_history,
         "models": rows,
-        "paired": paired,
+        "paired": _paired_against(rows, final, FORECAST_METRICS, config.rollout_seed),
     }
 
 
