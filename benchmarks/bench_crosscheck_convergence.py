@@ -9,6 +9,12 @@ model fitted:
 * ``autocorrelated_noise``: Ornstein-Uhlenbeck pedal noise (``pedal_noise``), fitted by
   ``idm+autocorrelated_noise``;
 * ``reaction_delay``: delayed perception (``perception_delay``), fitted by ``idm+reaction_delay``;
+* the other causes the criticism can adopt, each on the mechanism that its right verdict names
+  (``trafficgen.MECHANISMS``, medium sizes): ``speed_dependent_noise`` (``speed_power_noise``),
+  ``drifting_parameters`` (``time_gap_drift``), ``measurement_noise`` (``video_position_noise``),
+  ``second_leader_anticipation`` (``two_leader_anticipation``),
+  ``leader_acceleration_anticipation`` (``leader_acceleration_response``) and
+  ``cut_in_overreaction`` (``cut_in_relaxation``, with cut-ins), each fitted by ``idm+<cause>``;
 * ``ngsim_agreement`` (only when asked for with ``--data``): real data, the 15 NGSIM I-80 followers
   of ``benchmarks/bench_agreement.py`` (its choice rule, fitting windows), fitted by ``idm``.
 
@@ -23,7 +29,7 @@ percentile within 2% of the box's width of its edge); agreement of each engine w
 (``bayesdrive.inference.diagnostics.agreement``).
 
 Runs are independent jobs; ``--jobs N`` runs N at once (processes; each uses the cores JAX
-gives it). The full study (24 followers of 60 s, three data sets, eight runs each)::
+gives it). The full study (24 followers of 60 s, every data set but the NGSIM one, eight runs each)::
 
     python benchmarks/bench_crosscheck_convergence.py --jobs 16 --out reports
 """
@@ -52,7 +58,21 @@ DATA = {
     "idm": (None, "idm"),
     "autocorrelated_noise": ({"pedal_noise": (0.5, 0.8)}, "idm+autocorrelated_noise"),
     "reaction_delay": ({"perception_delay": (0.4, 0.7)}, "idm+reaction_delay"),
+    "speed_dependent_noise": ({"speed_power_noise": (0.5, 1.0)}, "idm+speed_dependent_noise"),
+    "drifting_parameters": ({"time_gap_drift": (0.2, 0.35)}, "idm+drifting_parameters"),
+    "measurement_noise": ({"video_position_noise": (0.01, 0.03)}, "idm+measurement_noise"),
+    "second_leader_anticipation": (
+        {"two_leader_anticipation": (0.3, 0.5)},
+        "idm+second_leader_anticipation",
+    ),
+    "leader_acceleration_anticipation": (
+        {"leader_acceleration_response": (0.25, 0.5)},
+        "idm+leader_acceleration_anticipation",
+    ),
+    "cut_in_overreaction": ({"cut_in_relaxation": (0.4, 0.7)}, "idm+cut_in_overreaction"),
 }
+# Cut-ins of a data set (the others have none: platoons of followers only).
+CUT_INS = {"cut_in_overreaction": 8}
 # Real data: the 15 NGSIM I-80 followers of benchmarks/bench_agreement.py (its choice rule, their
 # fitting windows), fitted by the IDM; ``--followers`` does not apply to them.
 NGSIM = "ngsim_agreement"
@@ -99,7 +119,7 @@ def generate_data(data: str, seed: int, followers: int, duration: float, folder:
             platoons=platoons,
             followers=PLATOON,
             duration_s=duration,
-            cut_ins=0,
+            cut_ins=CUT_INS.get(data, 0),
         )
     return path
 
