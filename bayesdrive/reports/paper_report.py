@@ -80,7 +80,12 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
                 "paper's MAE position, last step (m)": _mean_sd(paper["position_m"]),
                 "collisions": result["collisions"]["total"],
                 "colliding vehicle-rollouts": f"{result['collisions']['fraction']:.2%}",
-                "hard braking per rollout": f"{result['hard_braking']['per_rollout']:.1f}",
+                "hard braking per rollout (data)": f"{result['hard_braking']['per_rollout']:.1f}"
+                + f" ({result['hard_braking']['data_total']})",
+                "jerk RMS, m/s^3 (data)": _realism(result, "jerk_mps3", "rms", ".1f"),
+                "min TTC < 1.5 s, share (data)": _realism(
+                    result, "min_ttc", "share_critical", ".1%"
+                ),
                 "CRPS position at 5 s (m)": _scored(result, "crps_position_m"),
                 "energy score of the (gap, speed) path (1 m, 1 m/s)": _scored(
                     result, "energy_score_path"
@@ -89,6 +94,15 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
             }
         )
     return pd.DataFrame(rows)
+
+
+def _realism(result: dict[str, Any], measure: str, name: str, spec: str) -> str:
+    """A realism measure of the simulation with the data's beside it, "-" for results written
+    before it was measured."""
+    if measure not in result:
+        return "-"
+    entry = result[measure]
+    return f"{entry[f'simulated_{name}']:{spec}} ({entry[f'observed_{name}']:{spec}})"
 
 
 def _scored(result: dict[str, Any], name: str) -> str:

@@ -21,6 +21,10 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   Lower is better; unlike the RMSE over rollouts they do not penalise a calibrated spread.
   Beside them the **predictive mean's** last-step position error (squared, averaged over
   vehicles; its root over scenarios is the predictive-mean RMSE).
+* **Realism beside the data**: the jerk (the change of the realised acceleration; RMS and the
+  distance of its distribution to the data's) and the share of vehicles whose minimum
+  time-to-collision (gap over the closing speed read from the gap) falls below
+  ``CRITICAL_TTC_S``, for the rollouts and for the observed vehicles alike.
 * **Off road**: vehicle-steps past the end of the vehicle's lane. No simulated vehicle of the
   current scene types drives on a lane that ends (in merge scenes the merging car replays), so
   this is 0 by construction there; it counts for scenes that simulate merging cars.
@@ -49,6 +53,7 @@ from bayesdrive.simulation.rollout import HARD_BRAKING_MPS2, Rollout, rollout, s
 from bayesdrive.simulation.scenarios import Scenario, ScenarioSet
 
 __all__ = [
+    "CRITICAL_TTC_S",
     "DistributionSamples",
     "Observed",
     "ScenarioMetrics",
@@ -58,7 +63,9 @@ __all__ = [
     "evaluate_policy",
     "evaluate_scenario",
     "kde",
+    "minimum_ttc",
     "observed_data",
+    "realised_jerk",
     "rmse_by_step",
     "scenario_keys",
     "scenario_metrics",
@@ -113,12 +120,18 @@ class ScenarioMetrics(NamedTuple):
 
 
 class DistributionSamples(NamedTuple):
-    """Speeds and gaps of every real simulated vehicle-step (t >= 1) and of the data there."""
+    """Speeds and gaps of every real simulated vehicle-step (t >= 1) and of the data there; the
+    jerk of every real step with two real steps after it (:func:`realised_jerk`); each simulated
+    vehicle-rollout's and each observed vehicle's minimum time-to-collision (:func:`minimum_ttc`)."""
 
     simulated_speed: np.ndarray
     observed_speed: np.ndarray
     simulated_gap: np.ndarray
     observed_gap: np.ndarray
+    simulated_jerk: np.ndarray
+    observed_jerk: np.ndarray
+    simulated_min_ttc: np.ndarray
+    observed_min_ttc: np.ndarray
 
 
 def observed_data(scenario: Scenario) -> Observed:
@@ -192,18 +205,71 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
     )
 
 
+def realised_jerk(v: np.ndarray, dt: float) -> np.ndarray:
+    """Jerk (m/s^3) of speed series along their last axis (T + 1 states -> T - 1 jerks): the change
+    of the realised acceleration (v' - v) / dt, the same rule for simulation and data."""
+    return np.diff(v, n=2, axis=-1) / dt**2
+
+
+def minimum_ttc(gap: np.ndarray, dt: float) -> np.ndarray:
+    """Each series' (last axis) smallest time-to-collision (s): gap over closing speed, the
+    closing speed read from the gap itself, -(gap' - gap) / dt, where it is positive; inf for a
+    series that never closes on a leader (NaN gaps: no leader)."""
+    closing = -np.diff(gap, axis=-1) / dt
+    now = gap[..., :-1]
+    closes = np.isfinite(now) & np.isfinite(closing) & (closing > 0)
+    ttc = np.where(closes, now / np.where(closes, closing, 1.0), np.inf)
+    return ttc.min(axis=-1)
+
+
 def distribution_samples(rollout: Rollout, observed: Observed) -> DistributionSamples:
     """Pool the real steps t >= 1; gaps only where the vehicle has a leader (the replayed head's
-    presence is the same in simulation and data, so the observed gap's NaNs mark it)."""
+    presence is the same in simulation and data, so the observed gap's NaNs mark it); jerks and
+    minimum times-to-collision over the real states 0..last."""
     real = np.concatenate([[False], np.asarray(observed.step_mask) > 0])
     real_steps = np.broadcast_to(real, observed.v.shape)
     with_leader = real_steps & np.isfinite(observed.gap)
+    states = slice(0, int(np.flatnonzero(real)[-1]) + 1 if real.any() else 1)
+    simulated_v = np.asarray(rollout.v, np.float64)[..., states]
+    simulated_gap = np.asarray(rollout.gap, np.float64)[..., states]
     return DistributionSamples(
         simulated_speed=np.asarray(rollout.v, np.float64)[:, real_steps].ravel(),
         observed_speed=observed.v[real_steps],
         simulated_gap=np.asarray(rollout.gap, np.float64)[:, with_leader].ravel(),
         observed_gap=observed.gap[with_leader],
+        simulated_jerk=realised_jerk(simulated_v, observed.dt).ravel(),
+        observed_jerk=realised_jerk(observed.v[:, states], observed.dt).ravel(),
+        simulated_min_ttc=minimum_ttc(simulated_gap, observed.dt).ravel(),
+        observed_min_ttc=minimum_ttc(observed.gap[:, states], observed.dt).ravel(),
     )
+
+
+# A minimum time-to-collision below this is a critical conflict (a threshold common in traffic
+# conflict studies).
+CRITICAL_TTC_S = 1.5
+
+
+def _realism(samples: list[DistributionSamples]) -> dict[str, Any]:
+    """Jerk and minimum time-to-collision of the simulation, each beside the data's."""
+
+    def pooled(name: str) -> np.ndarray:
+        return np.concatenate([getattr(s, name) for s in samples])
+
+    jerk = {side: pooled(f"{side}_jerk") for side in ("simulated", "observed")}
+    ttc = {side: pooled(f"{side}_min_ttc") for side in ("simulated", "observed")}
+    return {
+        "jerk_mps3": {
+            **{f"{side}_rms": float(np.sqrt(np.mean(j**2))) for side, j in jerk.items()},
+            **distribution_distance(jerk["simulated"], jerk["observed"]),
+        },
+        "min_ttc": {
+            "critical_s": CRITICAL_TTC_S,
+            **{
+                f"{side}_share_critical": float(np.mean(t < CRITICAL_TTC_S))
+                for side, t in ttc.items()
+            },
+        },
+    }
 
 
 def distribution_distance(simulated: np.ndarray, observed: np.ndarray) -> dict[str, float]:
@@ -321,6 +387,7 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
             pooled("simulated_gap"), pooled("observed_gap")
         ),
         "speed_density": speed_density(pooled("simulated_speed"), pooled("observed_speed")),
+        **_realism(samples),
         "by_scenario": [
             {
                 "scenario": m.scenario_id,

@@ -11,6 +11,8 @@ from bayesdrive.simulation.metrics import (
     distribution_distance,
     distribution_samples,
     kde,
+    minimum_ttc,
+    realised_jerk,
     rmse_by_step,
     scenario_metrics,
     speed_density,
@@ -182,3 +184,14 @@ def test_speed_density_of_one_repeated_speed_is_a_narrow_peak():
     grid, values = np.array(density["grid_mps"]), np.array(density["simulated"])
     assert np.trapezoid(values, grid) == pytest.approx(1.0, abs=0.01)
     assert grid[np.argmax(values)] == pytest.approx(10.0, abs=grid[1] - grid[0])
+
+
+def test_jerk_is_the_change_of_the_realised_acceleration():
+    # Accelerations over steps of 0.5 s: 2, 4, 6 m/s^2, so the jerk is 4 m/s^3 twice.
+    np.testing.assert_allclose(realised_jerk(np.array([0.0, 1.0, 3.0, 6.0]), 0.5), [4.0, 4.0])
+
+
+def test_minimum_ttc_reads_the_closing_speed_from_the_gap():
+    # Closing at 2 m/s from 10 m (5 s), at 1 m/s from 8 m (8 s), then opening.
+    gaps = np.array([[10.0, 8.0, 7.0, 7.5], [5.0, 6.0, 7.0, 8.0], [np.nan] * 4])
+    np.testing.assert_allclose(minimum_ttc(gaps, 1.0), [5.0, np.inf, np.inf])
