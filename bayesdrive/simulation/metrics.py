@@ -230,16 +230,16 @@ def distribution_samples(rollout: Rollout, observed: Observed) -> DistributionSa
     real_steps = np.broadcast_to(real, observed.v.shape)
     with_leader = real_steps & np.isfinite(observed.gap)
     states = slice(0, int(np.flatnonzero(real)[-1]) + 1 if real.any() else 1)
-    simulated_v = np.asarray(rollout.v, np.float64)[..., states]
-    simulated_gap = np.asarray(rollout.gap, np.float64)[..., states]
+    simulated_v = np.asarray(rollout.v, np.float64)
+    simulated_gap = np.asarray(rollout.gap, np.float64)
     return DistributionSamples(
-        simulated_speed=np.asarray(rollout.v, np.float64)[:, real_steps].ravel(),
+        simulated_speed=simulated_v[:, real_steps].ravel(),
         observed_speed=observed.v[real_steps],
-        simulated_gap=np.asarray(rollout.gap, np.float64)[:, with_leader].ravel(),
+        simulated_gap=simulated_gap[:, with_leader].ravel(),
         observed_gap=observed.gap[with_leader],
-        simulated_jerk=realised_jerk(simulated_v, observed.dt).ravel(),
+        simulated_jerk=realised_jerk(simulated_v[..., states], observed.dt).ravel(),
         observed_jerk=realised_jerk(observed.v[:, states], observed.dt).ravel(),
-        simulated_min_ttc=minimum_ttc(simulated_gap, observed.dt).ravel(),
+        simulated_min_ttc=minimum_ttc(simulated_gap[..., states], observed.dt).ravel(),
         observed_min_ttc=minimum_ttc(observed.gap[:, states], observed.dt).ravel(),
     )
 
@@ -249,12 +249,9 @@ def distribution_samples(rollout: Rollout, observed: Observed) -> DistributionSa
 CRITICAL_TTC_S = 1.5
 
 
-def _realism(samples: list[DistributionSamples]) -> dict[str, Any]:
-    """Jerk and minimum time-to-collision of the simulation, each beside the data's."""
-
-    def pooled(name: str) -> np.ndarray:
-        return np.concatenate([getattr(s, name) for s in samples])
-
+def _realism(pooled: Callable[[str], np.ndarray]) -> dict[str, Any]:
+    """Jerk and minimum time-to-collision of the simulation, each beside the data's, from the
+    samples ``pooled`` over the scenarios (by :class:`DistributionSamples` field)."""
     jerk = {side: pooled(f"{side}_jerk") for side in ("simulated", "observed")}
     ttc = {side: pooled(f"{side}_min_ttc") for side in ("simulated", "observed")}
     return {
@@ -387,7 +384,7 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
             pooled("simulated_gap"), pooled("observed_gap")
         ),
         "speed_density": speed_density(pooled("simulated_speed"), pooled("observed_speed")),
-        **_realism(samples),
+        **_realism(pooled),
         "by_scenario": [
             {
                 "scenario": m.scenario_id,

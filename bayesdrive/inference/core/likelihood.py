@@ -208,13 +208,14 @@ def step_logpdfs(
     few censored steps. A masked step keeps its density (callers zero it): padding reads as a
     stop. The loops run a fixed number of times, skipping empty blocks, so the function stays
     differentiable in reverse mode."""
-    if may_be_censored is None:
-        flag = censoring(model, steps)
-    elif model.censored is None:
+    if may_be_censored is not None and model.censored is None:
         raise ValueError(f"model {model.name!r} declares no censored steps to skip")
-    else:
-        flag = {"may_be_censored": may_be_censored}
     if model.filter is not None:
+        flag = (
+            censoring(model, steps)
+            if may_be_censored is None
+            else {"may_be_censored": may_be_censored}
+        )
         return model.filter(params, steps, **flag)
 
     def one(v, next_v, dx, inputs, **censored):
@@ -222,9 +223,12 @@ def step_logpdfs(
         return model.transition_logpdf(params, state, EgoState(dx, next_v), inputs, **censored)
 
     columns = (steps.v, steps.next_v, steps.dx, steps.inputs)
-    if not flag or flag["may_be_censored"] is False:
-        return jax.vmap(functools.partial(one, **flag))(*columns)
+    if model.censored is None:
+        return jax.vmap(one)(*columns)
     logp = jax.vmap(functools.partial(one, may_be_censored=False))(*columns)
+    if may_be_censored is False:
+        return logp
+    # Each step's own class, whatever the caller's flag for the series says of it.
     censored = _censored_steps(model, steps) & (steps.mask > 0)
     num_steps = censored.shape[0]
     # Every usable censored step's index, then past-the-end ones: a whole number of blocks.
@@ -295,8 +299,6 @@ def _score_blocks(model, names, fixed, particles, series, num_blocks):
 
     def one_vehicle(args):
         draws, vehicle_series, vehicle_blocks = args
-        # Whether the series holds a censored step is a property of the whole series.
-        flag = censoring(model, vehicle_series).get("may_be_censored")
 
         def score_block(b, out):
             steps = jax.tree.map(
@@ -305,7 +307,7 @@ def _score_blocks(model, names, fixed, particles, series, num_blocks):
 
             def one_draw(theta):
                 params = fill_params(model, names, theta, fixed)
-                logp = step_logpdfs(model, params, steps, may_be_censored=flag)
+                logp = step_logpdfs(model, params, steps)
                 return jnp.where(steps.mask > 0, logp, 0.0)
 
             return jax.lax.dynamic_update_slice_in_dim(out, jax.vmap(one_draw)(draws), b * block, 1)
@@ -313,7 +315,7 @@ def _score_blocks(model, names, fixed, particles, series, num_blocks):
         empty = jnp.zeros((draws.shape[0], vehicle_series.mask.shape[-1]), draws.dtype)
         return jax.lax.fori_loop(0, vehicle_blocks, score_block, empty)
 
-    # Vehicles one after another (not vmapped), so the censoring flag stays a real branch.
+    # Vehicles one after another (not vmapped), so the censored-step branches stay real branches.
     return jax.lax.map(one_vehicle, (particles, series, num_blocks))
 
 
