@@ -93,7 +93,8 @@ def test_speed_dependent_noise_scales_the_declared_noise_sd():
     renamed, ours, idm, theirs = renamed_and_idm("speed_dependent_noise")
     state = EgoState(jnp.zeros(()), jnp.asarray(12.0))
     slope = float(theirs.noise_speed_slope)
-    assert float(renamed.noise_sd(ours, state)) == pytest.approx(0.35 * (1 + 12.0 * slope))
+    expected = 0.35 * (1 + 12.0 * slope) / (1 + 10.0 * slope)
+    assert float(renamed.noise_sd(ours, state)) == pytest.approx(expected)
     data = steps()
     np.testing.assert_allclose(
         step_logpdfs(renamed, ours, data), step_logpdfs(idm, theirs, data), rtol=1e-6

@@ -284,11 +284,12 @@ def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt):
 
 
 def test_speed_dependent_noise_sd_grows_with_speed():
-    """The density's sd in acceleration units is sigma (1 + k v); the leader 80 m ahead keeps
-    every speed's step inside the physical limits, where the density is Gaussian."""
+    """The density's sd in acceleration units is sigma (1 + k v) / (1 + 10 k): sigma at 10 m/s,
+    whatever the slope; the leader 80 m ahead keeps every speed's step inside the physical limits,
+    where the density is Gaussian."""
     extended = extend("speed_dependent_noise", IDM)
     params = params_for(extended, 0.15)
-    for v in (2.0, 12.0, 25.0):
+    for v in (2.0, 10.0, 12.0, 25.0):
         state = EgoState(jnp.float32(0.0), jnp.float32(v))
         inputs = read_by(extended.model, make_inputs(gap=jnp.float32(80.0)))
 
@@ -297,7 +298,8 @@ def test_speed_dependent_noise_sd_grows_with_speed():
             return extended.model.transition_logpdf(params, state, nxt, inputs)
 
         _, sd_dx = quadratic_moments(logpdf_of_dx, v * DT, 0.002)
-        np.testing.assert_allclose(sd_dx / (0.5 * DT**2), 0.3 * (1 + 0.15 * v), rtol=2e-3)
+        expected = 0.3 * (1 + 0.15 * v) / (1 + 0.15 * 10.0)
+        np.testing.assert_allclose(sd_dx / (0.5 * DT**2), expected, rtol=2e-3)
 
 
 def test_second_leader_keeps_the_homogeneous_steady_state():
