@@ -8,9 +8,10 @@ r"""Speed-dependent execution noise: the acceleration error grows with speed.
 with :math:`\sigma` the wrapped model's own noise sd (its ``noise_sd``) and :math:`k` the relative
 increase per m/s of the current speed over the noise at standstill (k = 0.1 doubles it from 0 to
 10 m/s). :math:`\sigma` is the noise at the reference speed :math:`v_{ref}` =
-``REFERENCE_SPEED_MPS`` (10 m/s, a round speed fixed in advance, not read from data). Why not the noise at standstill: followers seldom stand still, so data
-pin the noise at the speeds they drive, and a standstill level trades off against the slope along
-a curved ridge (sigma (1 + k v) constant) that emcee's stretch moves cross slowly
+``REFERENCE_SPEED_MPS`` (10 m/s, a round speed fixed in advance, not read from data). Why not the
+noise at standstill: followers seldom stand still, so the data pin the noise at the speeds they
+drive, and a standstill level trades off against the slope along a curved ridge
+(sigma (1 + k v) constant) that emcee's stretch moves cross slowly
 (``reports/convergence/extensions_pilot.md``); the noise at a driven speed is what the data
 measure. With k = 0 the model is the wrapped one.
 
