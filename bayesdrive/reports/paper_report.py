@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import matplotlib
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
@@ -387,22 +388,31 @@ def holdout_section(section: Section, holdout: dict[str, Any]) -> None:
 def plot_rmse_curves(models: dict[str, Any], path: Path, title: str, dt: float) -> Path:
     """Position and speed RMSE, and the share of vehicle-rollouts with an undesirable event
     (collision, hard braking, off road) so far, over the horizon; means across scenarios."""
-    fig = Figure(figsize=(14, 3.8), layout="tight")
+    fig = Figure(figsize=(16, 3.8), layout="constrained")
     ax_x, ax_v, ax_e = fig.subplots(1, 3)
     panels = (
         (ax_x, "rmse_position_m"),
         (ax_v, "rmse_speed_mps"),
         (ax_e, "undesirable_events"),
     )
-    for name, result in models.items():
+    # A colour of its own for each of up to 20 models (the default cycle repeats after 10), and
+    # the legend beside the panels, where it hides no curve.
+    colours = matplotlib.colormaps["tab20"].colors
+    for i, (name, result) in enumerate(models.items()):
         for ax, key in panels:
             mean = np.array(result[key]["by_step"]["mean"], dtype=float)
             steps = np.arange(len(mean)) * dt
-            ax.plot(steps, mean, label=name, lw=2 if "smc" in name else 1)
+            style = {"color": colours[i % len(colours)], "lw": 2 if "smc" in name else 1}
+            ax.plot(steps, mean, label=name, **style)
     ax_x.set(xlabel="horizon (s)", ylabel="position RMSE (m)")
     ax_v.set(xlabel="horizon (s)", ylabel="speed RMSE (m/s)")
     ax_e.set(xlabel="horizon (s)", ylabel="share with an undesirable event so far")
-    ax_x.legend(fontsize=LEGEND_FONTSIZE, title="model")
+    fig.legend(
+        *ax_x.get_legend_handles_labels(),
+        loc="outside right upper",
+        fontsize=LEGEND_FONTSIZE,
+        title="model",
+    )
     fig.suptitle(title)
     return _save(fig, path)
 
