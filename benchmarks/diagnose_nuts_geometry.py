@@ -1,0 +1,123 @@
+"""Why is nuts slow on a model? A short nuts fit of the IDM and of ``--model`` on the same
+trafficgen followers (the data of ``bench_crosscheck_convergence.py`` for ``--data``), with the
+adapted step sizes and tree depths; and the cost of one log-likelihood gradient of each, on one
+vehicle's series. Prints a markdown report.
+
+    python benchmarks/diagnose_nuts_geometry.py --data drifting_parameters --seed 20261207
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from bayesdrive.data.readers import read  # noqa: E402
+from bayesdrive.data.views import follower_arrays  # noqa: E402
+from bayesdrive.drivers.registry import get_model  # noqa: E402
+from bayesdrive.inference.core.likelihood import (  # noqa: E402
+    fixed_params,
+    series_loglik,
+    step_inputs,
+)
+from bayesdrive.inference.fit import fit  # noqa: E402
+from benchmarks.bench_crosscheck_convergence import DATA, generate_data  # noqa: E402
+
+REPEATS = 50
+
+
+def nuts_row(key, data, model, followers: int, draws: int, seed: int) -> dict:
+    started = time.perf_counter()
+    tree = fit(
+        key,
+        data,
+        model=model,
+        engine="nuts",
+        seed=seed,
+        max_vehicles=followers,
+        draws=draws,
+        warmup=draws,
+        chains=2,
+        max_extension=1,
+    )
+    stats = tree["sample_stats"].to_dataset()
+    return {
+        "model": model.name,
+        "wall_s": round(time.perf_counter() - started, 1),
+        "tree_depth_mean": round(float(stats["tree_depth"].mean()), 2),
+        "tree_depth_max": int(stats["tree_depth"].max()),
+        "leapfrog_steps_mean": round(float(stats["n_steps"].mean()), 1),
+        "step_size (vehicle x chain)": np.array2string(
+            stats["step_size"].values, precision=6, separator=", "
+        ),
+        "divergences": int(stats["diverging"].sum()),
+    }
+
+
+def gradient_row(model, arrays, vehicle: int) -> dict:
+    """Milliseconds per log-likelihood and per value-and-gradient on one vehicle's series, at the
+    model's defaults."""
+    series = jax.tree.map(lambda a: a[vehicle], step_inputs(arrays, model))
+    names, fixed = model.param_names, fixed_params(model, None)
+    theta = jnp.asarray([s.default for s in model.specs], float)
+
+    def total(th):
+        return jnp.sum(series_loglik(model, names, fixed, th, series))
+
+    times = {}
+    for label, function in (
+        ("value", jax.jit(total)),
+        ("value_and_grad", jax.jit(jax.value_and_grad(total))),
+    ):
+        jax.block_until_ready(function(theta))
+        started = time.perf_counter()
+        for _ in range(REPEATS):
+            jax.block_until_ready(function(theta))
+        times[f"{label}_ms"] = round((time.perf_counter() - started) / REPEATS * 1e3, 3)
+    return {"model": model.name, "steps": int(series.mask.sum()), **times}
+
+
+def markdown(rows: list[dict]) -> str:
+    head = list(rows[0])
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    lines += ["| " + " | ".join(str(r[h]) for h in head) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default="drifting_parameters", choices=sorted(DATA))
+    parser.add_argument("--followers", type=int, default=2)
+    parser.add_argument("--draws", type=int, default=200, help="draws and warm-up per chain")
+    parser.add_argument("--seed", type=int, required=True)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as folder:
+        path = generate_data(args.data, args.seed, args.followers, 60.0, Path(folder))
+        data = read(path, format="ngsim_raw")
+        arrays = follower_arrays(data, window="fit")
+        models = [get_model("idm"), get_model(DATA[args.data][1])]
+        key = jax.random.key(args.seed)
+        fits = [nuts_row(key, data, m, args.followers, args.draws, args.seed) for m in models]
+        gradients = [gradient_row(m, arrays, 0) for m in models]
+    print(
+        f"`python benchmarks/diagnose_nuts_geometry.py --data {args.data} --followers "
+        f"{args.followers} --draws {args.draws} --seed {args.seed}`\n"
+    )
+    print("## nuts, 2 chains, no extension\n")
+    print(markdown(fits))
+    print("\n## One vehicle's log-likelihood, at the model's defaults\n")
+    print(markdown(gradients))
+
+
+if __name__ == "__main__":
+    main()
