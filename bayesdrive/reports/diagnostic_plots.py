@@ -151,6 +151,9 @@ def plot_agreement_heatmap(table: pd.DataFrame, path: Path) -> Path:
     return save_figure(figure, path)
 
 
+RANK_PANELS_PER_ROW = 4
+
+
 def plot_rank_ecdf(outcome: SBCOutcome, path: Path) -> Path:
     """SBC ranks as ArviZ's PIT-ECDF difference plot (``arviz_plots.plot_ecdf_pit``), one panel
     per parameter: no binning, and ArviZ's own simultaneous uniformity test marks the ranks that
@@ -164,11 +167,16 @@ def plot_rank_ecdf(outcome: SBCOutcome, path: Path) -> Path:
     sbc = xr.Dataset(
         {name: (("chain", "draw"), pit[None, :, k]) for k, name in enumerate(outcome.names)}
     )
+    # Panels wrap after RANK_PANELS_PER_ROW; the figure grows a row's height for each row, so
+    # a second row does not squeeze the panels to nothing.
+    columns = min(len(outcome.names), RANK_PANELS_PER_ROW)
+    rows = math.ceil(len(outcome.names) / columns)
     collection = arviz_plots.plot_ecdf_pit(
         xr.DataTree.from_dict({"prior_sbc": sbc}),
         backend="matplotlib",
+        col_wrap=columns,
         figure_kwargs={
-            "figsize": (max(7.0, 3.2 * len(outcome.names)), 3.4),
+            "figsize": (max(7.0, 3.2 * columns), 2.6 * rows + 0.9),
             "layout": "constrained",
         },
         visuals={
