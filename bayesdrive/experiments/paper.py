@@ -51,6 +51,7 @@ from bayesdrive.experiments.holdout import (
     population_from,
 )
 from bayesdrive.inference.core.output import load_result, metadata, save_result
+from bayesdrive.inference.core.vehicles import clear_compiled
 from bayesdrive.inference.fit import first_vehicles, fit
 from bayesdrive.inference.fit import summary as fit_summary
 from bayesdrive.reports.model_card import model_card
@@ -935,9 +936,22 @@ def data_step() -> dict:
     return {name: summary(registry.load(name)) for name in registry.DATASETS}
 
 
+def release_compiled_programs() -> None:
+    """Drop every compiled program kept for reuse: JAX's caches and the engines' chunk cache.
+
+    Each kept executable holds memory and memory maps of its own, and a whole reproduction
+    compiles thousands: kept to the end, they made XLA fail to allocate memory for the next
+    compile in the calibration step on a 24 GB machine. A later step that needs a program again
+    reads it back from the persistent compilation cache (the same executable, so the same bits)."""
+    jax.clear_caches()
+    clear_compiled()
+
+
 class StepClock:
     """Each step's wall time in this invocation: a step ends where the next is announced, so a
-    step reused from an earlier invocation shows about 0 s and is marked reused."""
+    step reused from an earlier invocation shows about 0 s and is marked reused. Between steps
+    the compiled programs of the one that ended are released (:func:`release_compiled_programs`).
+    """
 
     def __init__(self, out: Path, progress: Callable[[str], None]):
         self.out = out
@@ -948,6 +962,7 @@ class StepClock:
 
     def __call__(self, step: str) -> None:
         self._close()
+        release_compiled_programs()
         self.steps.append({"step": step, "seconds": None})
         self.progress(step)
 
