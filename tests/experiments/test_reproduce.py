@@ -126,3 +126,32 @@ def test_the_criticism_reads_ngsim_scenes_after_the_pilots_and_every_other_set_f
     assert criticised_scenes("openacc_vicolungo:human", human, FULL) == list(
         dict.fromkeys(human.scenes["scene_id"])
     )
+
+
+def test_a_step_boundary_releases_the_compiled_programs_of_the_step_before(tmp_path):
+    """Announcing a step drops the engines' cached chunk programs and JAX's own caches, so a
+    jitted function traces again after it (a reproduction kept thousands of programs to its end
+    and ran out of memory)."""
+    import jax
+    import jax.numpy as jnp
+
+    from bayesdrive.experiments.paper import StepClock
+    from bayesdrive.inference.core import vehicles
+
+    traced = []
+
+    @jax.jit
+    def double(x):
+        traced.append(1)
+        return 2 * x
+
+    double(jnp.ones(3))
+    double(jnp.ones(3))
+    vehicles._COMPILED["a kept program"] = object()
+    assert len(traced) == 1
+    clock = StepClock(tmp_path, progress=lambda step: None)
+    clock("the next step")
+    assert "a kept program" not in vehicles._COMPILED
+    double(jnp.ones(3))
+    assert len(traced) == 2
+    assert [row["step"] for row in clock.steps] == ["the next step"]
