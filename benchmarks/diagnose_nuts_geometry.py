@@ -1,6 +1,6 @@
-"""Why is nuts slow on a model? A short nuts fit of the IDM and of ``--model`` on the same
-trafficgen followers (the data of ``bench_crosscheck_convergence.py`` for ``--data``), with the
-adapted step sizes and tree depths; and the cost of one log-likelihood gradient of each, on one
+"""Why is nuts slow on a model? A short nuts fit of the IDM and of the model that
+``bench_crosscheck_convergence.py`` fits to ``--data``, on the same trafficgen followers (that
+study's data for ``--data``), each from its own key, with the adapted step sizes and tree depths; and the cost of one log-likelihood gradient of each, on one
 vehicle's series. Prints a markdown report.
 
     python benchmarks/diagnose_nuts_geometry.py --data drifting_parameters --seed 20261207
@@ -21,6 +21,7 @@ if str(ROOT) not in sys.path:
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
 
 from bayesdrive.data.readers import read  # noqa: E402
 from bayesdrive.data.views import follower_arrays  # noqa: E402
@@ -31,7 +32,7 @@ from bayesdrive.inference.core.likelihood import (  # noqa: E402
     step_inputs,
 )
 from bayesdrive.inference.fit import fit  # noqa: E402
-from benchmarks.bench_crosscheck_convergence import DATA, generate_data  # noqa: E402
+from benchmarks.bench_crosscheck_convergence import DATA, generate_data, markdown  # noqa: E402
 
 REPEATS = 50
 
@@ -58,7 +59,7 @@ def nuts_row(key, data, model, followers: int, draws: int, seed: int) -> dict:
         "tree_depth_max": int(stats["tree_depth"].max()),
         "leapfrog_steps_mean": round(float(stats["n_steps"].mean()), 1),
         "step_size (vehicle x chain)": np.array2string(
-            stats["step_size"].values, precision=6, separator=", "
+            stats["step_size"].values, precision=6, separator=", ", max_line_width=1000
         ),
         "divergences": int(stats["diverging"].sum()),
     }
@@ -87,13 +88,6 @@ def gradient_row(model, arrays, vehicle: int) -> dict:
     return {"model": model.name, "steps": int(series.mask.sum()), **times}
 
 
-def markdown(rows: list[dict]) -> str:
-    head = list(rows[0])
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
-    lines += ["| " + " | ".join(str(r[h]) for h in head) + " |" for r in rows]
-    return "\n".join(lines)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default="drifting_parameters", choices=sorted(DATA))
@@ -106,17 +100,20 @@ def main() -> None:
         data = read(path, format="ngsim_raw")
         arrays = follower_arrays(data, window="fit")
         models = [get_model("idm"), get_model(DATA[args.data][1])]
-        key = jax.random.key(args.seed)
-        fits = [nuts_row(key, data, m, args.followers, args.draws, args.seed) for m in models]
+        keys = jax.random.split(jax.random.key(args.seed), len(models))
+        fits = [
+            nuts_row(k, data, m, args.followers, args.draws, args.seed)
+            for k, m in zip(keys, models, strict=True)
+        ]
         gradients = [gradient_row(m, arrays, 0) for m in models]
     print(
         f"`python benchmarks/diagnose_nuts_geometry.py --data {args.data} --followers "
         f"{args.followers} --draws {args.draws} --seed {args.seed}`\n"
     )
     print("## nuts, 2 chains, no extension\n")
-    print(markdown(fits))
+    print(markdown(pd.DataFrame(fits)))
     print("\n## One vehicle's log-likelihood, at the model's defaults\n")
-    print(markdown(gradients))
+    print(markdown(pd.DataFrame(gradients)))
 
 
 if __name__ == "__main__":
