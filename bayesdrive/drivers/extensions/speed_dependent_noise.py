@@ -77,7 +77,8 @@ def speed_dependent_sd(base: DriverModel) -> Callable[[Any, Any], Array]:
 @functools.cache
 def with_speed_dependent_noise(base: DriverModel) -> ExtendedModel:
     """``base`` (any exactly observed model with white noise, a ``mean`` extension included) with
-    execution noise sd sigma (1 + k v) / (1 + k v_ref) (module docstring); it reads what ``base`` reads."""
+    execution noise sd sigma (1 + k v) / (1 + k v_ref) (module docstring); it reads what ``base``
+    reads."""
     check_white_noise(base, CAUSE)
 
     def mean_acceleration(params, state: EgoState, inputs) -> Array:
