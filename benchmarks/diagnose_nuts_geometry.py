@@ -20,7 +20,6 @@ if str(ROOT) not in sys.path:
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from bayesdrive.data.readers import read  # noqa: E402
@@ -37,7 +36,7 @@ from benchmarks.bench_crosscheck_convergence import DATA, generate_data, markdow
 REPEATS = 50
 
 
-def nuts_row(key, data, model, followers: int, draws: int, seed: int) -> dict:
+def nuts_row(key, data, model, followers: int, draws: int, seed: int, init_candidates: int) -> dict:
     started = time.perf_counter()
     tree = fit(
         key,
@@ -50,6 +49,7 @@ def nuts_row(key, data, model, followers: int, draws: int, seed: int) -> dict:
         warmup=draws,
         chains=2,
         max_extension=1,
+        init_candidates=init_candidates,
     )
     stats = tree["sample_stats"].to_dataset()
     return {
@@ -58,8 +58,9 @@ def nuts_row(key, data, model, followers: int, draws: int, seed: int) -> dict:
         "tree_depth_mean": round(float(stats["tree_depth"].mean()), 2),
         "tree_depth_max": int(stats["tree_depth"].max()),
         "leapfrog_steps_mean": round(float(stats["n_steps"].mean()), 1),
-        "step_size (vehicle x chain)": np.array2string(
-            stats["step_size"].values, precision=6, separator=", ", max_line_width=1000
+        # One line, so the markdown row holds (a 2-d array prints a line per vehicle).
+        "step_size (vehicle x chain)": str(
+            [[float(f"{x:.3g}") for x in row] for row in stats["step_size"].values]
         ),
         "divergences": int(stats["diverging"].sum()),
     }
@@ -94,6 +95,9 @@ def main() -> None:
     parser.add_argument("--followers", type=int, default=2)
     parser.add_argument("--draws", type=int, default=200, help="draws and warm-up per chain")
     parser.add_argument("--seed", type=int, required=True)
+    parser.add_argument(
+        "--init-candidates", type=int, default=1, help="uniform start draws per chain, best kept"
+    )
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as folder:
         path = generate_data(args.data, args.seed, args.followers, 60.0, Path(folder))
@@ -102,13 +106,14 @@ def main() -> None:
         models = [get_model("idm"), get_model(DATA[args.data][1])]
         keys = jax.random.split(jax.random.key(args.seed), len(models))
         fits = [
-            nuts_row(k, data, m, args.followers, args.draws, args.seed)
+            nuts_row(k, data, m, args.followers, args.draws, args.seed, args.init_candidates)
             for k, m in zip(keys, models, strict=True)
         ]
         gradients = [gradient_row(m, arrays, 0) for m in models]
     print(
         f"`python benchmarks/diagnose_nuts_geometry.py --data {args.data} --followers "
-        f"{args.followers} --draws {args.draws} --seed {args.seed}`\n"
+        f"{args.followers} --draws {args.draws} --seed {args.seed} --init-candidates "
+        f"{args.init_candidates}`\n"
     )
     print("## nuts, 2 chains, no extension\n")
     print(markdown(pd.DataFrame(fits)))

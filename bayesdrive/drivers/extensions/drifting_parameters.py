@@ -8,11 +8,17 @@ The time gap is :math:`\tau_t = \tau + u_t` with a hidden offset that starts at 
 
 before each step's acceleration :math:`a_t \sim N(a_{base}(\tau + u_{t+1}), \sigma^2)` (the drifted
 time gap is kept inside the prior box of :math:`\tau`). A drifting parameter is a hidden state: the
-one-step predictive density of the observed step needs a state filter. Here it is an extended
-Kalman filter on the scalar offset (``filter``): the base rule is linearised in :math:`u` around the
-filtered mean (an exact derivative by ``jax.jvp``), the observed implied acceleration
-:math:`\hat a = 2(\Delta x - v\Delta t)/\Delta t^2` updates it, and the predictive density of the
-position increment has variance :math:`(\Delta t^2/2)^2 (J^2 P + \sigma^2)` around the rule at the
+one-step predictive density of the observed step needs a state filter. Here it is a Kalman filter
+on the scalar offset (``filter``) that linearises the base rule in :math:`u` by a central divided
+difference over one filtered sd, :math:`J = [a(\bar u + \sqrt P) - a(\bar u - \sqrt P)] / 2\sqrt P`
+(the first-order divided-difference filter, Norgaard, Poulsen and Ravn 2000), not by the
+derivative at the mean: the rule has kinks in :math:`u` (the IDM's floored dynamic gap, the clip
+to the box), :math:`J` enters the predictive variance, and a derivative that jumps at a kink made
+the likelihood jump with it, which stalls gradient samplers
+(``reports/convergence/drifting_nuts.md``); the divided difference is continuous wherever the rule
+is. The observed implied acceleration :math:`\hat a = 2(\Delta x - v\Delta t)/\Delta t^2` updates
+the offset, and the predictive density of the position increment has variance
+:math:`(\Delta t^2/2)^2 (J^2 P + \sigma^2)` around the rule at the
 filtered mean. With :math:`q = 0` it is the base model exactly; otherwise it is an approximation
 whose error is second order in the offset's uncertainty (small: the offset moves by
 :math:`q\sqrt{\Delta t}` per step). A step that ends in a stop censors its acceleration and does not
@@ -68,6 +74,10 @@ DRIFT_SPECS = (
         grid_step=0.01,
     ),
 )
+
+
+# Half-width (s) of the filter's divided difference where the offset is known (module docstring).
+DIFFERENCE_FLOOR = 1e-3
 
 
 class DriftState(NamedTuple):
@@ -133,8 +143,8 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         del key, params
         return DriftState(obs.x, obs.v, jnp.zeros_like(obs.v))
 
-    def ekf(params, steps: Any, *, may_be_censored: bool | Array = True) -> Array:
-        """One-step predictive log densities of one vehicle's steps (T,), by the EKF above."""
+    def offset_filter(params, steps: Any, *, may_be_censored: bool | Array = True) -> Array:
+        """One-step predictive log densities of one vehicle's steps (T,), by the filter above."""
         dt = steps.inputs.dt[0]
         drift_var = params.tau_drift**2 * dt
 
@@ -144,9 +154,13 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
             # After a gap in the data the filter restarts at the fitted time gap.
             mean = jnp.where(usable > 0, mean, 0.0)
             var = jnp.where(usable > 0, var + drift_var, 0.0)
-            rule_at, slope = jax.jvp(
-                lambda u: rule(params, u, v, inputs), (mean,), (jnp.ones_like(mean),)
-            )
+            # The floor keeps the difference (and sqrt's gradient) defined where the offset is
+            # known (var 0, as at a restart): there J^2 P is 0 whatever J is.
+            spread = jnp.sqrt(var + DIFFERENCE_FLOOR**2)
+            rule_at = rule(params, mean, v, inputs)
+            slope = (
+                rule(params, mean + spread, v, inputs) - rule(params, mean - spread, v, inputs)
+            ) / (2.0 * spread)
             state = EgoState(jnp.zeros_like(v), v)
             sigma = base.noise_sd(base_params(base, params), state)
             innovation_var = slope**2 * var + sigma**2
@@ -188,5 +202,5 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         initial_sample=initial_sample,
         inputs_at=inputs_at,
         lift=lift,
-        filter=ekf,
+        filter=offset_filter,
     )

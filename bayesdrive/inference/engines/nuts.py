@@ -114,6 +114,8 @@ class NUTSConfig(NamedTuple):
     target_accept_prob: float = 0.95
     max_tree_depth: int = 10
     dense_mass: bool = False
+    # Each chain starts at the most probable of this many uniform draws in the start radius.
+    init_candidates: int = 1
     # Keep every thin-th post-warm-up draw (an extended run stores as many draws as the first).
     thin: int = 1
 
@@ -132,6 +134,7 @@ class NUTSOptions(TypedDict, total=False):
     target_accept_prob: float
     max_tree_depth: int
     dense_mass: bool
+    init_candidates: int
 
 
 class NUTSInputs(EngineInputs, NUTSOptions, total=False):
@@ -263,9 +266,15 @@ def _nuts_vehicle(
         return functools.partial(potential_energy, vehicle_model, (series,), {})
 
     key_init, key_run = jax.random.split(key)
-    z0 = jax.random.uniform(
-        key_init, (config.num_chains, len(names)), minval=-INIT_RADIUS, maxval=INIT_RADIUS
+    candidates = jax.random.uniform(
+        key_init,
+        (config.num_chains, config.init_candidates, len(names)),
+        minval=-INIT_RADIUS,
+        maxval=INIT_RADIUS,
     )
+    potential = jax.vmap(jax.vmap(lambda z: potential_fn_gen(series)({"theta": z})))(candidates)
+    best = jnp.argmin(jnp.where(jnp.isnan(potential), jnp.inf, potential), axis=1)
+    z0 = jnp.take_along_axis(candidates, best[:, None, None], axis=1)[:, 0]
     draws = sample_nuts(key_run, potential_fn_gen, {"theta": z0}, (series,), config)
     to_box = biject_to(dist.Uniform(box.lower, box.upper).support)
     theta = to_box(draws.z["theta"])
