@@ -9,14 +9,15 @@ The time gap is :math:`\tau_t = \tau + u_t` with a hidden offset that starts at 
 before each step's acceleration :math:`a_t \sim N(a_{base}(\tau + u_{t+1}), \sigma^2)` (the drifted
 time gap is kept inside the prior box of :math:`\tau`). A drifting parameter is a hidden state: the
 one-step predictive density of the observed step needs a state filter. Here it is a Kalman filter
-on the scalar offset (``filter``) that linearises the base rule in :math:`u` by a central divided
-difference over one filtered sd, :math:`J = [a(\bar u + \sqrt P) - a(\bar u - \sqrt P)] / 2\sqrt P`
-(the first-order divided-difference filter, Norgaard, Poulsen and Ravn 2000), not by the
-derivative at the mean: the rule has kinks in :math:`u` (the IDM's floored dynamic gap, the clip
-to the box), :math:`J` enters the predictive variance, and a derivative that jumps at a kink made
-the likelihood jump with it, which stalls gradient samplers
-(``reports/convergence/drifting_nuts.md``); the divided difference is continuous wherever the rule
-is. The observed implied acceleration :math:`\hat a = 2(\Delta x - v\Delta t)/\Delta t^2` updates
+on the scalar offset (``filter``) that linearises the base rule in :math:`u` by a central
+difference, :math:`J = [a(\bar u + h) - a(\bar u - h)] / 2h` with ``DIFFERENCE_STEP`` :math:`h`,
+not by the derivative at the mean: the rule has kinks in :math:`u` (the IDM's floored dynamic gap,
+the clip to the box), :math:`J` enters the predictive variance, and a derivative that jumps at a
+kink made the likelihood jump with it, which stalls gradient samplers
+(``reports/convergence/drifting_nuts.md``); the difference is continuous wherever the rule is. Its
+step is fixed, not the filtered sd (a divided-difference filter's): a slope that depends on the
+variance feeds the variance recursion back on itself, and its gradient then overflowed over a
+series. The observed implied acceleration :math:`\hat a = 2(\Delta x - v\Delta t)/\Delta t^2` updates
 the offset, and the predictive density of the position increment has variance
 :math:`(\Delta t^2/2)^2 (J^2 P + \sigma^2)` around the rule at the
 filtered mean. With :math:`q = 0` it is the base model exactly; otherwise it is an approximation
@@ -76,8 +77,8 @@ DRIFT_SPECS = (
 )
 
 
-# Half-width (s) of the filter's divided difference where the offset is known (module docstring).
-DIFFERENCE_FLOOR = 1e-3
+# Half-width (s) of the filter's central difference in the time-gap offset (module docstring).
+DIFFERENCE_STEP = 0.05
 
 
 class DriftState(NamedTuple):
@@ -154,13 +155,10 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
             # After a gap in the data the filter restarts at the fitted time gap.
             mean = jnp.where(usable > 0, mean, 0.0)
             var = jnp.where(usable > 0, var + drift_var, 0.0)
-            # The floor keeps the difference (and sqrt's gradient) defined where the offset is
-            # known (var 0, as at a restart): there J^2 P is 0 whatever J is.
-            spread = jnp.sqrt(var + DIFFERENCE_FLOOR**2)
             rule_at = rule(params, mean, v, inputs)
-            slope = (
-                rule(params, mean + spread, v, inputs) - rule(params, mean - spread, v, inputs)
-            ) / (2.0 * spread)
+            above = rule(params, mean + DIFFERENCE_STEP, v, inputs)
+            below = rule(params, mean - DIFFERENCE_STEP, v, inputs)
+            slope = (above - below) / (2.0 * DIFFERENCE_STEP)
             state = EgoState(jnp.zeros_like(v), v)
             sigma = base.noise_sd(base_params(base, params), state)
             innovation_var = slope**2 * var + sigma**2
