@@ -16,7 +16,9 @@ model fitted:
   ``leader_acceleration_anticipation`` (``leader_acceleration_response``) and
   ``cut_in_overreaction`` (``cut_in_relaxation``, with cut-ins), each fitted by ``idm+<cause>``;
 * ``ngsim_agreement`` (only when asked for with ``--data``): real data, the 15 NGSIM I-80 followers
-  of ``benchmarks/bench_agreement.py`` (its choice rule, fitting windows), fitted by ``idm``.
+  of ``benchmarks/bench_agreement.py`` (its choice rule, fitting windows), fitted by ``idm``;
+  ``ngsim_agreement+<cause>`` fits ``idm+<cause>`` to the same followers (the issue asks every
+  adoptable extension of them).
 
 Every data set is fitted by ``bayesdrive.inference.fit.fit`` at its defaults (all parameters, 1000
 draws, seed ``--seed``) with smc, nuts and emcee; with the engines as they were before extension
@@ -105,6 +107,11 @@ def write_keeping_findings(target: Path, text: str) -> None:
     write_text_atomic(target, text)
 
 
+def is_ngsim(data: str) -> bool:
+    """Whether ``data`` names the NGSIM followers (``ngsim_agreement``, or with ``+<cause>``)."""
+    return data == NGSIM or data.startswith(NGSIM + "+")
+
+
 def generate_data(data: str, seed: int, followers: int, duration: float, folder: Path) -> Path:
     from trafficgen import generate
 
@@ -135,7 +142,7 @@ def one_run(data: str, run: str, seed: int, followers: int, duration: float, fol
     from bayesdrive.inference.diagnostics.agreement import convergence_table
     from bayesdrive.inference.fit import fit
 
-    if data == NGSIM:
+    if is_ngsim(data):
         from bayesdrive.data.registry import load
         from bayesdrive.data.views import follower_arrays
         from benchmarks.bench_agreement import DATA as AGREEMENT_DATA
@@ -143,8 +150,13 @@ def one_run(data: str, run: str, seed: int, followers: int, duration: float, fol
 
         traj = load(AGREEMENT_DATA)
         vehicles = choose_vehicles(traj, NGSIM_VEHICLES)
-        # Arrays, not a subset: a subset would drop the leaders whose speeds the followers need.
-        data_in, limit, model = follower_arrays(traj, window="fit", vehicle_ids=vehicles), {}, IDM
+        if data == NGSIM:
+            # Arrays, not a subset: a subset would drop the leaders whose speeds the followers need.
+            data_in, limit = follower_arrays(traj, window="fit", vehicle_ids=vehicles), {}
+            model = IDM
+        else:  # an extension builds its own inputs (a scene, a second leader) from the recording
+            data_in, limit = traj, {"vehicle_ids": vehicles}
+            model = get_model("idm" + data.removeprefix(NGSIM))
     else:
         path = generate_data(data, seed, followers, duration, Path(folder))
         data_in, limit = read(path, format="ngsim_raw"), {"max_vehicles": followers}
@@ -243,12 +255,12 @@ def agreement(data: str, runs: list[str], folder: Path) -> list[dict]:
 def described(data_sets: list[str], args: argparse.Namespace) -> str:
     """The data of a run, in words, for the report's header."""
     parts = []
-    if any(d != NGSIM for d in data_sets):
+    if any(not is_ngsim(d) for d in data_sets):
         parts.append(
             f"trafficgen, {args.followers} followers of {args.duration:g} s per data set "
             f"(seed {args.seed})"
         )
-    if NGSIM in data_sets:
+    if any(is_ngsim(d) for d in data_sets):
         parts.append(
             f"the {NGSIM_VEHICLES} NGSIM I-80 followers of benchmarks/bench_agreement.py "
             "(fitting windows)"
@@ -261,7 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("reports"))
     parser.add_argument("--followers", type=int, default=24)
     parser.add_argument("--duration", type=float, default=60.0, help="seconds per follower")
-    parser.add_argument("--data", default=",".join(DATA), help=f"among {', '.join([*DATA, NGSIM])}")
+    parser.add_argument(
+        "--data", default=",".join(DATA), help=f"among {', '.join([*DATA, NGSIM])}, {NGSIM}+<cause>"
+    )
     parser.add_argument("--runs", default=",".join(RUNS), help=f"among {', '.join(RUNS)}")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--jobs", type=int, default=1)
@@ -277,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
         tmp = str(args.keep or scratch)
         Path(tmp).mkdir(parents=True, exist_ok=True)
         for data in data_sets:  # written once, before the jobs read them
-            if data != NGSIM:
+            if not is_ngsim(data):
                 generate_data(data, args.seed, args.followers, args.duration, Path(tmp))
         jobs = [(data, run) for data in data_sets for run in runs]
         context = multiprocessing.get_context("spawn")
