@@ -185,7 +185,6 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
             step,
             (zero, zero),
             (steps.inputs, steps.v, steps.next_v, steps.dx, steps.mask),
-            unroll=8,  # the step is tiny: unrolling cuts the loop overhead that dominates it
         )
         return logp
 
