@@ -1,7 +1,8 @@
 """Why is nuts slow on a model? A short nuts fit of the IDM and of the model that
 ``bench_crosscheck_convergence.py`` fits to ``--data``, on the same trafficgen followers (that
-study's data for ``--data``), each from its own key, with the adapted step sizes and tree depths; and the cost of one log-likelihood gradient of each, on one
-vehicle's series. Prints a markdown report.
+study's data for ``--data``), each from its own key, with the adapted step sizes and tree depths;
+and the cost of one log-likelihood gradient of each, on one vehicle's series. Prints a markdown
+report.
 
     python benchmarks/diagnose_nuts_geometry.py --data drifting_parameters --seed 20261207
 """

@@ -549,8 +549,8 @@ def test_drift_filter_prefers_the_true_drift():
 def drift_log_likelihood(tmp_path):
     """The drift model's log-likelihood on the unconstrained scale (NumPyro's logit of the box), on
     the independent generator's drifting time gap (``time_gap_drift``, amplitude drawn in
-    0.2-0.35 of tau, 60 s, seed 20261207, the first follower with steps; 419 steps), vectorised
-    over points; and the number of parameters."""
+    0.2-0.35 of tau, 60 s, seed 20261207, the first follower with steps; 419 steps), as a function
+    of one point; and the parameters' names."""
     from bayesdrive.data.readers import read
     from bayesdrive.data.views import follower_arrays
     from bayesdrive.drivers.registry import get_model

@@ -22,7 +22,7 @@ the offset, and the predictive density of the position increment has variance
 :math:`(\Delta t^2/2)^2 (J^2 P + \sigma^2)` around the rule at the
 filtered mean. With :math:`q = 0` it is the base model exactly; otherwise it is an approximation
 whose error is second order in the offset's uncertainty (small: the offset moves by
-:math:`q\sqrt{\Delta t}` per step). A step that ends in a stop censors its acceleration and does not
+:math:`q\sqrt{\Delta t}` per step) and in :math:`h` where the rule is smooth. A step that ends in a stop censors its acceleration and does not
 update the filter. The filter restarts (offset 0, known) after a gap in the data; the latent-state
 particle filter of :mod:`bayesdrive.inference.engines.pmmh` targets noisy positions, not exactly observed
 states with a hidden parameter, so it is not used here.
