@@ -180,6 +180,10 @@ def _by_vehicle(checks: list[Check], path: Path) -> Path:
     return _save(fig, path)
 
 
+# The causes figure's bar colours: better than the current model, worse, neither.
+BETTER, WORSE, NEUTRAL = "#4a9a4a", "#c0504d", "#999999"
+
+
 def _causes(result: CriticismResult, path: Path) -> Path:
     report = result.report
     scores = {
@@ -214,12 +218,19 @@ def _causes(result: CriticismResult, path: Path) -> Path:
         # None: not fitted, or not computable (e.g. no rollouts, a non-finite density).
         values = [g[field] if g and g[field] is not None else np.nan for g in gains]
         errors = [2 * g[se_field] if g and g[se_field] is not None else 0.0 for g in gains]
-        colours = ["#4a9a4a" if g and g["significant"] else "#999999" for g in gains]
+        if field == "rmse_position_change":  # no test decides this change: its sign, +-2 se
+            colours = [
+                BETTER if v + e < 0 else WORSE if v - e > 0 else NEUTRAL
+                for v, e in zip(values, errors, strict=True)
+            ]
+        else:
+            colours = [BETTER if g and g["significant"] else NEUTRAL for g in gains]
         ax.barh(y, values, xerr=errors, color=colours)
         ax.axvline(0, color="k", lw=0.8)
         ax.set_yticks(y, [] if ax is not axes[0] else names)
         ax.set_xlabel(label + ", +-2 se")
     axes[1].set_title(f"verdict: {report['verdict']} (green: significant after Holm)", fontsize=9)
+    axes[2].set_title("green: lower, red: higher, by more than 2 se", fontsize=9)
     adopted = ", ".join(report.get("adopted", [])) or "nothing"
     axes[3].set_title(f"adopted: {adopted} (green: better after Holm)", fontsize=9)
     return _save(fig, path)

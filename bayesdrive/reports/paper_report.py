@@ -87,6 +87,12 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
                 "min TTC < 1.5 s, share (data)": _realism(
                     result, "min_ttc", "share_critical", ".1%"
                 ),
+                "speed-variation amplification per vehicle (data)": _realism(
+                    result, "string_stability", "amplification", ".2f"
+                ),
+                "wave speed upstream, m/s (data)": _realism(
+                    result, "wave_speed_mps", "upstream", ".1f"
+                ),
                 "CRPS position at 5 s (m)": _scored(result, "crps_position_m"),
                 "energy score of the (gap, speed) path (1 m, 1 m/s)": _scored(
                     result, "energy_score_path"
@@ -99,11 +105,16 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
 
 def _realism(result: dict[str, Any], measure: str, name: str, spec: str) -> str:
     """A realism measure of the simulation with the data's beside it, "-" for results written
-    before it was measured."""
+    before it was measured and for a value that could not be (no pair to measure it on)."""
     if measure not in result:
         return "-"
     entry = result[measure]
-    return f"{entry[f'simulated_{name}']:{spec}} ({entry[f'observed_{name}']:{spec}})"
+
+    def value(side: str) -> str:
+        found = entry[f"{side}_{name}"]
+        return "-" if found is None else f"{found:{spec}}"
+
+    return f"{value('simulated')} ({value('observed')})"
 
 
 def _scored(result: dict[str, Any], name: str) -> str:

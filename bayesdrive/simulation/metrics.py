@@ -25,6 +25,9 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   distance of its distribution to the data's) and the share of vehicles whose minimum
   time-to-collision (gap over the closing speed read from the gap) falls below
   ``CRITICAL_TTC_S``, for the rollouts and for the observed vehicles alike.
+* **Platoons** (:mod:`bayesdrive.simulation.platoon`): string stability, as the amplification of
+  speed variation from each vehicle to the next, and the speed at which waves travel back
+  (Newell's shift), for the rollouts and for the observed chain alike; merge scenes have none.
 * **Off road**: vehicle-steps past the end of the vehicle's lane. No simulated vehicle of the
   current scene types drives on a lane that ends (in merge scenes the merging car replays), so
   this is 0 by construction there; it counts for scenes that simulate merging cars.
@@ -49,6 +52,7 @@ from scipy import stats
 from bayesdrive.drivers.closed_loop import STATIONARY
 from bayesdrive.simulation.baselines import Policy
 from bayesdrive.simulation.calibration import crps, energy_score
+from bayesdrive.simulation.platoon import platoon_measures, platoon_summary
 from bayesdrive.simulation.rollout import HARD_BRAKING_MPS2, Rollout, rollout, scene_arrays
 from bayesdrive.simulation.scenarios import Scenario, ScenarioSet
 
@@ -79,7 +83,9 @@ class Observed(NamedTuple):
 
     x, v, gap: (N, T + 1) observed position (from the scenario's origin), speed and bumper gap
     of the simulated vehicles (gap NaN where there is no leader). step_mask: (T,) 1 for real
-    steps (0: past the end of the scene). dt: step length (s).
+    steps (0: past the end of the scene). dt: step length (s). head_x, head_v: (T + 1,) the
+    replayed head of a platoon (each simulated vehicle follows the one before it); None for a
+    scene that is not a chain (a merge), which has no platoon measures.
     """
 
     x: np.ndarray
@@ -87,6 +93,8 @@ class Observed(NamedTuple):
     gap: np.ndarray
     step_mask: np.ndarray
     dt: float
+    head_x: np.ndarray | None = None
+    head_v: np.ndarray | None = None
 
 
 class ScenarioMetrics(NamedTuple):
@@ -122,7 +130,9 @@ class ScenarioMetrics(NamedTuple):
 class DistributionSamples(NamedTuple):
     """Speeds and gaps of every real simulated vehicle-step (t >= 1) and of the data there; the
     jerk of every real step with two real steps after it (:func:`realised_jerk`); each simulated
-    vehicle-rollout's and each observed vehicle's minimum time-to-collision (:func:`minimum_ttc`)."""
+    vehicle-rollout's and each observed vehicle's minimum time-to-collision (:func:`minimum_ttc`);
+    on a platoon, each consecutive pair's speed variances and Newell shift
+    (:func:`~bayesdrive.simulation.platoon.platoon_measures`; (0, 2) arrays elsewhere)."""
 
     simulated_speed: np.ndarray
     observed_speed: np.ndarray
@@ -132,16 +142,23 @@ class DistributionSamples(NamedTuple):
     observed_jerk: np.ndarray
     simulated_min_ttc: np.ndarray
     observed_min_ttc: np.ndarray
+    simulated_speed_variances: np.ndarray
+    observed_speed_variances: np.ndarray
+    simulated_newell_shifts: np.ndarray
+    observed_newell_shifts: np.ndarray
 
 
 def observed_data(scenario: Scenario) -> Observed:
     """The observed simulated vehicles of a scenario, positions from the scenario's origin."""
+    chain = scenario.merge_x.shape[0] == 0  # a merge scene's followed car changes
     return Observed(
         x=scenario.x[1:] - scenario.origin,
         v=scenario.v[1:],
         gap=scenario.gap,
         step_mask=scenario.step_mask,
         dt=scenario.dt,
+        head_x=scenario.x[0] - scenario.origin if chain else None,
+        head_v=scenario.v[0] if chain else None,
     )
 
 
@@ -232,6 +249,16 @@ def distribution_samples(rollout: Rollout, observed: Observed) -> DistributionSa
     states = slice(0, int(np.flatnonzero(real)[-1]) + 1 if real.any() else 1)
     simulated_v = np.asarray(rollout.v, np.float64)
     simulated_gap = np.asarray(rollout.gap, np.float64)
+    none = np.zeros((0, 2))
+    simulated_platoon = observed_platoon = (none, none)
+    if observed.head_x is not None:
+        head = (observed.head_x[states], observed.head_v[states])
+        simulated_platoon = platoon_measures(
+            *head, np.asarray(rollout.x)[..., states], simulated_v[..., states], observed.dt
+        )
+        observed_platoon = platoon_measures(
+            *head, observed.x[:, states], observed.v[:, states], observed.dt
+        )
     return DistributionSamples(
         simulated_speed=simulated_v[:, real_steps].ravel(),
         observed_speed=observed.v[real_steps],
@@ -241,9 +268,14 @@ def distribution_samples(rollout: Rollout, observed: Observed) -> DistributionSa
         observed_jerk=realised_jerk(observed.v[:, states], observed.dt).ravel(),
         simulated_min_ttc=minimum_ttc(simulated_gap[..., states], observed.dt).ravel(),
         observed_min_ttc=minimum_ttc(observed.gap[:, states], observed.dt).ravel(),
+        simulated_speed_variances=simulated_platoon[0],
+        observed_speed_variances=observed_platoon[0],
+        simulated_newell_shifts=simulated_platoon[1],
+        observed_newell_shifts=observed_platoon[1],
     )
 
 
+SIDES = ("simulated", "observed")
 # A minimum time-to-collision below this is a critical conflict (a threshold common in traffic
 # conflict studies).
 CRITICAL_TTC_S = 1.5
@@ -252,8 +284,8 @@ CRITICAL_TTC_S = 1.5
 def _realism(pooled: Callable[[str], np.ndarray]) -> dict[str, Any]:
     """Jerk and minimum time-to-collision of the simulation, each beside the data's, from the
     samples ``pooled`` over the scenarios (by :class:`DistributionSamples` field)."""
-    jerk = {side: pooled(f"{side}_jerk") for side in ("simulated", "observed")}
-    ttc = {side: pooled(f"{side}_min_ttc") for side in ("simulated", "observed")}
+    jerk = {side: pooled(f"{side}_jerk") for side in SIDES}
+    ttc = {side: pooled(f"{side}_min_ttc") for side in SIDES}
     return {
         "jerk_mps3": {
             **{f"{side}_rms": float(np.sqrt(np.mean(j**2))) for side, j in jerk.items()},
@@ -385,6 +417,10 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
         ),
         "speed_density": speed_density(pooled("simulated_speed"), pooled("observed_speed")),
         **_realism(pooled),
+        **platoon_summary(
+            {side: pooled(f"{side}_speed_variances") for side in SIDES},
+            {side: pooled(f"{side}_newell_shifts") for side in SIDES},
+        ),
         "by_scenario": [
             {
                 "scenario": m.scenario_id,
