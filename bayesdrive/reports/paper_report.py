@@ -21,6 +21,7 @@ from bayesdrive.drivers.registry import MODELS
 from bayesdrive.inference.diagnostics.agreement import agreement_summary, agreement_table
 from bayesdrive.reports.filter_plots import plot_convergence
 from bayesdrive.reports.html import Report, Section
+from bayesdrive.simulation.platoon import CONGESTED_SPEED
 from bayesdrive.simulation.two_sample import BOOSTING
 
 __all__ = ["build_report"]
@@ -33,6 +34,15 @@ PAPER_NOTE = (
     "root mean square over vehicles and rollouts, and the paper's variant is shown beside it."
 )
 
+PLATOON_NOTE = (
+    "Realism columns give the simulation's value with the observed platoon's in brackets. "
+    "Speed-variation amplification per vehicle (string stability): how much a follower's speed "
+    "varies over the window against the vehicle ahead of it, pooled over consecutive pairs; above "
+    "1, disturbances grow down the platoon. Wave speed: the speed at which a change of speed "
+    "travels back, from Newell's shift between consecutive vehicles, on congested pairs only "
+    f"(mean speed at most {CONGESTED_SPEED:g} m/s); '-' where no pair is congested and varies its "
+    "speed."
+)
 
 # Every driver-model parameter's unit, for table headers and axis labels.
 UNITS = {spec.name: spec.unit for model in MODELS.values() for spec in model.specs}
@@ -509,6 +519,7 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
 
     highway = report.section("Highway experiment (the paper's table of RMSE and collisions)")
     highway.note(PAPER_NOTE)
+    highway.note(PLATOON_NOTE)
     for label, experiment in results["highway"].items():
         scenes = experiment["scenario_set"]
         highway.text(
