@@ -407,7 +407,7 @@ def fit(
 def forecast(run: Run, extended: ExtendedModel, fitted: FitResult) -> Rollouts:
     """Rollouts of ``fitted`` on the run's held-out windows, from the ``filtered`` start where the
     simulator filters the model's hidden state; every model shares one key (module docstring)."""
-    start = forecast_start(extended.model)
+    start = forecast_start(extended.model, whole_history=True)
     if start != FILTERED and run.windows.row.size:
         run.say(f"{extended.name}: rollouts start {start} (its hidden state is not filtered)")
     return rollout(

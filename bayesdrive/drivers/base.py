@@ -21,6 +21,9 @@ ONE vehicle and ONE parameter particle; callers ``vmap`` them over particles and
   (identity unless the state remembers more than position and speed, e.g. the last noise).
 * ``filter(params, steps) -> (T,)``: for a model with a hidden state, the one-step predictive log
   densities of one vehicle's steps from a state filter; None when each step is scored on its own.
+* ``filtered_start``: optional, for a model with a hidden state, how a forecast starts from the
+  observed history (:class:`FilteredStart`: the filter's law of the hidden state before a step of
+  one vehicle's series, and a draw of the full state from it).
 * ``censored(state, next_state, inputs) -> bool``: optional, whether an observed step (the
   observed states, relative to the current step, and the model's inputs) may be scored by a class
   probability (a stop, a step at a physical limit), from the data alone. A model that declares it
@@ -66,6 +69,7 @@ __all__ = [
     "CarFollowingInputs",
     "DriverModel",
     "EgoState",
+    "FilteredStart",
     "ParamSpec",
     "PriorBox",
     "Series",
@@ -207,6 +211,19 @@ class PriorBox(NamedTuple):
         )
 
 
+class FilteredStart(NamedTuple):
+    """How a forecast of a model with a hidden state starts from observed data.
+
+    ``law(params, series, until) -> law``: the hidden state's law at step ``until`` of one
+    vehicle's :class:`Series` (fields (T,)), from the model's state filter run over the usable
+    steps before it (any pytree). ``draw(key, params, state, law) -> state``: the full state at the
+    observed ``state`` (position and speed), its hidden part drawn from ``law``.
+    """
+
+    law: Callable[[Any, Series, Array], Any]
+    draw: Callable[[Array, Any, EgoState, Any], Any]
+
+
 class DriverModel(NamedTuple):
     """A driver model: parameter layout, prior and the pure per-vehicle functions.
 
@@ -226,6 +243,7 @@ class DriverModel(NamedTuple):
     inputs_at: Callable[[Series, Array, int], Any] = car_following_at
     lift: Callable[[Any, EgoState, Any], Any] = observed_lift
     filter: Callable[[Any, Any], Array] | None = None
+    filtered_start: FilteredStart | None = None
     reads_history: bool = False
     censored: Callable[[EgoState, EgoState, Any], Array] | None = None
     observation: str = EXACT

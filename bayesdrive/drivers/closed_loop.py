@@ -29,9 +29,13 @@ whose first ``K = history_steps(dt)`` steps hold the past before the start.
   (``SceneArrays.past``), so a reaction delay perceives what the driver saw, and the model's extra
   state is the one its observed history implies (``model.lift``: the autocorrelated noise recovers
   its last residual), per posterior draw. That is exact filtering for a model whose state is
-  observed exactly; a model with a hidden state (an observation model, a drifting parameter:
-  ``model.filter``) would need a particle filter over that state, which this simulator does not
-  run, so the filtered start refuses it (:func:`check_start`).
+  observed exactly. A model with a hidden state (a drifting parameter: ``model.filter``) starts
+  from the law its state filter gives at t0 (``model.filtered_start``): the caller, who holds the
+  window's whole observed history, runs the filter per posterior draw and hands the laws in
+  (``laws``; the held-out windows of :mod:`bayesdrive.simulation.follower_rollout` do), and each
+  rollout draws its hidden state from its law with its ``init`` keys. Without laws, or for a model
+  without a ``filtered_start`` (an observation model), the filtered start is refused
+  (:func:`check_start`).
 
 **Keys** (:func:`rollout_keys`): the key splits into one key per rollout; a rollout key splits
 into ``init`` (one key per vehicle for ``initial_sample``) and ``steps`` (one key per step, each
@@ -156,24 +160,40 @@ def rollout_keys(key: Array, num_steps: int, num_vehicles: int) -> RolloutKeys:
     )
 
 
-def forecast_start(model: DriverModel) -> str:
-    """The start a forecast of ``model`` takes: ``filtered`` where the simulator can filter its
-    state, else ``stationary`` (a hidden state: callers record which start they used)."""
-    return FILTERED if model.observed_exactly and model.filter is None else STATIONARY
+def forecast_start(model: DriverModel, *, whole_history: bool = False) -> str:
+    """The start a forecast of ``model`` takes: ``filtered`` where its state can be filtered from
+    the observed history, else ``stationary`` (callers record which start they used). A hidden
+    state is filtered only by a caller that holds each window's ``whole_history`` (module
+    docstring)."""
+    if not model.observed_exactly:
+        return STATIONARY
+    if model.filter is None:
+        return FILTERED
+    return FILTERED if whole_history and model.filtered_start is not None else STATIONARY
 
 
-def check_start(model: DriverModel, start: str, has_past: bool) -> None:
-    """Refuse a start this simulator cannot give ``model`` on a scene (module docstring)."""
+def check_start(
+    model: DriverModel, start: str, has_past: bool, *, whole_history: bool = False
+) -> None:
+    """Refuse a start this simulator cannot give ``model`` on a scene (module docstring);
+    ``whole_history``: the caller hands in the filtered laws of a hidden state."""
     if start not in STARTS:
         raise ValueError(f"unknown start {start!r}; the starts are {list(STARTS)}")
     if start != FILTERED:
         return
-    if forecast_start(model) != FILTERED:
-        hidden = model.observation if not model.observed_exactly else "a filtered hidden state"
+    if forecast_start(model, whole_history=whole_history) != FILTERED:
+        if not model.observed_exactly:
+            why = f"it is observed through {model.observation}, which the simulator does not filter"
+        elif model.filtered_start is None:
+            why = "it has a hidden state and brings no filtered start"
+        else:
+            why = (
+                "its hidden state is filtered over each window's whole history, and no filtered "
+                "laws were handed in (held-out follower windows hand them in)"
+            )
         raise ValueError(
-            f"the {FILTERED!r} start lifts the state from the observed history; {model.name!r} "
-            f"has a hidden state ({hidden}) that would need a particle filter, which the "
-            f"simulator does not run: use start={STATIONARY!r}"
+            f"the {FILTERED!r} start cannot start {model.name!r} from the observed history: "
+            f"{why}; use start={STATIONARY!r}"
         )
     if not has_past:
         raise ValueError(
@@ -317,6 +337,7 @@ def _one_rollout(
     model: DriverModel,
     params: Any,
     scene: SceneArrays,
+    laws: Any,
     history: int,
     past: int,
     start: str,
@@ -329,6 +350,8 @@ def _one_rollout(
     here = EgoState(x=jnp.zeros_like(scene.v0), v=scene.v0)
     if stationary:
         state = jax.vmap(model.initial_sample)(keys.init, params, here)
+    elif laws is not None:  # a hidden state, filtered by the caller over the whole history
+        state = jax.vmap(model.filtered_start.draw)(keys.init, params, here, laws)
     else:
         inputs = jax.vmap(lambda row: model.inputs_at(row, past, history))(buffer)
         state = jax.vmap(model.lift)(params, here, inputs)
@@ -364,20 +387,25 @@ def _one_rollout(
 
 
 def _static_arguments(
-    model: DriverModel, dt: float, start: str, scene: SceneArrays, num_rollouts: int
+    model: DriverModel,
+    dt: float,
+    start: str,
+    scene: SceneArrays,
+    num_rollouts: int,
+    has_laws: bool = False,
 ) -> dict[str, Any]:
     """The compiled rollouts' static arguments, after the start's check: the history a model
     reads and the buffer's past (steps before t0)."""
-    check_start(model, start, scene.past is not None)
+    check_start(model, start, scene.past is not None, whole_history=has_laws)
     past = history_steps(dt)
     history = past if model.reads_history else 0
     return {"num_rollouts": num_rollouts, "history": history, "past": past, "start": start}
 
 
-def _scene_rollouts(key, model, params, scene, num_rollouts, history, past, start):
+def _scene_rollouts(key, model, params, scene, num_rollouts, history, past, start, laws=None):
     keys = jax.random.split(key, num_rollouts)
-    return jax.vmap(_one_rollout, in_axes=(0, None, 0, None, None, None, None))(
-        keys, model, params, scene, history, past, start
+    return jax.vmap(_one_rollout, in_axes=(0, None, 0, None, 0, None, None, None))(
+        keys, model, params, scene, laws, history, past, start
     )
 
 
@@ -386,11 +414,13 @@ _rollouts = jax.jit(_scene_rollouts, static_argnames=_STATIC)
 
 
 @partial(jax.jit, static_argnames=_STATIC)
-def _rollouts_per_scene(keys, model, params, scenes, num_rollouts, history, past, start):
-    def one_scene(key, scene_params, scene):
-        return _scene_rollouts(key, model, scene_params, scene, num_rollouts, history, past, start)
+def _rollouts_per_scene(keys, model, params, scenes, laws, num_rollouts, history, past, start):
+    def one_scene(key, scene_params, scene, scene_laws):
+        return _scene_rollouts(
+            key, model, scene_params, scene, num_rollouts, history, past, start, scene_laws
+        )
 
-    return jax.vmap(one_scene)(keys, params, scenes)
+    return jax.vmap(one_scene)(keys, params, scenes, laws)
 
 
 def rollout(
@@ -424,9 +454,12 @@ def rollout_scenes(
     num_rollouts: int,
     start: str,
     dt: float,
+    laws: Any = None,
 ) -> Rollout:
     """:func:`rollout` of each of a batch of scenes of one shape (every leaf of ``scenes`` with a
     leading scene axis S), scene s with ``keys[s]`` and ``params`` leaves (S, R, N); the result's
-    leaves lead with (S, R, N)."""
-    static = _static_arguments(model, dt, start, scenes, num_rollouts)
-    return _rollouts_per_scene(keys, model, params, scenes, **static)
+    leaves lead with (S, R, N). ``laws``: for the ``filtered`` start of a model with a hidden
+    state, its filter's laws at t0 (``model.filtered_start.law``; leaves (S, R, N), like
+    ``params``)."""
+    static = _static_arguments(model, dt, start, scenes, num_rollouts, laws is not None)
+    return _rollouts_per_scene(keys, model, params, scenes, laws, **static)

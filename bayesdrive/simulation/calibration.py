@@ -199,7 +199,7 @@ def predictive_calibration(
     key_rollout, key_ties = jax.random.split(key)
     for start in STARTS_SHOWN:
         try:
-            check_start(model, start, has_past=True)
+            check_start(model, start, has_past=True, whole_history=True)
         except ValueError as refused:
             out["starts"][start] = {"error": str(refused)}
             continue

@@ -12,7 +12,10 @@ follower,
 
 and float32 never holds a kilometre-sized position. Each scene carries the data's series over the
 steps before the window as its past, so the ``filtered`` start (the default: a forecast) reads
-the observed history, and ``stationary`` is the same window without it.
+the observed history, and ``stationary`` is the same window without it. A model with a hidden
+state (a drifting parameter) is filtered over the vehicle's whole series before the window, per
+rollout's posterior draw (``model.filtered_start``), and each rollout draws its hidden state from
+that law.
 
 Windows are fixed by rule, never by results: consecutive, non-overlapping windows from the first
 scored held-out step, kept when every step of the window is scored.
@@ -20,7 +23,8 @@ scored held-out step, kept when every step of the window is scored.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from functools import partial
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +32,7 @@ import numpy as np
 from jax import Array
 
 from bayesdrive.data.views import FollowerArrays, history_steps
-from bayesdrive.drivers.base import Series, device_series, fill_params
+from bayesdrive.drivers.base import DriverModel, Series, device_series, fill_params
 from bayesdrive.drivers.closed_loop import FILTERED, SceneArrays, rollout_scenes
 from bayesdrive.drivers.extensions.compose import ExtendedModel
 
@@ -127,6 +131,25 @@ def _window_scenes(data: Series, windows: RolloutWindows, past: int) -> SceneArr
     return jax.vmap(one)(jnp.asarray(windows.row), jnp.asarray(windows.start))
 
 
+@partial(jax.jit, static_argnames="model")
+def _window_laws(model: DriverModel, params: Any, data: Series, rows: Array, starts: Array) -> Any:
+    def one_window(window):
+        window_params, row, until = window
+        vehicle = jax.tree.map(lambda a: a[row], data)
+        law = jax.vmap(lambda p: model.filtered_start.law(p, vehicle, until))  # one vehicle
+        return jax.vmap(law)(window_params)  # over rollouts
+
+    # One window at a time: each filters the vehicle's whole series, once per rollout's draw.
+    return jax.lax.map(one_window, (params, rows, starts))
+
+
+def _filtered_laws(model: DriverModel, params: Any, data: Series, windows: RolloutWindows) -> Any:
+    """The hidden state's law at each window's start under each rollout's draw (leaves (W, R, 1)):
+    the model's filter over the vehicle's usable steps before the window."""
+    data = data._replace(merge=None)
+    return _window_laws(model, params, data, jnp.asarray(windows.row), jnp.asarray(windows.start))
+
+
 def rollout(
     key: Array,
     extended: ExtendedModel,
@@ -164,6 +187,7 @@ def rollout(
     thetas = jnp.asarray(theta, jnp.float32)[rows[:, None], picks]
     model = extended.model
     params = fill_params(model, model.param_names, thetas[:, :, None, :])
+    hidden = start == FILTERED and model.filter is not None and model.filtered_start is not None
     rolled = rollout_scenes(
         jax.random.split(key_noise, num_windows),
         model,
@@ -172,6 +196,9 @@ def rollout(
         num_rollouts=num_rollouts,
         start=start,
         dt=series.dt,
+        laws=_filtered_laws(model, params, device_series(series, jnp.float32), windows)
+        if hidden
+        else None,
     )
     steps = windows.start[:, None] + np.arange(horizon)[None, :]
     observed_x = np.cumsum(series.dx[windows.row[:, None], steps], axis=1)[:, None, :]

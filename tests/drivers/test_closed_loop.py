@@ -96,13 +96,45 @@ def test_filtered_start_recovers_the_delay_buffer_and_the_ar_residual(generated)
     np.testing.assert_array_equal(same[0].speed_offset, same[1].speed_offset)
 
 
-def test_filtered_start_refuses_a_hidden_state_in_one_line():
-    """A drifting parameter is a hidden state the simulator does not filter: refused, naming the
-    model and the start to use instead; the stationary start takes it."""
+def test_a_drifting_time_gap_starts_from_its_filtered_law(generated):
+    """Held-out windows of ``idm+drifting_parameters``: without drift (tau_drift = 0) the filter's
+    law is the fitted time gap, known, so the filtered start gives the stationary start's bits;
+    with drift (0.2 s/s^0.5) the offset filtered from each window's history moves the first
+    step's acceleration on most windows (by more than 0.01 m/s^2; the noise sd is 1e-6)."""
+    series = generated
+    windows = heldout_windows(series, 1.0)
+    model = get_model("idm+drifting_parameters")
+    key = jax.random.key(4)
+
+    def both(**values):
+        theta = _theta(model, series, sigma=1e-6, **values)
+        return [
+            rollout(key, as_extended(model), theta, series, windows, num_rollouts=2, start=start)
+            for start in (FILTERED, STATIONARY)
+        ]
+
+    still = both(tau_drift=0.0)
+    np.testing.assert_array_equal(still[0].offset, still[1].offset)
+    assert still[0].start == FILTERED
+    drifting = both(tau_drift=0.2)
+    moved = np.abs(
+        _first_acceleration(drifting[0], series) - _first_acceleration(drifting[1], series)
+    )
+    assert (moved[:, 0] > 0.01).mean() > 0.5
+
+
+def test_filtered_start_refuses_a_hidden_state_it_cannot_filter_in_one_line():
+    """A drifting parameter is a hidden state filtered over a window's whole history: a scene
+    without the filter's laws is refused, naming the model and the start to use instead, one
+    with them (held-out follower windows) is taken. An observation model is refused either way."""
     drifting = get_model("idm+drifting_parameters")
-    with pytest.raises(ValueError, match=r"idm\+drifting_parameters.*particle filter.*stationary"):
+    with pytest.raises(ValueError, match=r"idm\+drifting_parameters.*no filtered laws.*stationary"):
         check_start(drifting, FILTERED, has_past=True)
+    check_start(drifting, FILTERED, has_past=True, whole_history=True)
     check_start(drifting, STATIONARY, has_past=False)
+    noisy = get_model("idm+measurement_noise")
+    with pytest.raises(ValueError, match=r"observed through .*stationary"):
+        check_start(noisy, FILTERED, has_past=True, whole_history=True)
     with pytest.raises(ValueError, match="holds none"):
         check_start(IDM, FILTERED, has_past=False)
 

@@ -23,7 +23,9 @@ the offset, and the predictive density of the position increment has variance
 filtered mean. With :math:`q = 0` it is the base model exactly; otherwise it is an approximation
 whose error is second order in the offset's uncertainty (small: the offset moves by
 :math:`q\sqrt{\Delta t}` per step) and in :math:`h` where the rule is smooth. A step that ends in a stop censors its acceleration and does not
-update the filter. The filter restarts (offset 0, known) after a gap in the data; the latent-state
+update the filter. The filter restarts (offset 0, known) after a gap in the data. A forecast from
+observed data starts from the law the same filter gives of the offset over the vehicle's steps
+before the window (``filtered_start``), not from the fitted time gap; the latent-state
 particle filter of :mod:`bayesdrive.inference.engines.pmmh` targets noisy positions, not exactly observed
 states with a hidden parameter, so it is not used here.
 
@@ -43,7 +45,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from bayesdrive.drivers.base import DriverModel, EgoState, ParamSpec
+from bayesdrive.drivers.base import DriverModel, EgoState, FilteredStart, ParamSpec, Series
 from bayesdrive.drivers.execution_noise import (
     STOP_SPEED,
     acceleration_ceiling,
@@ -144,49 +146,74 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         del key, params
         return DriftState(obs.x, obs.v, jnp.zeros_like(obs.v))
 
+    def filter_step(params, carry, xs, *, may_be_censored: bool | Array = True):
+        """One step of the filter above: the offset's law (mean, variance) after the step, and
+        the step's one-step predictive log density."""
+        mean, var = carry
+        inputs, v, next_v, dx, usable = xs
+        dt = inputs.dt
+        drift_var = params.tau_drift**2 * dt
+        # After a gap in the data the filter restarts at the fitted time gap.
+        mean = jnp.where(usable > 0, mean, 0.0)
+        var = jnp.where(usable > 0, var + drift_var, 0.0)
+        rule_at = rule(params, mean, v, inputs)
+        above = rule(params, mean + DIFFERENCE_STEP, v, inputs)
+        below = rule(params, mean - DIFFERENCE_STEP, v, inputs)
+        slope = (above - below) / (2.0 * DIFFERENCE_STEP)
+        state = EgoState(jnp.zeros_like(v), v)
+        sigma = base.noise_sd(base_params(base, params), state)
+        innovation_var = slope**2 * var + sigma**2
+        ceiling = acceleration_ceiling(v, inputs)
+        innovation_sd = jnp.sqrt(innovation_var)
+        logp = step_logpdf(
+            state,
+            EgoState(dx, next_v),
+            rule_at,
+            innovation_sd,
+            dt,
+            ceiling,
+            may_be_censored=may_be_censored,
+        )
+        gain = var * slope / innovation_var
+        moving = (usable > 0) & (next_v > STOP_SPEED)
+        surprise = implied_acceleration(v, dx, dt) - rule_at
+        mean = jnp.where(moving, mean + gain * surprise, mean)
+        var = jnp.where(moving, (1.0 - gain * slope) * var, var)
+        return (mean, var), logp
+
     def offset_filter(params, steps: Any, *, may_be_censored: bool | Array = True) -> Array:
         """One-step predictive log densities of one vehicle's steps (T,), by the filter above."""
-        dt = steps.inputs.dt[0]
-        drift_var = params.tau_drift**2 * dt
-
-        def step(carry, xs):
-            mean, var = carry
-            inputs, v, next_v, dx, usable = xs
-            # After a gap in the data the filter restarts at the fitted time gap.
-            mean = jnp.where(usable > 0, mean, 0.0)
-            var = jnp.where(usable > 0, var + drift_var, 0.0)
-            rule_at = rule(params, mean, v, inputs)
-            above = rule(params, mean + DIFFERENCE_STEP, v, inputs)
-            below = rule(params, mean - DIFFERENCE_STEP, v, inputs)
-            slope = (above - below) / (2.0 * DIFFERENCE_STEP)
-            state = EgoState(jnp.zeros_like(v), v)
-            sigma = base.noise_sd(base_params(base, params), state)
-            innovation_var = slope**2 * var + sigma**2
-            ceiling = acceleration_ceiling(v, inputs)
-            innovation_sd = jnp.sqrt(innovation_var)
-            logp = step_logpdf(
-                state,
-                EgoState(dx, next_v),
-                rule_at,
-                innovation_sd,
-                dt,
-                ceiling,
-                may_be_censored=may_be_censored,
-            )
-            gain = var * slope / innovation_var
-            moving = (usable > 0) & (next_v > STOP_SPEED)
-            surprise = implied_acceleration(v, dx, dt) - rule_at
-            mean = jnp.where(moving, mean + gain * surprise, mean)
-            var = jnp.where(moving, (1.0 - gain * slope) * var, var)
-            return (mean, var), logp
-
         zero = jnp.zeros_like(steps.v[0])
         _, logp = jax.lax.scan(
-            step,
+            lambda carry, xs: filter_step(params, carry, xs, may_be_censored=may_be_censored),
             (zero, zero),
             (steps.inputs, steps.v, steps.next_v, steps.dx, steps.mask),
         )
         return logp
+
+    def offset_law(params, series: Series, until: Array) -> tuple[Array, Array]:
+        """The offset's filtered mean and variance at step ``until`` of one vehicle's series: the
+        filter above over the usable steps before it."""
+        index = jnp.arange(series.v.shape[0])
+        inputs = jax.vmap(lambda j: inputs_at(series, j, 0))(index)
+
+        def step(carry, xs):
+            j, *columns = xs
+            # Its density is not used here (and not computed: nothing reads it).
+            moved, _ = filter_step(params, carry, tuple(columns), may_be_censored=False)
+            return jax.tree.map(lambda new, old: jnp.where(j < until, new, old), moved, carry), None
+
+        zero = jnp.zeros_like(series.v[0])
+        columns = (index, inputs, series.v, series.next_v, series.dx, series.mask)
+        law, _ = jax.lax.scan(step, (zero, zero), columns)
+        return law
+
+    def draw_offset(key: Array, params, state: EgoState, law: tuple[Array, Array]) -> DriftState:
+        del params
+        mean, var = law
+        # The filter's variance update may round just below 0 where the noise sd is tiny.
+        offset = mean + jnp.sqrt(jnp.maximum(var, 0.0)) * jax.random.normal(key, jnp.shape(mean))
+        return DriftState(state.x, state.v, offset)
 
     return state_extension(
         base,
@@ -200,4 +227,5 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         inputs_at=inputs_at,
         lift=lift,
         filter=offset_filter,
+        filtered_start=FilteredStart(offset_law, draw_offset),
     )
