@@ -177,9 +177,9 @@ def rollout(
             "through bayesdrive.simulation.scenarios (merge_scenarios)"
         )
     past = history_steps(series.dt)
-    data = device_series(series, jnp.float32)
+    unpadded = device_series(series, jnp.float32)
     # Pad the step axis so every window's slice, past and horizon, stays inside the arrays.
-    data = jax.tree.map(lambda a: jnp.pad(a, [(0, 0), (past, horizon + 1)], mode="edge"), data)
+    data = jax.tree.map(lambda a: jnp.pad(a, [(0, 0), (past, horizon + 1)], mode="edge"), unpadded)
     scenes = _window_scenes(data, windows, past)
     key_draw, key_noise = jax.random.split(key)
     picks = jax.random.randint(key_draw, (num_windows, num_rollouts), 0, theta.shape[1])
@@ -196,9 +196,7 @@ def rollout(
         num_rollouts=num_rollouts,
         start=start,
         dt=series.dt,
-        laws=_filtered_laws(model, params, device_series(series, jnp.float32), windows)
-        if hidden
-        else None,
+        laws=_filtered_laws(model, params, unpadded, windows) if hidden else None,
     )
     steps = windows.start[:, None] + np.arange(horizon)[None, :]
     observed_x = np.cumsum(series.dx[windows.row[:, None], steps], axis=1)[:, None, :]
