@@ -138,14 +138,16 @@ def two_vehicles(vehicle):
 
 def test_failing_vehicles_alone_are_extended_until_they_pass(vehicle, monkeypatch):
     """The first run has FIRST_EXTENSION (4) times the warm-up and draws; 'slow' passes only from
-    8x: it alone reruns, at 8x, the cap, and passes; 'steady' keeps its first draws."""
-    run_vehicles, calls = fake_sampler({"steady": 1, "slow": 8}, vehicle.mask.shape[1])
+    16x: it alone reruns, at 16x, the cap, and passes; 'steady' keeps its first draws."""
+    run_vehicles, calls = fake_sampler(
+        {"steady": 1, "slow": nuts.MAX_EXTENSION}, vehicle.mask.shape[1]
+    )
     monkeypatch.setattr(nuts, "_run_vehicles", run_vehicles)
     result = nuts.run(
         jax.random.key(SEED), two_vehicles(vehicle), model=IDM, params=["sigma"], **OPTIONS
     )
-    assert calls == [(nuts.FIRST_EXTENSION, ("steady", "slow")), (8, ("slow",))]
-    np.testing.assert_array_equal(result.sample_stats["extension"][1], [4, 8])
+    assert calls == [(nuts.FIRST_EXTENSION, ("steady", "slow")), (16, ("slow",))]
+    np.testing.assert_array_equal(result.sample_stats["extension"][1], [4, 16])
     assert result.posterior["sigma"].shape == (4, 250, 2)  # thinned back to the stored count
     for i, name in enumerate(("steady", "slow")):
         draws = result.posterior["sigma"][:, :, i, None]

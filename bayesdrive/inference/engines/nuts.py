@@ -36,6 +36,14 @@ ESS 224 diagonal, 1213 dense, with half the leapfrog steps per draw. On vehicle 
 dense matrix met 727 divergences (467 on vehicle 11, whose posterior presses on prior bounds), the
 diagonal one 31 with fewer draws: so the default stays diagonal.
 
+**Starts.** Each chain starts at the most probable of ``init_candidates`` (default 16) uniform
+draws in (-2, 2) on the unconstrained scale, each chain from draws of its own, so the starts stay
+dispersed. One uniform draw (NumPyro's ``init_to_uniform``) is not enough for a model with a
+state filter: far from the posterior the drifting time gap's filtered likelihood is rough on the
+scale of a leapfrog step (it moves tens of nats within 1e-6 of a start), warm-up shrinks the step
+size towards 1e-7 there, and a chain started in such a place never leaves it
+(``reports/convergence/drifting_nuts.md``, "Stop 44").
+
 **Extension.** After the run every vehicle's stored draws go through the checks that
 :func:`~bayesdrive.inference.fit.fit` runs afterwards (R-hat, bulk and tail ESS,
 :func:`~bayesdrive.inference.diagnostics.convergence.chain_problems`, same limits). A vehicle that fails runs
@@ -96,7 +104,7 @@ __all__ = [
 INIT_RADIUS = 2.0
 # A vehicle that fails its checks runs again with 2, 4, ... up to this many times the warm-up and
 # draws (module docstring, "Extension").
-MAX_EXTENSION = 8
+MAX_EXTENSION = 16
 # The first run's factor: at fit's 1000 draws an unextended run fell short on nearly every vehicle
 # of six or seven parameters, and 4x passed in a fraction of the time extension from 1x took
 # (module docstring, "Extension").
@@ -114,8 +122,9 @@ class NUTSConfig(NamedTuple):
     target_accept_prob: float = 0.95
     max_tree_depth: int = 10
     dense_mass: bool = False
-    # Each chain starts at the most probable of this many uniform draws in the start radius.
-    init_candidates: int = 1
+    # Each chain starts at the most probable of this many uniform draws in the start radius
+    # (module docstring, "Starts").
+    init_candidates: int = 16
     # Keep every thin-th post-warm-up draw (an extended run stores as many draws as the first).
     thin: int = 1
 
