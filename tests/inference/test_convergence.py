@@ -160,3 +160,27 @@ def test_smc_replicates_that_disagree_are_flagged_and_one_replicate_is_unchecked
     scattered = check_convergence(tree(posterior, "smc", engine_options=options))
     assert ("a", "v_des", "replicate_spread") in named(scattered)
     assert {p.vehicle for p in scattered.problems} == {"a"}
+
+
+@pytest.mark.parametrize(
+    "moves, correlation", [((250, 40), (0.51, 0.05)), ((250, 40), (0.05, 0.05))]
+)
+def test_one_replicate_smc_names_vehicles_whose_closing_moves_ended_undecorrelated(
+    moves, correlation
+):
+    """Vehicle a's closing moves ran to the cap (250) with its draws still correlated 0.51 with
+    their start (criterion 0.1): the unchecked note names it, and nothing else. Negative control:
+    at the cap but decorrelated (0.05), no vehicle is named."""
+    stats = {
+        "final_moves": (("chain", "vehicle"), np.array([moves])),
+        "final_correlation": (("chain", "vehicle"), np.array([correlation])),
+    }
+    options = {"max_final_moves": 250, "decorrelation": 0.1, "num_particles": 1000}
+    report = check_convergence(tree(independent(9, chains=1), "smc", stats, options))
+    assert report.problems == []
+    named_in_note = "closing moves of 1 vehicle(s)" in report.unchecked
+    assert named_in_note == (correlation[0] > 0.1)
+    if named_in_note:
+        assert report.unchecked.endswith(
+            ": a (rerun them with more --particles, or with replicates > 1 to measure their spread)"
+        )

@@ -19,7 +19,10 @@ Each check applies where it means something, per vehicle and parameter (numbers 
   accepted), which no posterior of these models is.
 
 Beyond ``spread``, one-replicate smc, pf and lm have nothing to check against:
-:func:`check_convergence` says so in its ``unchecked`` note rather than passing them silently.
+:func:`check_convergence` says so in its ``unchecked`` note rather than passing them silently. For
+one-replicate smc the note also names the vehicles whose closing moves ran to their cap with the
+draws still correlated with their start: a sign, not a proof, that the draws still carry the
+tempering path's excess mass (most such vehicles still agree with nuts).
 """
 
 from __future__ import annotations
@@ -58,6 +61,8 @@ EXTENSION_MIN_DRAWS = int(2 * ESS_MIN)
 # emcee's rule of thumb: an autocorrelation estimate needs a run of at least 50 tau.
 AUTOCORR_RELIABLE_FACTOR = 50
 MARKOV_ENGINES = ("nuts", "emcee", "hierarchical", "pmmh")
+# At most this many vehicles are named in the unchecked note.
+SHOWN_VEHICLES = 10
 # Problems logged one by one; the rest are counted (all of them are in the metadata).
 LOGGED_PROBLEMS = 10
 
@@ -222,8 +227,32 @@ def check_convergence(tree: xr.DataTree) -> ConvergenceReport:
             f"{engine} with one chain of independent-looking draws: no R-hat, ESS or replicate "
             "check applies (smc: use replicates > 1)"
         )
+        undecorrelated = _closing_at_cap(stats, meta.get("engine_options") or {})
+        if undecorrelated:
+            unchecked += (
+                f"; the closing moves of {len(undecorrelated)} vehicle(s) ended at their cap with "
+                "draws still correlated with the tempering's, so these may be off: "
+                f"{', '.join(undecorrelated[:SHOWN_VEHICLES])}"
+                f"{' ...' if len(undecorrelated) > SHOWN_VEHICLES else ''} (rerun them with "
+                "more --particles, or with replicates > 1 to measure their spread)"
+            )
     advice = next_step(engine, meta.get("engine_options") or {})
     return ConvergenceReport(["spread", *checks], problems, unchecked, advice)
+
+
+def _closing_at_cap(stats: xr.DataTree, options: dict[str, Any]) -> list[str]:
+    """The vehicles whose smc closing moves (in any replicate) ran to ``max_final_moves`` with the
+    draws still correlated with their start above the engine's criterion: there the draws may
+    still carry the tempering path's excess mass (``reports/convergence/extensions_ngsim15.md``,
+    vehicle 109)."""
+    needed = ("max_final_moves", "decorrelation", "num_particles")
+    if "final_moves" not in stats or not all(k in options for k in needed):
+        return []
+    criterion = max(options["decorrelation"], 3.5 / math.sqrt(options["num_particles"]))
+    moves, correlation = stats["final_moves"], stats["final_correlation"]
+    flagged = (moves >= options["max_final_moves"]) & ~(correlation <= criterion)
+    flagged = flagged.any([d for d in flagged.dims if d != "vehicle"])
+    return [str(v) for v in flagged["vehicle"].values[flagged.values]]
 
 
 def log_problems(report: ConvergenceReport) -> None:
