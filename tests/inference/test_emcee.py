@@ -159,3 +159,26 @@ def test_a_walker_stranded_in_a_local_mode_is_found_and_restarted_beside_the_oth
 def test_a_window_too_short_for_the_quantile_flags_nothing():
     sampler = _ensemble(0, trapped=True, steps=emcee.STUCK_MIN_WINDOW - 1)
     assert not emcee.stuck_walkers(sampler.get_log_prob()).any()
+
+
+@pytest.mark.parametrize("starts, peak", [(emcee.MODE_STARTS, 0.8), (1, 0.2)])
+def test_the_start_polishes_several_candidates_and_keeps_the_best_mode(starts, peak):
+    """A broad lesser mode at 0.2 (height 0) and a narrow peak at 0.8 (height 5, width 0.05): the
+    most probable candidate (0.25) lies in the broad mode's basin, the second (0.68) in the peak's.
+    Polishing several finds the peak; polishing the best alone (the negative control) stays in
+    the lesser mode."""
+
+    def log_density(theta):
+        x = theta[..., 0]
+        return jnp.maximum(-(((x - 0.2) / 0.3) ** 2), 5.0 - ((x - 0.8) / 0.05) ** 2)
+
+    candidates = jnp.array([[[0.25], [0.68]], [[0.05], [0.95]]])
+    bounds = type("Bounds", (), {"lower": jnp.zeros(1), "upper": jnp.ones(1)})()
+    mode = emcee._posterior_mode(
+        candidates,
+        lambda p: np.asarray(log_density(jnp.asarray(p))),
+        jax.value_and_grad(log_density),
+        bounds,
+        starts=starts,
+    )
+    assert mode == pytest.approx([peak], abs=1e-3)

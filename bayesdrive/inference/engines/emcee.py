@@ -9,10 +9,14 @@ scores the whole ensemble) and compiled once for every vehicle, since all share 
 **Start.** An ensemble only contracts geometrically: walkers started at prior draws take very
 many steps to find a posterior a small fraction of the prior width wide, as NGSIM's are. So, as
 emcee's authors advise, walkers start in a tiny ball (``START_BALL`` of the prior width) around a
-posterior mode: the best of ``START_CANDIDATES`` prior draws per walker, polished by L-BFGS-B on
-the box with JAX gradients. The moves expand such a ball within tens of steps, well inside the
-burn-in; the price is that a second, distant mode goes unseen (the particle engines and NUTS'
-dispersed chains are the check for that).
+posterior mode: of ``START_CANDIDATES`` prior draws per walker, the ``MODE_STARTS`` most
+probable are each polished by L-BFGS-B on the box with JAX gradients, and the best optimum wins.
+One polished draw is not enough: the most probable prior draw can lie in the wide basin of a
+lesser mode (on an NGSIM follower with the second-leader anticipation, a mode 5 nats below the
+posterior's peak, where every walker stayed and passed its checks;
+``reports/convergence/extensions_ngsim15.md``, "Stop 44"). The moves expand such a ball within
+tens of steps, well inside the burn-in; the price is that a second, distant mode goes unseen (the
+particle engines and NUTS' dispersed chains are the check for that).
 
 **Moves.** ``move="stretch"`` (default): Goodman and Weare's stretch move, emcee's default.
 ``move="de"``: differential evolution (``DEMove``) on 80% of the steps and the DE snooker move on
@@ -89,6 +93,7 @@ from bayesdrive.inference.diagnostics.convergence import (
 __all__ = [
     "AUTOCORR_RELIABLE_FACTOR",
     "MAX_EXTENSION",
+    "MODE_STARTS",
     "MOVES",
     "START_BALL",
     "START_CANDIDATES",
@@ -100,9 +105,11 @@ __all__ = [
     "stuck_walkers",
 ]
 
-# Prior draws per walker searched for the optimiser's starting point, and the start ball's radius
-# as a fraction of each prior interval.
+# Prior draws per walker searched for the optimiser's starting points, how many of the best the
+# optimiser polishes (module docstring, "Start"), and the start ball's radius as a fraction of
+# each prior interval.
 START_CANDIDATES = 32
+MODE_STARTS = 8
 START_BALL = 1e-4
 # A vehicle that fails fit's checks continues its run, doubling it, up to this many times
 # num_steps (module docstring, "Extension").
@@ -348,16 +355,25 @@ def _posterior_mode(
     log_prob: Callable[[np.ndarray], np.ndarray],
     log_density_and_grad: Callable[[Array], tuple[Array, Array]],
     box: Any,
+    starts: int = MODE_STARTS,
 ) -> np.ndarray:
-    """A posterior mode: the best of (batches, walkers, d) prior draws, polished by L-BFGS-B."""
-    scores = np.stack([log_prob(np.asarray(batch)) for batch in candidates])
-    best = np.asarray(candidates).reshape(-1, candidates.shape[-1])[np.argmax(scores)]
+    """A posterior mode: the ``starts`` most probable of (batches, walkers, d) prior draws, each
+    polished by L-BFGS-B, the best optimum (never worse than the best draw)."""
+    scores = np.stack([log_prob(np.asarray(batch)) for batch in candidates]).ravel()
+    flat = np.asarray(candidates).reshape(-1, candidates.shape[-1]).astype(np.float64)
+    order = np.argsort(-np.where(np.isnan(scores), -np.inf, scores), kind="stable")
 
     def negative(theta: np.ndarray) -> tuple[float, np.ndarray]:
         value, grad = log_density_and_grad(jnp.asarray(theta, dtype=box.lower.dtype))
         return -float(value), -np.asarray(grad, dtype=np.float64)
 
     bounds = list(zip(np.asarray(box.lower), np.asarray(box.upper), strict=True))
-    found = scipy.optimize.minimize(negative, best, jac=True, method="L-BFGS-B", bounds=bounds)
-    # A float32 line search may stop early; never keep a point worse than the start.
-    return found.x if -found.fun >= scores.max() else best.astype(np.float64)
+    # A float32 line search may stop early, so the best draw itself stays a candidate.
+    best, best_score = flat[order[0]], scores[order[0]]
+    for index in order[:starts]:
+        found = scipy.optimize.minimize(
+            negative, flat[index], jac=True, method="L-BFGS-B", bounds=bounds
+        )
+        if -found.fun > best_score:
+            best, best_score = found.x, -found.fun
+    return best
