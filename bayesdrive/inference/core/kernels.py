@@ -42,6 +42,7 @@ __all__ = [
     "WalkInfo",
     "WalkState",
     "alternating",
+    "decorrelation_threshold",
     "fixed_moves",
     "from_free",
     "independent_step",
@@ -311,6 +312,14 @@ def fixed_moves(key: Array, state: WalkState, move: Move, count: int) -> tuple[W
 
     state, rates = jax.lax.scan(scanned, state, jax.random.split(key, count))
     return state, jnp.mean(rates)
+
+
+def decorrelation_threshold(decorrelation: float, num_particles: int) -> Array:
+    """The largest correlation of the draws with their start at which
+    :func:`moves_until_decorrelated` stops: ``decorrelation``, or about 3.5 / sqrt(N) where
+    that is larger, since below it the largest of d sample correlations over N particles is
+    noise, not mixing."""
+    return jnp.maximum(decorrelation, 3.5 / jnp.sqrt(num_particles))
 
 
 def moves_until_decorrelated(

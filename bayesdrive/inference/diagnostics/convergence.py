@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import xarray as xr
 
+from bayesdrive.inference.core.kernels import decorrelation_threshold
 from bayesdrive.inference.core.output import metadata
 from bayesdrive.inference.diagnostics.agreement import convergence_table
 
@@ -248,7 +249,7 @@ def _closing_at_cap(stats: xr.DataTree, options: dict[str, Any]) -> list[str]:
     needed = ("max_final_moves", "decorrelation", "num_particles")
     if "final_moves" not in stats or not all(k in options for k in needed):
         return []
-    criterion = max(options["decorrelation"], 3.5 / math.sqrt(options["num_particles"]))
+    criterion = float(decorrelation_threshold(options["decorrelation"], options["num_particles"]))
     moves, correlation = stats["final_moves"], stats["final_correlation"]
     flagged = (moves >= options["max_final_moves"]) & ~(correlation <= criterion)
     flagged = flagged.any([d for d in flagged.dims if d != "vehicle"])

@@ -41,7 +41,7 @@ draws in (-2, 2) on the unconstrained scale, each chain from draws of its own, s
 dispersed. One uniform draw (NumPyro's ``init_to_uniform``) is not enough for a model with a state
 filter: far from the posterior the drifting time gap's filtered likelihood can change by tens of
 nats within 1e-6 of a point (where the clip to tau's box has stopped the filter learning, and a
-hair decides whether it starts again), warm-up shrinks the step size towards 1e-7 there, and a
+change of 1e-6 decides whether it starts again), warm-up shrinks the step size towards 1e-7 there, and a
 chain started in such a place never leaves it (``reports/convergence/drifting_nuts.md``, "Stop
 44").
 

@@ -84,7 +84,13 @@ from jax import Array
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel
-from bayesdrive.inference.core.kernels import Box, Target, WalkState, moves_until_decorrelated
+from bayesdrive.inference.core.kernels import (
+    Box,
+    Target,
+    WalkState,
+    decorrelation_threshold,
+    moves_until_decorrelated,
+)
 from bayesdrive.inference.core.likelihood import StepInputs, particles_loglik, series_loglik
 from bayesdrive.inference.core.output import EngineInputs, EngineResult
 from bayesdrive.inference.core.resampling import count_distinct_sorted
@@ -312,8 +318,7 @@ def _smc_vehicle(
     )
     # Paired closing moves under the full posterior until the draws decorrelate from their start
     # (module docstring): on NGSIM vehicle 140 a fixed 80 moves left the tempering path's excess
-    # mass in the long v_des tail. Below about 3.5 / sqrt(N) the largest of d sample correlations
-    # is noise, not mixing.
+    # mass in the long v_des tail.
     closing = cloud_move(
         fit_cloud(run.particles.theta, run.log_weights, box),
         target=posterior,
@@ -327,7 +332,7 @@ def _smc_vehicle(
         box=box,
         block=config.final_moves,
         max_moves=config.max_final_moves,
-        threshold=jnp.maximum(config.decorrelation, 3.5 / jnp.sqrt(n)),
+        threshold=decorrelation_threshold(config.decorrelation, n),
     )
     return _VehicleOutput(
         theta=final.theta,
