@@ -31,17 +31,20 @@ FITTED = {
 }
 
 
-def follower(tau: float, seed: int) -> Series:
+def follower(tau, seed: int) -> Series:
     """A follower behind a leader whose speed swings between 7 and 13 m/s, driven by the IDM
-    (written here) with time gap ``tau`` and white acceleration noise of sd 0.05 m/s^2."""
+    (written here) with time gap ``tau`` (a number, or one per step) and white acceleration noise
+    of sd 0.05 m/s^2."""
     rng = np.random.default_rng(seed)
+    tau_at = np.broadcast_to(np.asarray(tau, float), (STEPS,))
     t = np.arange(STEPS + 1) * DT
     lead_v = 10.0 + 3.0 * np.sin(2 * np.pi * t / 20.0)
     lead_x = 30.0 + np.concatenate([[0.0], np.cumsum(lead_v[:-1] * DT)])
     x, v = np.zeros(STEPS + 1), np.zeros(STEPS + 1)
     v[0] = 10.0
-    p = FITTED | {"tau": tau}
+    p = FITTED
     for j in range(STEPS):
+        tau = tau_at[j]
         gap = lead_x[j] - x[j] - 5.0
         desired = p["d_min"] + max(
             0.0, v[j] * tau + v[j] * (v[j] - lead_v[j]) / (2 * np.sqrt(p["a_max"] * p["b_pref"]))
@@ -92,6 +95,21 @@ def test_the_filtered_offset_finds_the_drivers_time_gap(shift):
     assert 0 < var < 0.1**2 * STEPS * DT  # the data narrowed the random walk's spread
     control, _ = law(follower(FITTED["tau"], seed=2), STEPS)
     assert abs(control) < 0.15
+
+
+def test_the_filter_comes_back_from_below_the_box():
+    """Fitted time gap 0.3 s, near the box's floor 0.1 s; the driver keeps a time gap of -0.6 s
+    (tailgating, below the box) for 30 s, then 1.0 s for 30 s (seeds 11-13). At the switch the
+    filtered offset sits on the floor (-0.2, within 0.01); at the end it is the driver's 1.0 s
+    minus the fitted 0.3 s, within 0.1. A filter whose mean could leave the box ran to an offset
+    of -28 s, where the rule is flat, and never came back."""
+    time_gap = np.where(np.arange(STEPS) < STEPS // 2, -0.6, 1.0)
+    for seed in (11, 12, 13):
+        series = follower(time_gap, seed)
+        at_switch, _ = law(series, STEPS // 2, tau=0.3)
+        at_end, _ = law(series, STEPS, tau=0.3)
+        assert at_switch == pytest.approx(0.1 - 0.3, abs=0.01)
+        assert at_end == pytest.approx(1.0 - 0.3, abs=0.1)
 
 
 def test_the_law_reads_only_the_steps_before_its_start():

@@ -14,7 +14,10 @@ difference, :math:`J = [a(\bar u + h) - a(\bar u - h)] / 2h` with ``DIFFERENCE_S
 not by the derivative at the mean: the rule has kinks in :math:`u` (the IDM's floored dynamic gap,
 the clip to the box), :math:`J` enters the predictive variance, and a derivative that jumps at a
 kink made the likelihood jump with it, which stalls gradient samplers
-(``reports/convergence/drifting_nuts.md``); the difference is continuous wherever the rule is. Its
+(``reports/convergence/drifting_nuts.md``); the difference is continuous wherever the rule is. The
+filtered mean is projected onto the box after each update: outside it the rule is flat, :math:`J`
+would be 0 and the filter would stop learning the offset for good, and whether it ever left that
+trap turned on parameter changes of 1e-6. Its
 step is fixed, not the filtered sd (a divided-difference filter's): a slope that depends on the
 variance feeds the variance recursion back on itself, and its gradient then overflowed over a
 series. The observed implied acceleration :math:`\hat a = 2(\Delta x - v\Delta t)/\Delta t^2` updates
@@ -178,6 +181,9 @@ def with_drifting_time_gap(base: DriverModel) -> ExtendedModel:
         moving = (usable > 0) & (next_v > STOP_SPEED)
         surprise = implied_acceleration(v, dx, dt) - rule_at
         mean = jnp.where(moving, mean + gain * surprise, mean)
+        # Projected onto the box, where the rule, and so J, is not flat (module docstring).
+        own_tau = base_params(base, params).tau
+        mean = jnp.clip(mean, tau_spec.lower - own_tau, tau_spec.upper - own_tau)
         var = jnp.where(moving, (1.0 - gain * slope) * var, var)
         return (mean, var), logp
 
