@@ -163,8 +163,22 @@ def one_run(data: str, run: str, seed: int, followers: int, duration: float, fol
         model = get_model(DATA[data][1])
     engine, options = RUNS[run]
     started = time.perf_counter()
+
+    def progress(done: int, total: int) -> None:  # a run can take an hour: say where it is
+        print(
+            f"{data} {run}: {done}/{total} vehicles, {time.perf_counter() - started:.0f} s",
+            flush=True,
+        )
+
     tree = fit(
-        jax.random.key(seed), data_in, model=model, engine=engine, seed=seed, **limit, **options
+        jax.random.key(seed),
+        data_in,
+        model=model,
+        engine=engine,
+        seed=seed,
+        progress=progress,
+        **limit,
+        **options,
     )
     wall = time.perf_counter() - started
     save_result(tree, Path(folder) / f"{data}-{run}.nc")
