@@ -38,12 +38,11 @@ diagonal one 31 with fewer draws: so the default stays diagonal.
 
 **Starts.** Each chain starts at the most probable of ``init_candidates`` (default 16) uniform
 draws in (-2, 2) on the unconstrained scale, each chain from draws of its own, so the starts stay
-dispersed. One uniform draw (NumPyro's ``init_to_uniform``) is not enough for a model with a state
-filter: far from the posterior the drifting time gap's filtered likelihood can change by tens of
-nats within 1e-6 of a point (where the clip to tau's box has stopped the filter learning, and a
-change of 1e-6 decides whether it starts again), warm-up shrinks the step size towards 1e-7 there, and a
-chain started in such a place never leaves it (``reports/convergence/drifting_nuts.md``, "Stop
-44").
+dispersed. One uniform draw (NumPyro's ``init_to_uniform``) was not enough for a model with a
+state filter: far from the posterior, a filtered likelihood that changes by tens of nats within
+1e-6 of a point shrinks warm-up's step size towards 1e-7, and a chain started in such a place
+never leaves it. The drifting time gap's filter had such places until its mean was kept inside
+tau's box (``reports/convergence/drifting_nuts.md``, "Stop 44" and "Stop 45").
 
 **Extension.** After the run every vehicle's stored draws go through the checks that
 :func:`~bayesdrive.inference.fit.fit` runs afterwards (R-hat, bulk and tail ESS,
