@@ -17,8 +17,8 @@ kink made the likelihood jump with it, which stalls gradient samplers
 (``reports/convergence/drifting_nuts.md``); the difference is continuous wherever the rule is. The
 filtered mean is projected onto the box after each update: outside it the rule is flat, :math:`J`
 would be 0 and the filter would stop learning the offset for good, and whether it ever left that
-trap turned on parameter changes of 1e-6. Its
-step is fixed, not the filtered sd (a divided-difference filter's): a slope that depends on the
+trap turned on parameter changes of 1e-6. The
+difference's step is fixed, not the filtered sd (a divided-difference filter's): a slope that depends on the
 variance feeds the variance recursion back on itself, and its gradient then overflowed over a
 series. The observed implied acceleration :math:`\hat a = 2(\Delta x - v\Delta t)/\Delta t^2` updates
 the offset, and the predictive density of the position increment has variance
