@@ -14,11 +14,10 @@ from bayesdrive.inference.core.kernels import (
     Independent,
     Target,
     WalkState,
-    alternating,
     fixed_moves,
     from_free,
-    independent_step,
     next_temperature,
+    paired_step,
     to_free,
     walk_step,
 )
@@ -83,9 +82,8 @@ def test_independent_moves_leave_their_target_invariant():
 
     def moved(kind):
         proposal = kind.of(free.mean(axis=0) + 1.0, chol, 5)
-        independent = functools.partial(independent_step, proposal=proposal, **target)
-        walk = functools.partial(walk_step, chol=chol, target_acceptance=0.234, **target)
-        state, rate = fixed_moves(key_move, start, alternating(independent, walk), 20)
+        pair = functools.partial(paired_step, proposal=proposal, target_acceptance=0.234, **target)
+        state, rate = fixed_moves(key_move, start, pair, 20)
         assert 0.05 < float(rate) < 0.95
         return np.asarray(state.theta, np.float64)
 

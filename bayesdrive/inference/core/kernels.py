@@ -41,15 +41,14 @@ __all__ = [
     "Target",
     "WalkInfo",
     "WalkState",
-    "alternating",
     "decorrelation_threshold",
     "fixed_moves",
     "from_free",
-    "independent_step",
     "log_jacobian",
     "moves_until_decorrelated",
     "moves_until_moved",
     "next_temperature",
+    "paired_step",
     "to_free",
     "walk_step",
 ]
@@ -181,6 +180,11 @@ def _metropolis(
     return moved, jnp.mean(accept)
 
 
+def _walk_proposal(key: Array, free: Array, log_scale: Array, chol: Array) -> Array:
+    """The random walk's proposal on the free scale (symmetric: no proposal ratio)."""
+    return free + jnp.exp(log_scale) * (_normal(key, free.shape, free.dtype) @ chol.T)
+
+
 def walk_step(
     key: Array,
     state: WalkState,
@@ -193,9 +197,8 @@ def walk_step(
     """One random-walk MH move of every particle, invariant for ``target`` at ``power`` (module
     docstring)."""
     key_step, key_accept = jax.random.split(key)
-    noise = _normal(key_step, state.theta.shape, state.theta.dtype) @ chol.T
     free = to_free(state.theta, target.box)
-    prop_free = free + jnp.exp(state.log_scale) * noise
+    prop_free = _walk_proposal(key_step, free, state.log_scale, chol)
     moved, rate = _metropolis(
         key_accept, state, free, prop_free, jnp.zeros(()), target=target, power=power
     )
@@ -226,51 +229,56 @@ class Independent(NamedTuple):
         distance = jnp.sum(centred * centred, axis=-1)
         return -0.5 * (self.df + self.mean.shape[-1]) * jnp.log1p(distance / self.df)
 
+    def sample(self, key_normal: Array, key_mix: Array, num: int, dtype) -> Array:
+        """``num`` draws (num, d) on the free scale."""
+        normal = _normal(key_normal, (num, self.mean.shape[-1]), dtype) @ self.chol.T
+        mix = jnp.sum(_normal(key_mix, (num, self.df), dtype) ** 2, axis=1)
+        return self.mean + normal * jnp.sqrt(self.df / mix)[:, None]
 
-def independent_step(
+
+def paired_step(
     key: Array,
     state: WalkState,
     *,
     target: Target,
     power: Array,
     proposal: Independent,
+    target_acceptance: float,
 ) -> tuple[WalkState, WalkInfo]:
-    """One independent MH move of every particle: the proposal ignores where the particle is
-    (South, Pettitt & Drovandi 2019), so an accepted move forgets the start at once. Invariant for
-    the same target as :func:`walk_step`; the random walk's scale is left as it is."""
-    key_normal, key_mix, key_accept = jax.random.split(key, 3)
-    theta = state.theta
-    normal = _normal(key_normal, theta.shape, theta.dtype) @ proposal.chol.T
-    mix = jnp.sum(_normal(key_mix, (theta.shape[0], proposal.df), theta.dtype) ** 2, axis=1)
-    prop_free = proposal.mean + normal * jnp.sqrt(proposal.df / mix)[:, None]
-    free = to_free(theta, target.box)
-    moved, rate = _metropolis(
-        key_accept,
-        state,
-        free,
-        prop_free,
-        proposal.log_density(free) - proposal.log_density(prop_free),
-        target=target,
-        power=power,
-    )
-    return moved, WalkInfo(acceptance=rate)
+    """An independent MH move from ``proposal`` (South, Pettitt & Drovandi 2019: the proposal
+    ignores where the particle is, so an accepted move forgets the start at once), then a
+    random-walk move with the proposal's covariance, as :func:`walk_step` (its scale adapted).
+    Both are invariant for ``target`` at ``power``. The acceptance is the chance that a particle
+    moved in either, 1 - (1 - a1)(1 - a2), so the stopping rules count the pair as one move.
+
+    The two halves are one scanned body that computes both proposals and selects one: the target
+    (the likelihood, most of a sampler's program) is then traced and compiled once, not twice."""
+    free_dtype = state.theta.dtype
+
+    def half(state: WalkState, xs: tuple[Array, Array]) -> tuple[WalkState, Array]:
+        key, is_walk = xs
+        key_normal, key_mix, key_accept_independent = jax.random.split(key, 3)
+        key_step, key_accept_walk = jax.random.split(key)
+        free = to_free(state.theta, target.box)
+        independent = proposal.sample(key_normal, key_mix, free.shape[0], free_dtype)
+        walk = _walk_proposal(key_step, free, state.log_scale, proposal.chol)
+        prop_free = jnp.where(is_walk, walk, independent)
+        ratio = jnp.where(
+            is_walk, 0.0, proposal.log_density(free) - proposal.log_density(independent)
+        )
+        key_accept = jnp.stack([key_accept_independent, key_accept_walk])[is_walk.astype(int)]
+        moved, rate = _metropolis(
+            key_accept, state, free, prop_free, ratio, target=target, power=power
+        )
+        adapted = jnp.where(is_walk, state.log_scale + rate - target_acceptance, state.log_scale)
+        return moved._replace(log_scale=adapted), rate
+
+    keys = jnp.stack(jax.random.split(key))
+    state, rates = jax.lax.scan(half, state, (keys, jnp.array([False, True])))
+    return state, WalkInfo(acceptance=1.0 - (1.0 - rates[0]) * (1.0 - rates[1]))
 
 
 Move = Callable[[Array, WalkState], tuple[WalkState, WalkInfo]]
-
-
-def alternating(first: Move, second: Move) -> Move:
-    """One move of ``first`` then one of ``second``; its acceptance is the chance that a particle
-    moved in either, 1 - (1 - a1)(1 - a2), so the stopping rules count it as one move."""
-
-    def both(key: Array, state: WalkState) -> tuple[WalkState, WalkInfo]:
-        key_first, key_second = jax.random.split(key)
-        state, info_first = first(key_first, state)
-        state, info_second = second(key_second, state)
-        unmoved = (1.0 - info_first.acceptance) * (1.0 - info_second.acceptance)
-        return state, WalkInfo(acceptance=1.0 - unmoved)
-
-    return both
 
 
 def moves_until_moved(
@@ -359,7 +367,8 @@ def moves_until_decorrelated(
         return (done < max_moves) & (corr > threshold)
 
     zero = jnp.zeros((), state.theta.dtype)
-    state, _, done, accepted, corr = jax.lax.while_loop(
-        more, run_block, run_block((state, key, jnp.zeros((), jnp.int32), zero, zero))
-    )
+    # The first block runs inside the loop (an infinite correlation to start), not peeled off
+    # it: a peeled block is another copy of the move, and of the likelihood, to trace and compile.
+    start_carry = (state, key, jnp.zeros((), jnp.int32), zero, jnp.full((), jnp.inf, zero.dtype))
+    state, _, done, accepted, corr = jax.lax.while_loop(more, run_block, start_carry)
     return state, accepted / done, done, corr

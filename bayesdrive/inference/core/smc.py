@@ -44,10 +44,9 @@ from bayesdrive.inference.core.kernels import (
     Move,
     Target,
     WalkState,
-    alternating,
-    independent_step,
     moves_until_moved,
     next_temperature,
+    paired_step,
     to_free,
     walk_step,
 )
@@ -188,18 +187,21 @@ def cloud_move(cloud: Cloud, *, target: Target, power: Array, config: TemperingC
     """One move invariant for ``target`` at ``power``: a random walk with the cloud's covariance,
     paired (``config.independent``) with an independent move from a Student-t with the cloud's
     mean and covariance."""
-    walk = functools.partial(
-        walk_step,
+    if not config.independent:
+        return functools.partial(
+            walk_step,
+            target=target,
+            power=power,
+            chol=cloud.chol,
+            target_acceptance=config.target_acceptance,
+        )
+    return functools.partial(
+        paired_step,
         target=target,
         power=power,
-        chol=cloud.chol,
+        proposal=Independent.of(cloud.mean, cloud.chol, config.independent_df),
         target_acceptance=config.target_acceptance,
     )
-    if not config.independent:
-        return walk
-    proposal = Independent.of(cloud.mean, cloud.chol, config.independent_df)
-    independent = functools.partial(independent_step, target=target, power=power, proposal=proposal)
-    return alternating(independent, walk)
 
 
 class StageMoves(NamedTuple):
