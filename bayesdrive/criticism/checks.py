@@ -535,16 +535,17 @@ def _vehicle_scores(extended: ExtendedModel, base_theta: Array, steps: StepInput
     noise = model.execution_noise_param
     noise_column = names.index(noise) if noise in names[: base_theta.shape[-1]] else None
 
-    def step_logliks(psi, theta, steps_v):
-        params = fill_params(model, names, jnp.concatenate([theta, psi]))
-        return step_logpdfs(model, params, steps_v)
+    def step_logliks(full, steps_v):
+        return step_logpdfs(model, fill_params(model, names, full), steps_v)
 
     def per_draw(theta, steps_v):
         held = steps_v.heldout > 0
-        slope_psi = jax.jacfwd(step_logliks)(off, theta, steps_v)[:, 0]
         if noise_column is None:
-            return jnp.sum(jnp.where(held, slope_psi, 0.0))
-        slope_sigma = jax.jacfwd(lambda th: step_logliks(off, th, steps_v))(theta)[:, noise_column]
+            slope_psi = jax.jacfwd(lambda psi: step_logliks(jnp.concatenate([theta, psi]), steps_v))
+            return jnp.sum(jnp.where(held, slope_psi(off)[:, 0], 0.0))
+        # One Jacobian in every parameter, so the likelihood is traced and compiled once.
+        slopes = jax.jacfwd(step_logliks)(jnp.concatenate([theta, off]), steps_v)
+        slope_psi, slope_sigma = slopes[:, theta.shape[-1]], slopes[:, noise_column]
         slope_psi, slope_sigma = (jnp.where(held, s, 0.0) for s in (slope_psi, slope_sigma))
         # Regression of the psi-score on the sigma-score over steps (their information).
         beta = jnp.sum(slope_psi * slope_sigma) / jnp.maximum(jnp.sum(slope_sigma**2), 1e-12)
