@@ -31,6 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -326,16 +327,19 @@ def map_vehicles(
                 return jax.tree.map(lambda a: a[None], alone)
             return jax.vmap(per_vehicle)(*rows)
 
+        # Traced once: the jaxpr gives the output shapes and is replayed in the loop. Shapes from
+        # eval_shape and the loop's own trace would trace the kernel twice, the costliest part of
+        # building the program after XLA's compile.
+        traced, shapes = jax.make_jaxpr(one, return_shape=True)(np.int32(0))
+        replay = jax.extend.core.jaxpr_as_fun(traced)
         length = jax.tree.leaves(share)[0].shape[0]
-        empty = jax.tree.map(
-            lambda s: jnp.zeros((length, *s.shape[1:]), s.dtype), jax.eval_shape(one, 0)
-        )
+        empty = jax.tree.map(lambda s: jnp.zeros((length, *s.shape[1:]), s.dtype), shapes)
 
         def fill(i, out):
             return jax.tree.map(
                 lambda o, part: jax.lax.dynamic_update_slice_in_dim(o, part, i * size, 0),
                 out,
-                one(i),
+                jax.tree.unflatten(jax.tree.structure(shapes), replay(i)),
             )
 
         return jax.lax.fori_loop(0, count, fill, empty)
