@@ -253,14 +253,13 @@ def paired_step(
 
     The two halves are one scanned body that computes both proposals and selects one: the target
     (the likelihood, most of a sampler's program) is then traced and compiled once, not twice."""
-    free_dtype = state.theta.dtype
 
     def half(state: WalkState, xs: tuple[Array, Array]) -> tuple[WalkState, Array]:
         key, is_walk = xs
         key_normal, key_mix, key_accept_independent = jax.random.split(key, 3)
         key_step, key_accept_walk = jax.random.split(key)
         free = to_free(state.theta, target.box)
-        independent = proposal.sample(key_normal, key_mix, free.shape[0], free_dtype)
+        independent = proposal.sample(key_normal, key_mix, free.shape[0], free.dtype)
         walk = _walk_proposal(key_step, free, state.log_scale, proposal.chol)
         prop_free = jnp.where(is_walk, walk, independent)
         ratio = jnp.where(

@@ -332,6 +332,7 @@ def map_vehicles(
         # building the program after XLA's compile.
         traced, shapes = jax.make_jaxpr(one, return_shape=True)(np.int32(0))
         replay = jax.extend.core.jaxpr_as_fun(traced)
+        out_tree = jax.tree.structure(shapes)
         length = jax.tree.leaves(share)[0].shape[0]
         empty = jax.tree.map(lambda s: jnp.zeros((length, *s.shape[1:]), s.dtype), shapes)
 
@@ -339,7 +340,7 @@ def map_vehicles(
             return jax.tree.map(
                 lambda o, part: jax.lax.dynamic_update_slice_in_dim(o, part, i * size, 0),
                 out,
-                jax.tree.unflatten(jax.tree.structure(shapes), replay(i)),
+                jax.tree.unflatten(out_tree, replay(i)),
             )
 
         return jax.lax.fori_loop(0, count, fill, empty)
