@@ -128,8 +128,10 @@ def test_vehicles_are_counted_as_fit_counts_them_and_few_of_them_draw_a_warning(
         app,
         [
             str(small_file),
-            *("--format", "ngsim_raw", "--seed", "3", "--particles", "32"),
-            *("--rollouts", "0", "--causes", "reaction_delay", "--vehicles", "2"),
+            # The JSON test's sampler settings, so its compiled fits serve this one too.
+            *("--format", "ngsim_raw", "--seed", "3", "--particles", "64"),
+            *("--unmoved-tolerance", "0.05", "--rollouts", "0"),
+            *("--causes", "reaction_delay", "--vehicles", "2"),
         ],
     )
     assert result.exit_code == 0, result.output

@@ -1,6 +1,6 @@
 """Simulation-based calibration at CI size: smc, nuts and emcee pass, the sd-doubled model fails.
 
-One SBC study per engine (module-scoped, seed 11): R = 30 replications of 64 steps, three
+One SBC study per engine (seed 11): R = 30 replications of 64 steps, three
 parameters (tau, a_max, sigma), L = 99 ranks in 5 bins. Verdicts use the module's own rule:
 chi-square per parameter at alpha / K = 0.01 / 3 (Bonferroni). The same runs give the coverage
 check: on data simulated from prior draws, the central 90% intervals of an exact posterior hold
@@ -65,12 +65,17 @@ def study(name: str, fit_model=IDM):
     )
 
 
-@pytest.fixture(scope="module", params=list(ENGINES))
-def outcome(request):
-    return study(request.param)
+@pytest.mark.parametrize("engine", list(ENGINES))
+def test_engine_is_calibrated_covers_the_truth_and_writes_its_outcome(engine, tmp_path):
+    # One test per engine: its study runs once, on one worker (a module fixture shared by several
+    # tests was built again on each worker that took one of them).
+    outcome = study(engine)
+    shows_no_miscalibration(outcome)
+    covers_truth_at_nominal_rate(outcome)
+    writes_outcome_files_and_digest(outcome, tmp_path)
 
 
-def test_engine_shows_no_miscalibration(outcome):
+def shows_no_miscalibration(outcome):
     level = ALPHA / len(NAMES)
     assert outcome.bins == 5 and outcome.counts.sum(axis=1).tolist() == [REPLICATIONS] * 3
     assert outcome.calibrated, (
@@ -79,13 +84,24 @@ def test_engine_shows_no_miscalibration(outcome):
     )
 
 
-def test_engine_covers_truth_at_nominal_rate(outcome):
+def covers_truth_at_nominal_rate(outcome):
     covered = np.rint(outcome.coverage * REPLICATIONS).astype(int)
     for name, count in zip(NAMES, covered, strict=True):
         p = scipy.stats.binomtest(int(count), REPLICATIONS, outcome.interval).pvalue
         assert p >= COVERAGE_ALPHA / len(NAMES), (
             f"{outcome.engine}: {name} covered {count}/{REPLICATIONS} (nominal 0.9), p={p:.2g}"
         )
+
+
+def writes_outcome_files_and_digest(outcome, tmp_path):
+    files = write_outcome(outcome, tmp_path, "study")
+    assert [f.name for f in files] == ["study_ranks.png", "study_ranks.csv", "study.json"]
+    digest = json.loads((tmp_path / "study.json").read_text())
+    assert digest["calibrated"] == outcome.calibrated and digest["seed"] == SEED
+    assert digest["bonferroni_level"] == pytest.approx(ALPHA / len(NAMES))
+    rows = (tmp_path / "study_ranks.csv").read_text().splitlines()
+    assert len(rows) == REPLICATIONS + 1
+    assert rows[0] == "replication,truth_tau,truth_a_max,truth_sigma,rank_tau,rank_a_max,rank_sigma"
 
 
 def test_sd_doubled_engine_is_rejected_with_same_seed():
@@ -144,17 +160,6 @@ def test_too_few_draws_for_the_ranks_is_an_error():
     draws = np.zeros((1, 50, 2))
     with pytest.raises(ValueError, match="fewer than the 99 ranks"):
         posterior_ranks({"tau": draws}, ("tau",), np.zeros((2, 1)), 99)
-
-
-def test_outcome_files_and_digest(outcome, tmp_path):
-    files = write_outcome(outcome, tmp_path, "study")
-    assert [f.name for f in files] == ["study_ranks.png", "study_ranks.csv", "study.json"]
-    digest = json.loads((tmp_path / "study.json").read_text())
-    assert digest["calibrated"] == outcome.calibrated and digest["seed"] == SEED
-    assert digest["bonferroni_level"] == pytest.approx(ALPHA / len(NAMES))
-    rows = (tmp_path / "study_ranks.csv").read_text().splitlines()
-    assert len(rows) == REPLICATIONS + 1
-    assert rows[0] == "replication,truth_tau,truth_a_max,truth_sigma,rank_tau,rank_a_max,rank_sigma"
 
 
 @pytest.mark.parametrize(
