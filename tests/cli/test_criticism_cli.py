@@ -19,6 +19,13 @@ from trafficgen import DETECTION_SCENARIO, generate
 app = typer.Typer()
 app.command()(criticize_command)
 
+# The file's format, the seed and the sampler of the tests that criticize ``small_file``: one
+# setting, so a later test reuses the fits an earlier one compiled.
+CRITICIZE_SMALL = (
+    *("--format", "ngsim_raw", "--seed", "3"),
+    *("--particles", "64", "--unmoved-tolerance", "0.05"),
+)
+
 
 @pytest.fixture(scope="module")
 def small_file(tmp_path_factory):
@@ -43,14 +50,7 @@ def test_json_on_stdout_and_pictures(small_file, tmp_path):
         app,
         [
             str(small_file),
-            "--format",
-            "ngsim_raw",
-            "--seed",
-            "3",
-            "--particles",
-            "64",
-            "--unmoved-tolerance",
-            "0.05",
+            *CRITICIZE_SMALL,
             "--rollouts",
             "4",
             "--causes",
@@ -128,10 +128,8 @@ def test_vehicles_are_counted_as_fit_counts_them_and_few_of_them_draw_a_warning(
         app,
         [
             str(small_file),
-            # The JSON test's sampler settings, so its compiled fits serve this one too.
-            *("--format", "ngsim_raw", "--seed", "3", "--particles", "64"),
-            *("--unmoved-tolerance", "0.05", "--rollouts", "0"),
-            *("--causes", "reaction_delay", "--vehicles", "2"),
+            *CRITICIZE_SMALL,
+            *("--rollouts", "0", "--causes", "reaction_delay", "--vehicles", "2"),
         ],
     )
     assert result.exit_code == 0, result.output
