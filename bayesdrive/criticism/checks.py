@@ -27,6 +27,11 @@ The checks (``Check.name``):
 * ``change_points``: per vehicle, the CUSUM of :math:`z` scaled by its long-run sd (sup of a
   Brownian bridge under the null, Kolmogorov's distribution); many vehicles with a change point
   point to drifting parameters.
+* ``gain_drift``: per vehicle, over its whole record (both windows), the slope of :math:`z` on the
+  predicted acceleration in blocks of :data:`GAIN_BLOCK_S`, tested for equality across blocks:
+  a rule whose strength changes in time (a drifting maximum acceleration scales the whole
+  rule) leaves a residual proportional to the predicted acceleration with a slope that moves.
+  No extension models it, so it points to no cause; a misfit all the same.
 * ``score_<cause>``: the score (Lagrange-multiplier) test of each extension against the base
   model: the slope of the held-out log-likelihood in the extension's parameter at the value that
   switches it off (the base model), at the base posterior draws, with the execution-noise sd
@@ -83,6 +88,7 @@ __all__ = [
     "calibration_check",
     "change_point_check",
     "covariate_checks",
+    "gain_drift_check",
     "leader_cross_correlation_check",
     "multistep_check",
     "noise_speed_by_vehicle_check",
@@ -97,6 +103,9 @@ DRIFT_LAGS = (10, 30)  # the lag band whose mean autocorrelation points to drift
 PIT_BINS = 10
 COVARIATE_BINS = 8
 MIN_RANK_STEPS = 20  # scored steps a vehicle needs for its rank correlation of |z| with speed
+# Shorter than the slowest drift of interest (periods of tens of seconds), long enough for a
+# slope per block from a few accelerations and decelerations.
+GAIN_BLOCK_S = 5.0
 
 
 class Check(NamedTuple):
@@ -124,28 +133,29 @@ class Check(NamedTuple):
 
 
 class Residuals(NamedTuple):
-    """Posterior-predictive quantities of every step (vehicle, step); use where ``mask`` is 1."""
+    """Posterior-predictive quantities of every step (vehicle, step): ``mask`` marks the held-out
+    steps the checks score, ``usable`` every step with a residual (either window), and
+    ``acceleration`` is the draw-averaged predicted mean acceleration (m/s^2)."""
 
     pit: np.ndarray
     z: np.ndarray
     mask: np.ndarray
+    usable: np.ndarray
+    acceleration: np.ndarray
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, steps: StepInputs):
-    """Draw-averaged P(increment <= observed) and P(stop) of every step: (vehicle, step) each."""
+    """Draw-averaged P(increment <= observed), P(stop) and predicted mean acceleration of every
+    step: (vehicle, step) each."""
     model = extended.model
 
     def per_step(params, inputs, v, dx):
         state = model.lift(params, EgoState(jnp.zeros_like(v), v), inputs)
-        law = increment_law(
-            v,
-            model.mean_acceleration(params, state, inputs),
-            model.noise_sd(params, state),
-            inputs.dt,
-        )
+        acceleration = model.mean_acceleration(params, state, inputs)
+        law = increment_law(v, acceleration, model.noise_sd(params, state), inputs.dt)
         below = jax.scipy.stats.norm.cdf(dx, law.mean, law.sd)
-        return below, jax.scipy.stats.norm.cdf(law.stop_z)
+        return below, jax.scipy.stats.norm.cdf(law.stop_z), acceleration
 
     def per_vehicle(theta_v, steps_v):
         def per_draw(th):
@@ -154,8 +164,7 @@ def _pit_parts(extended: ExtendedModel, names: tuple[str, ...], theta: Array, st
                 steps_v.inputs, steps_v.v, steps_v.dx
             )
 
-        below, stop = jax.vmap(per_draw)(theta_v)
-        return below.mean(axis=0), stop.mean(axis=0)
+        return jax.tree.map(lambda part: part.mean(axis=0), jax.vmap(per_draw)(theta_v))
 
     return jax.vmap(per_vehicle)(theta, steps)
 
@@ -172,14 +181,21 @@ def predictive_residuals(
         raise ValueError(f"checks describe a base model's misfit; got {extended.name}")
     draws = np.linspace(0, fit.theta.shape[1] - 1, min(num_draws, fit.theta.shape[1])).astype(int)
     theta = jnp.asarray(fit.theta[:, draws], dtype=steps.v.dtype)
-    below, stop = _pit_parts(extended, fit.names, theta, steps)
-    below, stop = np.asarray(below, np.float64), np.asarray(stop, np.float64)
+    below, stop, acceleration = (
+        np.asarray(part, np.float64) for part in _pit_parts(extended, fit.names, theta, steps)
+    )
     stopped = np.asarray(steps.next_v) <= STOP_SPEED
     uniform = np.asarray(jax.random.uniform(key, below.shape))
     # A moving step's PIT is the continuous part above the stop mass; a stop's is randomised.
     pit = np.where(stopped, uniform * stop, stop + (1.0 - stop) * below)
     pit = np.clip(pit, 1e-9, 1.0 - 1e-9)
-    return Residuals(pit=pit, z=stats.norm.ppf(pit), mask=np.asarray(steps.heldout) > 0)
+    return Residuals(
+        pit=pit,
+        z=stats.norm.ppf(pit),
+        mask=np.asarray(steps.heldout) > 0,
+        usable=(np.asarray(steps.fit) > 0) | (np.asarray(steps.heldout) > 0),
+        acceleration=acceleration,
+    )
 
 
 def calibration_check(res: Residuals) -> Check:
@@ -525,6 +541,71 @@ def change_point_check(res: Residuals) -> Check:
     )
 
 
+def _block_gain_p_value(z: np.ndarray, acceleration: np.ndarray, block: int):
+    """One vehicle's gains in consecutive blocks of ``block`` steps (the slope of z on the
+    predicted acceleration through zero: a residual proportional to what the rule asks for)
+    about their weighted mean, and the p-value of their equality: the F test of
+    the gains' weighted spread, its error variance scaled by the long-run variance of the
+    gain's score terms, so that the short-range autocorrelation of one-step residuals does not
+    pass for a moving gain. None when fewer than two blocks ask for any acceleration."""
+    count = z.size // block
+    z_blocks = z[: count * block].reshape(count, block)
+    a_blocks = acceleration[: count * block].reshape(count, block)
+    weight = (a_blocks**2).sum(axis=1)
+    keep = weight > 0
+    if keep.sum() < 2:
+        return None
+    z_blocks, a_blocks, weight = z_blocks[keep], a_blocks[keep], weight[keep]
+    count = int(keep.sum())
+    gains = (z_blocks * a_blocks).sum(axis=1) / weight
+    common = (gains * weight).sum() / weight.sum()
+    errors = z_blocks - gains[:, None] * a_blocks
+    dof = count * block - count  # one gain per block
+    score_terms = (errors * a_blocks).ravel()
+    inflation = long_run_sd(score_terms) ** 2 / (score_terms @ score_terms / score_terms.size)
+    variance = (errors**2).sum() / dof * inflation
+    spread = ((gains - common) ** 2 * weight).sum() / (count - 1)
+    return gains - common, float(stats.f.sf(spread / variance, count - 1, dof))
+
+
+def gain_drift_check(res: Residuals, dt: float) -> Check:
+    """Does the strength of the rule change in time within a vehicle? (screening check)
+
+    Per vehicle, over every step with a residual (the fitting window too: a drift is a change
+    within the record, which the fitted parameters cannot absorb), the slope of z on the
+    predicted acceleration in blocks of :data:`GAIN_BLOCK_S` (:func:`_block_gain_p_value`);
+    the share of vehicles whose slopes differ at the 5% level, with a binomial tail across
+    vehicles as in :func:`change_point_check`.
+    """
+    block = round(GAIN_BLOCK_S / dt)
+    p_values, paths = [], []
+    for z, used, acceleration in zip(res.z, res.usable, res.acceleration, strict=True):
+        found = _block_gain_p_value(z[used], acceleration[used], block)
+        if found is None:
+            continue
+        paths.append(found[0])
+        p_values.append(found[1])
+    p_values = np.asarray(p_values)
+    flagged = int(np.sum(p_values < 0.05))
+    p = float(stats.binom.sf(flagged - 1, p_values.size, 0.05)) if p_values.size else 1.0
+    return Check(
+        name="gain_drift",
+        title=f"A rule whose gain moves in time (slope of z on the predicted acceleration, "
+        f"{GAIN_BLOCK_S:g} s blocks)",
+        statistic=float(np.mean(p_values < 0.05)) if p_values.size else 0.0,
+        p_value=p,
+        points_to=(),
+        summary={
+            "statistic": "share of vehicles whose block slopes differ at the 5% level",
+            "vehicles": int(p_values.size),
+            "flagged": flagged,
+            "block_s": GAIN_BLOCK_S,
+        },
+        figure={"slopes": paths, "p_values": p_values, "block_s": GAIN_BLOCK_S},
+        screening=True,
+    )
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def _vehicle_scores(extended: ExtendedModel, base_theta: Array, steps: StepInputs) -> Array:
     """Efficient score of each vehicle's held-out log-likelihood in psi at psi = off (module
@@ -680,6 +761,7 @@ def run_checks(
         noise_speed_by_vehicle_check(res, series),
         *covariate_checks(res, series),
         change_point_check(res),
+        gain_drift_check(res, series.dt),
         *(
             score_check(cause, fit, series)
             for cause in causes

@@ -110,6 +110,29 @@ def _change_points(check: Check, path: Path) -> Path:
     return _save(fig, path)
 
 
+def _gain_drift(check: Check, path: Path) -> Path:
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    block_s = check.figure["block_s"]
+    for gains, p in zip(check.figure["slopes"], check.figure["p_values"], strict=True):
+        ax.plot(
+            block_s * (np.arange(len(gains)) + 0.5),
+            gains,
+            "o-" if p < 0.05 else "-",
+            ms=3,
+            lw=1.2 if p < 0.05 else 0.6,
+            alpha=0.8 if p < 0.05 else 0.4,
+        )
+    ax.axhline(0, color="k", ls="--", lw=1)
+    ax.set_xlabel(f"time in the record (s), centres of {block_s:g} s blocks")
+    ax.set_ylabel("block gain - the vehicle's mean\n(z per m/s^2 of predicted acceleration)")
+    ax.set_title(
+        f"{check.title}\n{check.summary['flagged']} of {check.summary['vehicles']} vehicles "
+        f"differ at 5% (marked); p = {check.p_value:.2g}",
+        fontsize=9,
+    )
+    return _save(fig, path)
+
+
 def _multistep(check: Check, path: Path) -> Path:
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
     f = check.figure
@@ -250,6 +273,7 @@ def plot_criticism(result: CriticismResult, out_dir: str | Path) -> list[Path]:
             out / "covariates.png",
         ),
         _change_points(checks["change_points"], out / "change_points.png"),
+        _gain_drift(checks["gain_drift"], out / "gain_drift.png"),
         _by_vehicle(result.checks, out / "screening.png"),
         _causes(result, out / "causes.png"),
     ]

@@ -12,6 +12,7 @@ from bayesdrive.criticism.checks import (
     calibration_check,
     change_point_check,
     covariate_checks,
+    gain_drift_check,
     leader_cross_correlation_check,
     noise_speed_by_vehicle_check,
     vehicle_autocorrelation_checks,
@@ -25,8 +26,13 @@ from bayesdrive.inference.engines.heldout_evidence import FitResult
 VEHICLES, STEPS = 12, 300
 
 
-def residuals_from(z: np.ndarray) -> Residuals:
-    return Residuals(pit=stats.norm.cdf(z), z=z, mask=np.ones(z.shape, bool))
+def residuals_from(z: np.ndarray, acceleration: np.ndarray | None = None) -> Residuals:
+    every = np.ones(z.shape, bool)
+    if acceleration is None:
+        acceleration = np.zeros(z.shape)
+    return Residuals(
+        pit=stats.norm.cdf(z), z=z, mask=every, usable=every, acceleration=acceleration
+    )
 
 
 def ar1(rng, rho: float) -> np.ndarray:
@@ -207,6 +213,44 @@ def test_change_points_are_not_short_range_autocorrelation():
     shifted = z.copy()
     shifted[:, STEPS // 2 :] += 1.0
     assert change_point_check(residuals_from(shifted)).p_value < 1e-12
+
+
+def smooth_accelerations(rng, count: int) -> np.ndarray:
+    """Predicted accelerations as a driver's are: smooth (AR(1), rho 0.98 per 0.1 s step), sd
+    about 0.5 m/s^2, changing sign now and then."""
+    return 0.5 * ar1_rows(rng, count, 0.98)
+
+
+def ar1_rows(rng, count: int, rho: float) -> np.ndarray:
+    rows = np.empty((count, STEPS))
+    rows[:, 0] = rng.normal(size=count)
+    for t in range(1, STEPS):
+        rows[:, t] = rho * rows[:, t - 1] + np.sqrt(1 - rho**2) * rng.normal(size=count)
+    return rows
+
+
+def test_gain_drift_finds_a_rule_whose_strength_swings_and_not_a_fixed_one():
+    """z = (g(t) - 1) a / 0.3 + white noise, a the predicted acceleration and the gain g swinging
+    by 40% with a 25 s period (as a drifting a_max scales the rule): nearly every vehicle is
+    flagged (p < 1e-6). Negative controls, each with at most 3 of 12 vehicles flagged and
+    p > 1e-3: the same residual with a gain fixed at 1.4 (a wrong but constant strength), white
+    noise, and AR(1) noise (rho 0.3, short-range, unrelated to a). Seeds 11-14; 30 s at 10 Hz."""
+    rng = np.random.default_rng(11)
+    acceleration = smooth_accelerations(rng, VEHICLES)
+    t = np.arange(STEPS) * 0.1
+    phase = rng.uniform(0, 2 * np.pi, (VEHICLES, 1))
+    swing = 0.4 * np.sin(2 * np.pi * t / 25.0 + phase)
+    white = np.random.default_rng(12).normal(size=(VEHICLES, STEPS))
+    found = gain_drift_check(residuals_from(swing * acceleration / 0.3 + white, acceleration), 0.1)
+    assert found.p_value < 1e-6 and found.summary["flagged"] >= VEHICLES - 2
+    assert found.points_to == () and found.screening
+    for z in (
+        0.4 * acceleration / 0.3 + white,
+        np.random.default_rng(13).normal(size=(VEHICLES, STEPS)),
+        ar1_rows(np.random.default_rng(14), VEHICLES, 0.3),
+    ):
+        quiet = gain_drift_check(residuals_from(z, acceleration), 0.1)
+        assert quiet.p_value > 1e-3 and quiet.summary["flagged"] <= 3
 
 
 def fit_with(log_z_held) -> FitResult:
