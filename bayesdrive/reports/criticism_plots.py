@@ -102,9 +102,14 @@ def _change_points(check: Check, path: Path) -> Path:
         ax.axhline(sign * CUSUM_CRITICAL, color="k", ls="--", lw=1)
     ax.set_xlabel("fraction of the held-out window")
     ax.set_ylabel("standardised CUSUM of z")
+    return _save_vehicle_share(fig, ax, check, "cross the 5% line", path)
+
+
+def _save_vehicle_share(fig, ax, check: Check, flagged_means: str, path: Path) -> Path:
+    """Title a per-vehicle test's figure with how many vehicles it flags, and save it."""
     ax.set_title(
         f"{check.title}\n{check.summary['flagged']} of {check.summary['vehicles']} vehicles "
-        f"cross the 5% line; p = {check.p_value:.2g}",
+        f"{flagged_means}; p = {check.p_value:.2g}",
         fontsize=9,
     )
     return _save(fig, path)
@@ -125,12 +130,7 @@ def _gain_drift(check: Check, path: Path) -> Path:
     ax.axhline(0, color="k", ls="--", lw=1)
     ax.set_xlabel(f"time in the record (s), centres of {block_s:g} s blocks")
     ax.set_ylabel("block gain - the vehicle's mean\n(z per m/s^2 of predicted acceleration)")
-    ax.set_title(
-        f"{check.title}\n{check.summary['flagged']} of {check.summary['vehicles']} vehicles "
-        f"differ at 5% (marked); p = {check.p_value:.2g}",
-        fontsize=9,
-    )
-    return _save(fig, path)
+    return _save_vehicle_share(fig, ax, check, "differ at 5% (marked)", path)
 
 
 def _multistep(check: Check, path: Path) -> Path:
