@@ -6,6 +6,7 @@ writes PNG files with matplotlib's Agg backend; nothing here computes a statisti
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -108,7 +109,7 @@ def _change_points(check: Check, path: Path) -> Path:
 def _save_vehicle_share(fig, ax, check: Check, flagged_means: str, path: Path) -> Path:
     """Title a per-vehicle test's figure with how many vehicles it flags, and save it."""
     ax.set_title(
-        f"{check.title}\n{check.summary['flagged']} of {check.summary['vehicles']} vehicles "
+        f"{textwrap.fill(check.title, 70)}\n{check.summary['flagged']} of {check.summary['vehicles']} vehicles "
         f"{flagged_means}; p = {check.p_value:.2g}",
         fontsize=9,
     )
