@@ -505,6 +505,17 @@ def long_run_sd(centred: np.ndarray) -> float:
     return float(np.sqrt(variance))
 
 
+def _flagged_share(p_values: list[float]) -> tuple[np.ndarray, float, int, float]:
+    """Per-vehicle p-values as an array, the share and number of vehicles flagged at 5%, and
+    the binomial tail of that number: under the null each vehicle flags with probability 0.05,
+    and vehicles are independent, so the tail is calibrated across vehicles."""
+    p_values = np.asarray(p_values)
+    flagged = int(np.sum(p_values < 0.05))
+    share = flagged / p_values.size if p_values.size else 0.0
+    p = float(stats.binom.sf(flagged - 1, p_values.size, 0.05)) if p_values.size else 1.0
+    return p_values, share, flagged, p
+
+
 def change_point_check(res: Residuals) -> Check:
     """Per-vehicle CUSUM of z: the share of vehicles whose mean shifts inside the window."""
     p_values, paths = [], []
@@ -519,11 +530,7 @@ def change_point_check(res: Residuals) -> Check:
         path = np.cumsum(centred) / (long_run_sd(centred) * np.sqrt(values.size))
         paths.append(path)
         p_values.append(float(stats.kstwobign.sf(np.abs(path).max())))
-    p_values = np.asarray(p_values)
-    share = float(np.mean(p_values < 0.05)) if p_values.size else 0.0
-    # Under the null each vehicle flags with probability 0.05: a binomial tail for the share.
-    flagged = int(np.sum(p_values < 0.05))
-    p = float(stats.binom.sf(flagged - 1, p_values.size, 0.05)) if p_values.size else 1.0
+    p_values, share, flagged, p = _flagged_share(p_values)
     return Check(
         name="change_points",
         title="Change points in the residual mean (CUSUM per vehicle)",
@@ -536,7 +543,6 @@ def change_point_check(res: Residuals) -> Check:
             "flagged": flagged,
         },
         figure={"paths": paths, "p_values": p_values},
-        # A binomial tail over independent vehicles: calibrated across vehicles.
         screening=True,
     )
 
@@ -574,8 +580,8 @@ def gain_drift_check(res: Residuals, dt: float) -> Check:
     Per vehicle, over every step with a residual (the fitting window too: a drift is a change
     within the record, which the fitted parameters cannot absorb), the slope of z on the
     predicted acceleration in blocks of :data:`GAIN_BLOCK_S` (:func:`_block_gain_p_value`);
-    the share of vehicles whose slopes differ at the 5% level, with a binomial tail across
-    vehicles as in :func:`change_point_check`.
+    the share of vehicles whose slopes differ at the 5% level and its binomial tail
+    (:func:`_flagged_share`).
     """
     block = round(GAIN_BLOCK_S / dt)
     p_values, paths = [], []
@@ -585,14 +591,12 @@ def gain_drift_check(res: Residuals, dt: float) -> Check:
             continue
         paths.append(found[0])
         p_values.append(found[1])
-    p_values = np.asarray(p_values)
-    flagged = int(np.sum(p_values < 0.05))
-    p = float(stats.binom.sf(flagged - 1, p_values.size, 0.05)) if p_values.size else 1.0
+    p_values, share, flagged, p = _flagged_share(p_values)
     return Check(
         name="gain_drift",
         title=f"A rule whose gain moves in time (slope of z on the predicted acceleration, "
         f"{GAIN_BLOCK_S:g} s blocks)",
-        statistic=float(np.mean(p_values < 0.05)) if p_values.size else 0.0,
+        statistic=share,
         p_value=p,
         points_to=(),
         summary={

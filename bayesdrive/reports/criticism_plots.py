@@ -109,8 +109,8 @@ def _change_points(check: Check, path: Path) -> Path:
 def _save_vehicle_share(fig, ax, check: Check, flagged_means: str, path: Path) -> Path:
     """Title a per-vehicle test's figure with how many vehicles it flags, and save it."""
     ax.set_title(
-        f"{textwrap.fill(check.title, 70)}\n{check.summary['flagged']} of {check.summary['vehicles']} vehicles "
-        f"{flagged_means}; p = {check.p_value:.2g}",
+        f"{textwrap.fill(check.title, 70)}\n{check.summary['flagged']} of "
+        f"{check.summary['vehicles']} vehicles {flagged_means}; p = {check.p_value:.2g}",
         fontsize=9,
     )
     return _save(fig, path)

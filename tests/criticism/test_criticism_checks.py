@@ -35,11 +35,11 @@ def residuals_from(z: np.ndarray, acceleration: np.ndarray | None = None) -> Res
     )
 
 
-def ar1(rng, rho: float) -> np.ndarray:
-    z = np.empty((VEHICLES, STEPS))
-    z[:, 0] = rng.normal(size=VEHICLES)
+def ar1(rng, rho: float, count: int = VEHICLES) -> np.ndarray:
+    z = np.empty((count, STEPS))
+    z[:, 0] = rng.normal(size=count)
     for t in range(1, STEPS):
-        z[:, t] = rho * z[:, t - 1] + np.sqrt(1 - rho**2) * rng.normal(size=VEHICLES)
+        z[:, t] = rho * z[:, t - 1] + np.sqrt(1 - rho**2) * rng.normal(size=count)
     return z
 
 
@@ -197,12 +197,7 @@ def test_change_points_are_not_short_range_autocorrelation():
     """AR(1) residuals (rho 0.3) without a shift flag about 5% of vehicles once the CUSUM is scaled
     by the long-run sd; scaled by the one-step sd they flag many. A shift on top is still found.
     Seed 10; 40 vehicles."""
-    many = 40
-    rng = np.random.default_rng(10)
-    z = np.empty((many, STEPS))
-    z[:, 0] = rng.normal(size=many)
-    for t in range(1, STEPS):
-        z[:, t] = 0.3 * z[:, t - 1] + np.sqrt(1 - 0.3**2) * rng.normal(size=many)
+    z = ar1(np.random.default_rng(10), 0.3, count=40)
     scaled = change_point_check(residuals_from(z))
     assert scaled.p_value > 1e-3 and scaled.summary["flagged"] <= 6
     one_step = [
@@ -218,15 +213,7 @@ def test_change_points_are_not_short_range_autocorrelation():
 def smooth_accelerations(rng, count: int) -> np.ndarray:
     """Predicted accelerations as a driver's are: smooth (AR(1), rho 0.98 per 0.1 s step), sd
     about 0.5 m/s^2, changing sign now and then."""
-    return 0.5 * ar1_rows(rng, count, 0.98)
-
-
-def ar1_rows(rng, count: int, rho: float) -> np.ndarray:
-    rows = np.empty((count, STEPS))
-    rows[:, 0] = rng.normal(size=count)
-    for t in range(1, STEPS):
-        rows[:, t] = rho * rows[:, t - 1] + np.sqrt(1 - rho**2) * rng.normal(size=count)
-    return rows
+    return 0.5 * ar1(rng, 0.98, count)
 
 
 def test_gain_drift_finds_a_rule_whose_strength_swings_and_not_a_fixed_one():
@@ -247,7 +234,7 @@ def test_gain_drift_finds_a_rule_whose_strength_swings_and_not_a_fixed_one():
     for z in (
         0.4 * acceleration / 0.3 + white,
         np.random.default_rng(13).normal(size=(VEHICLES, STEPS)),
-        ar1_rows(np.random.default_rng(14), VEHICLES, 0.3),
+        ar1(np.random.default_rng(14), 0.3),
     ):
         quiet = gain_drift_check(residuals_from(z, acceleration), 0.1)
         assert quiet.p_value > 1e-3 and quiet.summary["flagged"] <= 3
