@@ -1,6 +1,6 @@
 """The held-out steps of ``bayesdrive reproduce`` on every held-out data set, run alone.
 
-``bayesdrive reproduce --out results`` ends with two steps on the held-out data sets
+``bayesdrive reproduce --full --out results`` ends with two steps on the held-out data sets
 (:mod:`bayesdrive.experiments.holdout`): the evaluation (:func:`~bayesdrive.experiments.paper.holdout_step`:
 per-vehicle smc fits, the population predictive of the training data set of the same kind,
 baselines, paired intervals) and the calibration (:func:`~bayesdrive.experiments.paper.calibration_step`:

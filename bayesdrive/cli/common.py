@@ -159,12 +159,13 @@ def results_folder(
     resumable: bool = False,
     update: bool = False,
     arguments: dict[str, Any] | None = None,
+    extends: dict[str, Any] | None = None,
 ) -> ResultsFolder:
     """Check OUT (and the command's ``json_out``, :func:`check_json_out`) before any work and open
     its staging folder (:mod:`bayesdrive.data.outputs`).
 
-    The arguments recorded are the command's own (less where the result goes) unless given.
-    SIGTERM is handled as :func:`exit_cleanly_on_sigterm` says.
+    The arguments recorded are the command's own (less where the result goes) unless given;
+    ``extends`` are those of a complete folder this run may extend. SIGTERM is handled as :func:`exit_cleanly_on_sigterm` says.
     """
     check_json_out(json_out, force)
     stack, kwargs = _scope.get()
@@ -173,7 +174,13 @@ def results_folder(
     exit_cleanly_on_sigterm()
     try:
         folder = open_results(
-            out, command, arguments, force=force, resumable=resumable, update=update
+            out,
+            command,
+            arguments,
+            force=force,
+            resumable=resumable,
+            update=update,
+            extends=extends,
         )
     except OutputError as error:
         raise fail(str(error)) from None

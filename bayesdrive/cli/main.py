@@ -55,7 +55,7 @@ COMMANDS: dict[str, LazyCommand] = {
     "reproduce": LazyCommand(
         "bayesdrive.cli.reproduce_cmd",
         "reproduce",
-        "Run every experiment of the paper on the real data and write out/report.html.",
+        "Run the paper's experiments and the criticism on the real data and write out/report.html.",
     ),
     "report": LazyCommand(
         "bayesdrive.cli.reproduce_cmd",

@@ -18,15 +18,16 @@ from bayesdrive.data.errors import DataError
 from bayesdrive.data.outputs import OutputError, ResultsFolder, recorded_arguments
 
 
-def _run(results: ResultsFolder, quick: bool, force: bool) -> Path:
-    from bayesdrive.experiments.paper import FULL, QUICK, run_all
+def _run(results: ResultsFolder, quick: bool, full: bool, force: bool) -> Path:
+    from bayesdrive.experiments.paper import FULL, QUICK, main_steps, run_all
     from bayesdrive.reports.paper_report import build_report
 
+    settings = QUICK if quick else FULL
     started = time.perf_counter()
     try:
         outcome = run_all(
             results.path,
-            QUICK if quick else FULL,
+            settings if full else main_steps(settings),
             force=force,
             progress=lambda step: console.print(
                 f"[bold]{step}[/bold] ({time.perf_counter() - started:.0f} s)"
@@ -43,11 +44,22 @@ def _run(results: ResultsFolder, quick: bool, force: bool) -> Path:
 @results_command
 def reproduce(
     out: Path = typer.Option(Path("results"), "--out", help="Folder for results and the report."),
-    quick: bool = typer.Option(False, "--quick", help="Every step, shrunk to run in minutes."),
+    quick: bool = typer.Option(False, "--quick", help="Each step shrunk to run in minutes."),
+    full: bool = typer.Option(
+        False,
+        "--full",
+        help="Also the Turing test and the held-out data sets (over twice the time). Over a "
+        "complete folder of the same run without --full, only these steps run.",
+    ),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP + " Every step is recomputed."),
 ) -> None:
-    """Run every experiment of the paper on the real data and write out/report.html."""
-    _run(results_folder(out, "reproduce", force=force, resumable=True), quick, force)
+    """Run the paper's experiments and the criticism on the real data and write out/report.html.
+
+    The Turing test and the held-out data sets run with --full."""
+    # A run of the same size without --full is what this one extends.
+    extends = {"quick": quick, "full": False} if full and not force else None
+    folder = results_folder(out, "reproduce", force=force, resumable=True, extends=extends)
+    _run(folder, quick, full, force)
 
 
 @results_command
@@ -62,4 +74,5 @@ def report(
     folder = results_folder(
         results, "reproduce", force=False, resumable=True, update=True, arguments=arguments
     )
-    _run(folder, arguments["quick"], force=False)
+    # Folders written before --full ran every step.
+    _run(folder, arguments["quick"], arguments.get("full", True), force=False)

@@ -10,7 +10,9 @@ absent, and what the killed run left is a staging folder the next run recognises
   ``reproduce``'s steps, reuses them; any other starts again);
 - other ones: refused, naming what differs; ``force`` discards it.
 
-A complete OUT is refused unless ``force``; with ``force`` the new folder replaces it at the end
+A complete OUT is refused unless ``force``, or unless this run extends it (``extends``: a run of
+wider scope over the same settings, such as ``reproduce --full`` over ``reproduce``), when it is
+updated as ``report`` updates it; with ``force`` the new folder replaces it at the end
 (OUT is renamed to ``.OUT.replaced``, the staging folder to OUT, then the old one is removed; a
 kill between the two renames is repaired by the next run, which puts the old folder back). A
 folder holding files but no manifest was not written by a command here and is never replaced.
@@ -242,12 +244,14 @@ def open_results(
     force: bool,
     resumable: bool = False,
     update: bool = False,
+    extends: dict[str, Any] | None = None,
 ) -> ResultsFolder:
     """Check OUT before any work and open its staging folder (the rule: module docstring).
 
     ``update`` rebuilds a complete folder of the same command and arguments (``report``): its
     files are hard-linked into the staging folder, where atomic writes replace links, never the
-    old files, so the old folder stays whole until :meth:`ResultsFolder.commit`.
+    old files, so the old folder stays whole until :meth:`ResultsFolder.commit`. A complete folder
+    whose arguments are ``extends`` is updated the same way, and records ``arguments`` after.
     Raises :class:`OutputError` with a one-line reason.
     """
     target = Path(os.path.abspath(out))
@@ -267,7 +271,9 @@ def open_results(
                     "and none replaces it; choose a new or empty folder"
                 )
             differ = _differences(recorded, command, arguments)
-            if not force and not (update and not differ):
+            grows = extends is not None and not _differences(recorded, command, _plain(extends))
+            update = (update and not differ) or grows
+            if not force and not update:
                 settings = f"with other settings ({differ})" if differ else "of the same settings"
                 raise OutputError(
                     f"{target} already holds a complete result of `bayesdrive "

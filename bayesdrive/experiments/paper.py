@@ -24,7 +24,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -88,7 +88,7 @@ from bayesdrive.simulation.two_sample import (
     trajectory_features,
 )
 
-__all__ = ["FULL", "QUICK", "SEEDS", "Settings", "run_all"]
+__all__ = ["FULL", "OPTIONAL_STEPS", "QUICK", "SEEDS", "Settings", "main_steps", "run_all"]
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +117,12 @@ CLIP_PAIRS = 3
 TURING_FOLDS = 5
 # Key of the criticism's final model among a highway step's fits (beside "smc" and "pf").
 FINAL = "final"
+# The steps a run may leave out, by name, with what each runs. No other step reads their results,
+# so a run without them computes the others bit for bit as a run with them.
+OPTIONAL_STEPS = {
+    "turing": "the automated Turing test",
+    "holdout": "generalisation to and calibration on the held-out data sets",
+}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -149,6 +155,8 @@ class Settings:
     criticised: tuple[str, ...] | None = None
     # Label permutations of the boosted Turing classifier's test (each refits it on every fold).
     turing_permutations: int = 99
+    # Which of OPTIONAL_STEPS run (every other step always runs).
+    optional_steps: tuple[str, ...] = tuple(OPTIONAL_STEPS)
 
 
 FULL = Settings()
@@ -175,6 +183,12 @@ QUICK = Settings(
     criticised=("ngsim_i80_chains",),
     turing_permutations=19,
 )
+
+
+def main_steps(settings: Settings) -> Settings:
+    """``settings`` without the optional steps: the README's main job, sized to run in 20 minutes
+    on 2 cores (``reproduce --full`` adds them)."""
+    return replace(settings, optional_steps=())
 
 
 def holdout_names(settings: Settings) -> list[str]:
@@ -980,22 +994,76 @@ class StepClock:
         return rows
 
 
+def _sizes(settings: Settings | dict[str, Any]) -> dict[str, Any]:
+    """Every setting but which optional steps run."""
+    fields = settings if isinstance(settings, dict) else settings.__dict__
+    return {k: v for k, v in fields.items() if k != "optional_steps"}
+
+
+def held_out_steps(
+    out: Path,
+    smc_trees: dict[str, Any],
+    final_models: dict[str, str],
+    criticism: dict[str, dict],
+    settings: Settings,
+    force: bool,
+    progress: Callable[[str], None],
+) -> dict[str, dict]:
+    """The optional ``holdout`` steps: generalisation to the held-out data sets
+    (:func:`holdout_step`), then calibration on their held-out windows (:func:`calibration_step`),
+    which reuses the first's fits."""
+    progress("generalisation on held-out data sets")
+    # Both held-out steps read every held-out set: once.
+    load_holdout = functools.cache(registry.load_holdout)
+    # Only the highway labels the criticism ran on: their final models are the chosen ones.
+    chosen = {k: v for k, v in final_models.items() if k in criticism}
+    # Not "holdout": results of the earlier layout (one pooled row, no fits) are not reused.
+    evaluation = cached(
+        out,
+        "holdout_evaluation",
+        lambda: holdout_step(
+            out / "holdout", smc_trees, settings, force, load_holdout, final_models=chosen
+        ),
+        force,
+    )
+    progress("calibration on held-out data sets")
+    calibration = cached(
+        out,
+        "holdout_calibration",
+        lambda: calibration_step(
+            out / "holdout" / "calibration",
+            chosen,
+            settings,
+            force,
+            load_holdout,
+            evaluation_fits=out / "holdout",
+        ),
+        force,
+    )
+    return {"holdout": evaluation, "holdout_calibration": calibration}
+
+
 def run_all(
     out: Path, settings: Settings, *, force: bool = False, progress: Callable[[str], None] = print
 ) -> dict:
-    """Run every experiment into ``out`` (finished steps are reused unless ``force``); each
-    step's time goes to ``out/step_times.json`` and the report (:class:`StepClock`)."""
+    """Run every experiment into ``out``, less the optional steps ``settings`` leave out
+    (finished steps are reused unless ``force``); each step's time goes to
+    ``out/step_times.json`` and the report (:class:`StepClock`)."""
     out.mkdir(parents=True, exist_ok=True)
     progress = StepClock(out, progress)
     recorded = out / "settings.json"
     # As JSON reads them back (tuples become lists), so a folder's own settings compare equal.
-    wanted = json.loads(json.dumps(settings.__dict__))
-    if recorded.exists() and not force and json.loads(recorded.read_text()) != wanted:
+    # The optional steps may differ: a step's results do not depend on which others ran.
+    wanted = json.loads(json.dumps(_sizes(settings)))
+    if recorded.exists() and not force and _sizes(json.loads(recorded.read_text())) != wanted:
         raise ValueError(
             f"{out} holds results of other settings ({recorded}); use --force or another --out"
         )
     _save_json(recorded, settings.__dict__)
     results: dict[str, Any] = {"settings": settings.__dict__, "seeds": SEEDS}
+    results["steps_left_out"] = {
+        step: text for step, text in OPTIONAL_STEPS.items() if step not in settings.optional_steps
+    }
     progress("data sets")
     results["data"] = cached(out, "data", data_step, force)
     trajs: dict[str, Trajectories] = {}
@@ -1045,43 +1113,22 @@ def run_all(
     }
     pf_trees = {label: load_result(fits["pf"]) for label, fits in highway_fits.items()}
     results["parameters"] = parameter_table(smc_trees).to_dict("records")
-    progress("Turing test")
-    results["turing"] = cached(
-        out, "turing", lambda: turing_step(out / "turing", highway, trajs, settings), force
-    )
+    if "turing" in settings.optional_steps:
+        progress("Turing test")
+        results["turing"] = cached(
+            out, "turing", lambda: turing_step(out / "turing", highway, trajs, settings), force
+        )
     progress("scene generation")
     main_trees = {k: v for k, v in smc_trees.items() if not k.endswith("acc-contrast")}
     results["scenes"] = cached(
         out, "scenes", lambda: scenes_step(out / "scenes", main_trees, main_data, settings), force
     )
-    progress("generalisation on held-out data sets")
-    # Both held-out steps read every held-out set: once.
-    load_holdout = functools.cache(registry.load_holdout)
-    # Only the highway labels the criticism ran on: their final models are the chosen ones.
-    chosen = {k: v for k, v in results["final_models"].items() if k in criticism}
-    # Not "holdout": results of the earlier layout (one pooled row, no fits) are not reused.
-    results["holdout"] = cached(
-        out,
-        "holdout_evaluation",
-        lambda: holdout_step(
-            out / "holdout", smc_trees, settings, force, load_holdout, final_models=chosen
-        ),
-        force,
-    )
-    progress("calibration on held-out data sets")
-    results["holdout_calibration"] = cached(
-        out,
-        "holdout_calibration",
-        lambda: calibration_step(
-            out / "holdout" / "calibration",
-            chosen,
-            settings,
-            force,
-            load_holdout,
-            evaluation_fits=out / "holdout",
-        ),
-        force,
-    )
+    if "holdout" in settings.optional_steps:
+        results.update(
+            held_out_steps(
+                out, smc_trees, results["final_models"], criticism, settings, force, progress
+            )
+        )
     progress("prior sensitivity")
     chains = trajs["ngsim_i80_chains"]
     chain_ids = list(

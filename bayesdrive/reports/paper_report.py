@@ -26,6 +26,7 @@ from bayesdrive.simulation.two_sample import BOOSTING
 
 __all__ = ["build_report"]
 
+LEFT_OUT_NOTE = "Left out of this run: `bayesdrive reproduce --full` runs it."
 PAPER_NOTE = (
     "The paper's published code did not filter in its 'ours' column, picked seeds on test error, "
     "and scored a likelihood whose spread was off by a factor of 2; it reported a mean absolute "
@@ -488,16 +489,55 @@ def plot_parameters(table: pd.DataFrame, path: Path) -> Path:
     return _save(fig, path)
 
 
+def turing_section(turing: Section, turing_results: dict[str, Any]) -> None:
+    """The Turing test's texts and its classifiers' tables."""
+    turing.text(
+        "Two classifiers try to tell real held-out vehicle segments from simulated ones; 50% "
+        "accuracy means indistinguishable. p-values by label permutation with the same folds. "
+        "The first, a logistic regression, reads six summaries of a segment: speed mean and sd, "
+        "gap mean and minimum (the levels), acceleration sd and jerk sd. Its second accuracy uses "
+        "the levels only: where it is much lower, the classifier tells real from simulated by "
+        "smoothness, i.e. by the execution noise, which the model draws independently at every "
+        "step while the processed data are smooth (compare the criticism section's verdicts). "
+        "The second, gradient-boosted trees, reads the within-segment quantiles of speed, gap, "
+        "acceleration, jerk, relative speed and time headway and the acceleration's "
+        "autocorrelation, sign changes and correlation with the closing speed; its folds are "
+        "grouped by vehicle (no vehicle is tested by a classifier trained on it) and its interval "
+        "counts a vehicle's segments, which are not independent, as fewer trials. A linear "
+        "boundary on six summaries can call a model indistinguishable that the trees still tell "
+        "apart. A fold that trains on fewer than "
+        f"{2 * BOOSTING['min_samples_leaf']} segments (a quick run) cannot split a tree: there "
+        "the boosted accuracy is chance by construction and says nothing."
+    )
+    # The folder's name, not its absolute path: the clips travel with the report.
+    turing.text(
+        f"For human judges: {turing_results['pairs']} pairs of clips (real and idm-smc, order "
+        f"drawn from a seeded generator) in the folder {Path(turing_results['clips']).name}/ "
+        "beside this report. Which clip of each pair is real is kept outside that folder, in "
+        f"{Path(turing_results.get('answer_sheet', 'turing_answer_sheet.json')).name} beside "
+        "this report, so the folder can be handed to judges as it is."
+    )
+    for label, rows in turing_results["classifier"].items():
+        turing.table(turing_table(rows), caption=label)
+
+
 def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path:
     """Write ``out/report.html`` from the results of :func:`experiments.run_all`."""
     figures = out / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     settings = results["settings"]
+    left_out = results.get("steps_left_out", {})
+    scope = (
+        f" Left out of this run: {'; '.join(left_out.values())}. "
+        "`bayesdrive reproduce --full` runs them (over this folder, only them)."
+        if left_out
+        else ""
+    )
     report = Report(
         "bayesdrive: the paper's experiments on real data",
         intro=(
             f"Run '{settings['name']}': {settings['smc_particles']} smc particles, "
-            f"{settings['rollouts']} rollouts per scenario, seeds {results['seeds']}."
+            f"{settings['rollouts']} rollouts per scenario, seeds {results['seeds']}.{scope}"
         ),
     )
 
@@ -609,34 +649,10 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
         )
 
     turing = report.section("Turing test (automated: classifier two-sample test)")
-    turing.text(
-        "Two classifiers try to tell real held-out vehicle segments from simulated ones; 50% "
-        "accuracy means indistinguishable. p-values by label permutation with the same folds. "
-        "The first, a logistic regression, reads six summaries of a segment: speed mean and sd, "
-        "gap mean and minimum (the levels), acceleration sd and jerk sd. Its second accuracy uses "
-        "the levels only: where it is much lower, the classifier tells real from simulated by "
-        "smoothness, i.e. by the execution noise, which the model draws independently at every "
-        "step while the processed data are smooth (compare the criticism section's verdicts). "
-        "The second, gradient-boosted trees, reads the within-segment quantiles of speed, gap, "
-        "acceleration, jerk, relative speed and time headway and the acceleration's "
-        "autocorrelation, sign changes and correlation with the closing speed; its folds are "
-        "grouped by vehicle (no vehicle is tested by a classifier trained on it) and its interval "
-        "counts a vehicle's segments, which are not independent, as fewer trials. A linear "
-        "boundary on six summaries can call a model indistinguishable that the trees still tell "
-        "apart. A fold that trains on fewer than "
-        f"{2 * BOOSTING['min_samples_leaf']} segments (a quick run) cannot split a tree: there "
-        "the boosted accuracy is chance by construction and says nothing."
-    )
-    # The folder's name, not its absolute path: the clips travel with the report.
-    turing.text(
-        f"For human judges: {results['turing']['pairs']} pairs of clips (real and idm-smc, order "
-        f"drawn from a seeded generator) in the folder {Path(results['turing']['clips']).name}/ "
-        "beside this report. Which clip of each pair is real is kept outside that folder, in "
-        f"{Path(results['turing'].get('answer_sheet', 'turing_answer_sheet.json')).name} beside "
-        "this report, so the folder can be handed to judges as it is."
-    )
-    for label, rows in results["turing"]["classifier"].items():
-        turing.table(turing_table(rows), caption=label)
+    if "turing" in results:
+        turing_section(turing, results["turing"])
+    else:
+        turing.note(LEFT_OUT_NOTE)
 
     scenes = report.section("Scene generation")
     scenes.note(
@@ -663,7 +679,11 @@ def build_report(results: dict[str, Any], out: Path, command: list[str]) -> Path
     for path in figure_paths(recorded, out / "scenes"):
         scenes.figure(path, path.stem.replace("_", " "))
 
-    holdout_section(report.section("Generalisation to held-out data sets"), results["holdout"])
+    generalisation = report.section("Generalisation to held-out data sets")
+    if "holdout" in results:
+        holdout_section(generalisation, results["holdout"])
+    else:
+        generalisation.note(LEFT_OUT_NOTE)
     if "holdout_calibration" in results:
         calibration_section(
             report.section("Calibration on held-out windows"),

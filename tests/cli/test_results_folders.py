@@ -225,6 +225,32 @@ def test_a_folder_not_written_by_a_command_is_never_replaced(tmp_path):
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep\n"
 
 
+def test_a_run_of_wider_scope_extends_a_complete_folder_and_nothing_else(tmp_path):
+    out = tmp_path / "r"
+    with open_results(out, "reproduce", {"quick": True, "full": False}, force=False) as first:
+        write_text_atomic(first.path / "main.txt", "main\n")
+        first.commit()
+    old_inode = (out / "main.txt").stat().st_ino
+    wider = {"quick": True, "full": True}
+    # Only the folder of the run it names is extended: other sizes are refused as before.
+    with pytest.raises(OutputError, match=r"other settings \(full: False there, True here"):
+        open_results(out, "reproduce", wider, force=False, extends={"quick": False, "full": False})
+    with open_results(
+        out, "reproduce", wider, force=False, resumable=True, extends={"quick": True, "full": False}
+    ) as grown:
+        # The finished files are there to reuse, as links the new run never writes through.
+        assert (grown.path / "main.txt").stat().st_ino == old_inode
+        write_text_atomic(grown.path / "held_out.txt", "more\n")
+        # The old folder stays whole until the commit.
+        assert not (out / "held_out.txt").exists()
+        grown.commit()
+    assert sorted(p.name for p in out.iterdir()) == sorted([MANIFEST, "held_out.txt", "main.txt"])
+    assert json.loads((out / MANIFEST).read_text())["arguments"] == wider
+    # The folder is now the wider run's: extending it again is refused like any complete result.
+    with pytest.raises(OutputError, match="of the same settings"):
+        open_results(out, "reproduce", wider, force=False, extends={"quick": True, "full": False})
+
+
 def test_a_kill_between_the_two_renames_of_a_replacement_is_repaired(tmp_path):
     out = tmp_path / "r"
     with open_results(out, "sim", {"seed": 1}, force=False) as first:

@@ -29,20 +29,39 @@ SECTIONS = (
 @pytest.mark.extended
 @pytest.mark.slow
 @pytest.mark.realdata
-def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_path, monkeypatch):
+def test_quick_reproduction_writes_the_report_and_full_adds_the_left_out_steps(
+    data_dir, holdout_dir, tmp_path, monkeypatch
+):
     monkeypatch.setenv("BAYESDRIVE_DATA_DIR", str(data_dir))
     monkeypatch.setenv("BAYESDRIVE_HOLDOUT_DIR", str(holdout_dir))
     out = tmp_path / "quick"
     runner = CliRunner()
+    # Without --full, the Turing test and the held-out data sets are left out, and said to be.
     first = runner.invoke(app, ["reproduce", "--quick", "--out", str(out)])
     assert first.exit_code == 0, first.output
     page = (out / "report.html").read_text()
     for section in SECTIONS:
         assert html.escape(section) in page
+    assert page.count(html.escape("`bayesdrive reproduce --full` runs it")) == 2
+    assert not (out / "turing.json").exists() and not (out / "holdout_evaluation.json").exists()
+    main_steps = [s["step"] for s in json.loads((out / "step_times.json").read_text())]
+    assert "Turing test" not in main_steps and "model export" in main_steps
+    evaluation = out / "highway" / "ngsim_i80_chains" / "evaluation.json"
+    stamp = evaluation.stat().st_mtime_ns
+
+    # --full over that folder runs only the steps it left out.
+    full = runner.invoke(app, ["reproduce", "--quick", "--full", "--out", str(out)])
+    assert full.exit_code == 0, full.output
+    assert evaluation.stat().st_mtime_ns == stamp
+    page = (out / "report.html").read_text()
+    for section in SECTIONS:
+        assert html.escape(section) in page
+    assert "--full` runs it" not in html.unescape(page)
     assert page.count("data:image/png;base64,") >= 6
     # Every announced step has its time, and the total is their sum (to the rounding).
     steps = json.loads((out / "step_times.json").read_text())
     assert steps[-1]["step"] == "total" and "model export" in [s["step"] for s in steps]
+    assert {"Turing test", "generalisation on held-out data sets"} <= {s["step"] for s in steps}
     assert all(s["seconds"] >= 0 for s in steps)
     assert abs(sum(s["seconds"] for s in steps[:-1]) - steps[-1]["seconds"]) < 0.1 * len(steps)
     # The quick run evaluates one held-out set and criticises one data set, and names the others.
@@ -96,17 +115,17 @@ def test_quick_reproduction_writes_the_full_report(data_dir, holdout_dir, tmp_pa
     assert Path(turing["answer_sheet"]).name in html.unescape(page)
 
     # A re-run rebuilds the report from the saved steps without recomputing them.
-    stamp = (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns
     again = runner.invoke(app, ["report", str(out)])
     assert again.exit_code == 0, again.output
-    assert (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns == stamp
+    assert evaluation.stat().st_mtime_ns == stamp
+    assert "Turing test" in [s["step"] for s in json.loads((out / "step_times.json").read_text())]
 
     # A complete folder is kept: other settings are refused rather than mixed in, unless --force.
-    mixed = runner.invoke(app, ["reproduce", "--out", str(out)])
+    mixed = runner.invoke(app, ["reproduce", "--full", "--out", str(out)])
     assert mixed.exit_code == 2 and "other settings (quick: True there, False here)" in " ".join(
         mixed.output.split()
     )
-    assert (out / "highway" / "ngsim_i80_chains" / "evaluation.json").stat().st_mtime_ns == stamp
+    assert evaluation.stat().st_mtime_ns == stamp
 
 
 @pytest.mark.realdata
