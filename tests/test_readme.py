@@ -31,8 +31,8 @@ BLOCK = re.compile(r"^```(\w*)\n(.*?)^```$", re.DOTALL | re.MULTILINE)
 # The first line of each block that is not run here -> what runs it instead.
 NOT_RUN = {
     "python3.12 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/bayesdrive reproduce "
-    "--out results": "the main job (full settings, far beyond a test's time); tests/experiments/test_reproduce.py runs its quick "
-    "form, `reproduce --quick`, and `report` on what it wrote",
+    "--out results": "the main job (full sizes, beyond a test's time); tests/experiments/test_reproduce.py runs its quick "
+    "form, `reproduce --quick`, then `--full` over it, and `report` on what they wrote",
     'python3.12 -m venv .venv && .venv/bin/pip install -e ".[test]" && .venv/bin/ruff check . && '
     '.venv/bin/ruff format --check . && .venv/bin/pytest -q -n 2 --dist worksteal -m "not extended" '
     "--durations=20": "the test command: CI runs it (.ci/run reads it from the README)",
