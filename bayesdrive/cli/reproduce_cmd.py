@@ -48,8 +48,8 @@ def reproduce(
     full: bool = typer.Option(
         False,
         "--full",
-        help="Also the Turing test and the held-out data sets (over twice the time). Over a "
-        "complete folder of the same run without --full, only these steps run.",
+        help="Also the Turing test and the held-out data sets. Over a complete folder of the "
+        "same run without --full, only these steps run.",
     ),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP + " Every step is recomputed."),
 ) -> None:
