@@ -165,7 +165,8 @@ def results_folder(
     its staging folder (:mod:`bayesdrive.data.outputs`).
 
     The arguments recorded are the command's own (less where the result goes) unless given;
-    ``extends`` are those of a complete folder this run may extend. SIGTERM is handled as :func:`exit_cleanly_on_sigterm` says.
+    ``extends`` are those of a complete folder this run may extend. SIGTERM is handled as
+    :func:`exit_cleanly_on_sigterm` says.
     """
     check_json_out(json_out, force)
     stack, kwargs = _scope.get()

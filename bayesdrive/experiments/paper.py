@@ -994,29 +994,25 @@ class StepClock:
         return rows
 
 
-def _sizes(settings: Settings | dict[str, Any]) -> dict[str, Any]:
-    """Every setting but which optional steps run."""
-    fields = settings if isinstance(settings, dict) else settings.__dict__
+def _sizes(fields: dict[str, Any]) -> dict[str, Any]:
+    """Every setting of ``fields`` (a run's settings as JSON) but which optional steps run."""
     return {k: v for k, v in fields.items() if k != "optional_steps"}
 
 
 def held_out_steps(
     out: Path,
     smc_trees: dict[str, Any],
-    final_models: dict[str, str],
-    criticism: dict[str, dict],
+    chosen: dict[str, str],
     settings: Settings,
     force: bool,
     progress: Callable[[str], None],
 ) -> dict[str, dict]:
     """The optional ``holdout`` steps: generalisation to the held-out data sets
     (:func:`holdout_step`), then calibration on their held-out windows (:func:`calibration_step`),
-    which reuses the first's fits."""
+    which reuses the first's fits. ``chosen``: the criticism's final model by highway label."""
     progress("generalisation on held-out data sets")
     # Both held-out steps read every held-out set: once.
     load_holdout = functools.cache(registry.load_holdout)
-    # Only the highway labels the criticism ran on: their final models are the chosen ones.
-    chosen = {k: v for k, v in final_models.items() if k in criticism}
     # Not "holdout": results of the earlier layout (one pooled row, no fits) are not reused.
     evaluation = cached(
         out,
@@ -1054,7 +1050,7 @@ def run_all(
     recorded = out / "settings.json"
     # As JSON reads them back (tuples become lists), so a folder's own settings compare equal.
     # The optional steps may differ: a step's results do not depend on which others ran.
-    wanted = json.loads(json.dumps(_sizes(settings)))
+    wanted = _sizes(json.loads(json.dumps(settings.__dict__)))
     if recorded.exists() and not force and _sizes(json.loads(recorded.read_text())) != wanted:
         raise ValueError(
             f"{out} holds results of other settings ({recorded}); use --force or another --out"
@@ -1124,11 +1120,9 @@ def run_all(
         out, "scenes", lambda: scenes_step(out / "scenes", main_trees, main_data, settings), force
     )
     if "holdout" in settings.optional_steps:
-        results.update(
-            held_out_steps(
-                out, smc_trees, results["final_models"], criticism, settings, force, progress
-            )
-        )
+        # Only the highway labels the criticism ran on: their final models are the chosen ones.
+        chosen = {k: v for k, v in results["final_models"].items() if k in criticism}
+        results.update(held_out_steps(out, smc_trees, chosen, settings, force, progress))
     progress("prior sensitivity")
     chains = trajs["ngsim_i80_chains"]
     chain_ids = list(
