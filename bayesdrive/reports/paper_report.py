@@ -108,6 +108,7 @@ def highway_table(models: dict[str, Any]) -> pd.DataFrame:
                 "energy score of the (gap, speed) path (1 m, 1 m/s)": _scored(
                     result, "energy_score_path"
                 ),
+                "50% / 90% interval covers the position at 5 s": _coverage(result),
                 "speed distribution: Wasserstein-1 to data (m/s)": f"{result['speed_distribution_mps']['wasserstein']:.2f}",
             }
         )
@@ -131,6 +132,14 @@ def _realism(result: dict[str, Any], measure: str, name: str, spec: str) -> str:
 def _scored(result: dict[str, Any], name: str) -> str:
     """A proper score's mean and sd, "-" for results written before the score was."""
     return _mean_sd(result[name]) if name in result else "-"
+
+
+def _coverage(result: dict[str, Any]) -> str:
+    """The last-step position's interval coverage, "-" for results written before it was."""
+    if "calibration_position" not in result:
+        return "-"
+    entry = result["calibration_position"]
+    return f"{entry['coverage_50']:.2f} / {entry['coverage_90']:.2f}"
 
 
 def _interval(paired: dict[str, Any]) -> str:

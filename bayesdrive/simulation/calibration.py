@@ -60,6 +60,7 @@ __all__ = [
     "crps",
     "energy_score",
     "forecast_scores",
+    "pit_of_observation",
     "pit_summary",
     "point_scores",
     "predictive_calibration",
@@ -84,6 +85,13 @@ def pit_summary(pit: np.ndarray) -> dict[str, Any]:
         )
     summary["pit_chi2_p"] = float(stats.chisquare(counts).pvalue) if pit.size else None
     return summary
+
+
+def pit_of_observation(errors: np.ndarray, ties: np.ndarray | float) -> np.ndarray:
+    """(row,) probability integral transform of the observation under each row's ensemble of
+    forecast errors (row, member; simulated minus observed): the share of members below it, plus
+    ``ties`` (a uniform draw per row, or 0.5 for the mid-rank) times the share equal to it."""
+    return (errors < 0.0).mean(axis=1) + ties * (errors == 0.0).mean(axis=1)
 
 
 def crps(errors: np.ndarray) -> np.ndarray:
@@ -155,8 +163,7 @@ def forecast_scores(key: Array, rolled: Rollouts, dt: float, lead_time_s: float)
     speed = rolled.speed_offset[:, :, steps - 1]
     # The joint path of steps 1..lead time.
     energy = energy_score(-rolled.offset[:, :, :steps], rolled.speed_offset[:, :, :steps])
-    behind, level = (position < 0.0).mean(axis=1), (position == 0.0).mean(axis=1)
-    pit = behind + level * np.asarray(jax.random.uniform(key, behind.shape))
+    pit = pit_of_observation(position, np.asarray(jax.random.uniform(key, position.shape[:1])))
     windows = position.shape[0]
     return {
         **pit_summary(pit),

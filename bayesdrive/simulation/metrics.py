@@ -20,7 +20,11 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   and adds 0), averaged over vehicles (:mod:`bayesdrive.simulation.calibration`, scoringrules).
   Lower is better; unlike the RMSE over rollouts they do not penalise a calibrated spread.
   Beside them the **predictive mean's** last-step position error (squared, averaged over
-  vehicles; its root over scenarios is the predictive-mean RMSE).
+  vehicles; its root over scenarios is the predictive-mean RMSE), and the **calibration** of the
+  last-step position: each vehicle's probability integral transform (the share of rollouts behind
+  the observed position, ties at the mid-rank), pooled over scenarios into the coverage of the
+  central 50% and 90% intervals and a PIT histogram
+  (:func:`~bayesdrive.simulation.calibration.pit_summary`).
 * **Realism beside the data**: the jerk (the change of the realised acceleration; RMS and the
   distance of its distribution to the data's) and the share of vehicles whose minimum
   time-to-collision (gap over the closing speed read from the gap) falls below
@@ -51,7 +55,7 @@ from scipy import stats
 
 from bayesdrive.drivers.closed_loop import STATIONARY
 from bayesdrive.simulation.baselines import Policy
-from bayesdrive.simulation.calibration import crps, energy_score
+from bayesdrive.simulation.calibration import crps, energy_score, pit_of_observation, pit_summary
 from bayesdrive.simulation.platoon import platoon_measures, platoon_summary
 from bayesdrive.simulation.rollout import HARD_BRAKING_MPS2, Rollout, rollout, scene_arrays
 from bayesdrive.simulation.scenarios import Scenario, ScenarioSet
@@ -102,6 +106,7 @@ class ScenarioMetrics(NamedTuple):
 
     collided: vehicle-rollouts that collide at least once, out of ``vehicles * rollouts``.
     undesirable_by_step: (T + 1,) share of vehicle-rollouts with an undesirable event by step t.
+    pit_position_last: (N,) each vehicle's PIT of its observed last-step position.
     """
 
     scenario_id: str
@@ -121,6 +126,7 @@ class ScenarioMetrics(NamedTuple):
     crps_speed_last: float
     energy_score_path: float
     predictive_mean_sq_error_last: float
+    pit_position_last: np.ndarray
 
     @property
     def last_step(self) -> int:
@@ -198,6 +204,7 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
     speed_error = np.moveaxis((v - observed.v[None])[:, :, steps], 0, 1)
     # The simulator's realised-acceleration rule, applied to the observed speeds.
     observed_acceleration = np.diff(observed.v, axis=1) / observed.dt
+    position_error = (x[:, :, last] - observed.x[None, :, last]).T  # (vehicle, rollout)
     return ScenarioMetrics(
         scenario_id=scenario_id,
         vehicles=num_vehicles,
@@ -212,13 +219,14 @@ def scenario_metrics(scenario_id: str, rollout: Rollout, observed: Observed) -> 
         data_hard_braking=int(np.sum((observed_acceleration <= HARD_BRAKING_MPS2) & real)),
         off_road=int(np.sum(rollout.off_road)),
         undesirable_by_step=np.where(past_end, np.nan, had_event.mean(axis=(0, 1))),
-        crps_position_last=float(crps((x[:, :, last] - observed.x[None, :, last]).T).mean()),
+        crps_position_last=float(crps(position_error).mean()),
         crps_speed_last=float(crps((v[:, :, last] - observed.v[None, :, last]).T).mean()),
         energy_score_path=float(energy_score(gap_error, speed_error).mean()),
         # The predictive mean's error, not the rollouts' (which penalises a calibrated spread).
         predictive_mean_sq_error_last=float(
             np.mean((x[:, :, last].mean(axis=0) - observed.x[:, last]) ** 2)
         ),
+        pit_position_last=pit_of_observation(position_error, 0.5),
     )
 
 
@@ -408,6 +416,7 @@ def summarize(metrics: list[ScenarioMetrics], samples: list[DistributionSamples]
         "predictive_mean_rmse_position_m": float(
             np.sqrt(np.mean([m.predictive_mean_sq_error_last for m in metrics]))
         ),
+        "calibration_position": pit_summary(np.concatenate([m.pit_position_last for m in metrics])),
         "undesirable_events": final("undesirable_by_step"),
         "speed_distribution_mps": distribution_distance(
             pooled("simulated_speed"), pooled("observed_speed")
