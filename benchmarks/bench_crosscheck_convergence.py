@@ -82,7 +82,8 @@ NGSIM_VEHICLES = 15
 # Each run: (engine, engine options); the "-before" runs are the engines without extension.
 RUNS = {
     "smc": ("smc", {}),
-    "nuts": ("nuts", {}),
+    # One vehicle per compiled chunk, so each prints its progress as it finishes (same bits).
+    "nuts": ("nuts", {"vehicle_chunk": 1}),
     "emcee": ("emcee", {}),
     "nuts-before": ("nuts", {"max_extension": 1}),
     "emcee-before": ("emcee", {"max_steps": 4000}),
