@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -39,6 +40,9 @@ from bayesdrive.drivers.base import EgoState, fill_params
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.experiments.paper import highway_data
 from bayesdrive.inference.core.likelihood import step_inputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_crosscheck_convergence import write_keeping_findings
 
 REPO = Path(__file__).resolve().parents[1]
 HORIZONS_S = (1.0, 2.0, 3.0, 5.0)
@@ -194,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, (phi, seed) in CONTROLS.items():
         per_vehicle, dt = simulated(phi, seed)
         lines += table(f"simulated {name}, seed {seed}", per_vehicle, dt)
-    args.out.write_text("\n".join(lines))
+    write_keeping_findings(args.out, "\n".join(lines))
     print("\n".join(lines))
     return 0
 
