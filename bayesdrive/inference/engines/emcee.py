@@ -113,7 +113,7 @@ MODE_STARTS = 8
 START_BALL = 1e-4
 # A vehicle that fails fit's checks continues its run, doubling it, up to this many times
 # num_steps (module docstring, "Extension").
-MAX_EXTENSION = 128
+MAX_EXTENSION = 64
 # A walker is stuck when its median log posterior over a window lies below what the typical
 # walker of the ensemble falls to this rarely (module docstring, "Stuck walkers"); the window must
 # hold enough steps for that quantile to mean something.
