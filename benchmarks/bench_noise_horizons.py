@@ -37,6 +37,7 @@ import xarray as xr
 
 from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.base import EgoState, fill_params
+from bayesdrive.drivers.execution_noise import implied_acceleration
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.experiments.paper import highway_data
 from bayesdrive.inference.core.likelihood import step_inputs
@@ -80,8 +81,9 @@ def residuals(label: str) -> tuple[list[list[np.ndarray]], float]:
 
     predicted = np.asarray(jax.vmap(rule)(theta, steps.inputs, steps.v), np.float64)
     dt = float(arrays.dt)
-    v, dx = np.asarray(steps.v, np.float64), np.asarray(steps.dx, np.float64)
-    implied = 2.0 * (dx - v * dt) / dt**2
+    implied = implied_acceleration(
+        np.asarray(steps.v, np.float64), np.asarray(steps.dx, np.float64), dt
+    )
     usable = np.asarray(steps.mask) > 0
     out = []
     for i in range(usable.shape[0]):
@@ -108,24 +110,24 @@ def impulse_response(phi: np.ndarray, n: int) -> np.ndarray:
 
 
 def horizon_ratio(runs: list[np.ndarray], phi: np.ndarray, variance: float, h: int, dt: float):
-    """Empirical over implied sd of the open-loop position error h steps ahead (module docstring)."""
+    """Empirical over implied sd of the open-loop position error h steps ahead (module docstring).
+
+    The AR forecast's error is exactly what the innovations after the start add: the innovation
+    of step t + j reaches e_{t+i} (i >= j) through the impulse response psi[i - j], so it moves
+    the position error by c_j = sum_i weights_i psi[i - j]. The model implies variance * sum c_j^2;
+    the data give the same sum over their own one-step residuals."""
     order = len(phi)
     weights = (h - np.arange(1, h + 1) + 0.5) * dt**2
     psi = impulse_response(phi, h)
-    # The innovation of step t + j reaches e_{t+i} (i >= j) through psi[i - j].
-    implied = variance * sum(
-        float(weights[j - 1 :] @ psi[: h - j + 1]) ** 2 for j in range(1, h + 1)
-    )
+    loading = np.array([weights[j:] @ psi[: h - j] for j in range(h)])
     errors = []
     for e in runs:
-        for t in range(order - 1, len(e) - h):
-            history = list(e[t - order + 1 : t + 1])
-            forecast = []
-            for _ in range(h):
-                forecast.append(sum(phi[k] * history[-1 - k] for k in range(order)))
-                history.append(forecast[-1])
-            errors.append(weights @ (e[t + 1 : t + h + 1] - np.asarray(forecast)))
-    return float(np.sqrt(np.var(errors) / implied))
+        innovations = e[order:] - sum(
+            phi[k] * e[order - k - 1 : len(e) - k - 1] for k in range(order)
+        )
+        # One error per start t >= order - 1 with h steps after it: sum_j c_j innovations[t + j].
+        errors.append(np.correlate(innovations, loading, mode="valid"))
+    return float(np.sqrt(np.var(np.concatenate(errors)) / (variance * loading @ loading)))
 
 
 def simulated(phi: tuple[float, ...], seed: int) -> tuple[list[list[np.ndarray]], float]:

@@ -71,7 +71,7 @@ from scipy.special import expit
 
 from bayesdrive.data.views import FollowerArrays
 from bayesdrive.drivers.base import DriverModel, EgoState, fill_params
-from bayesdrive.drivers.execution_noise import STOP_SPEED
+from bayesdrive.drivers.execution_noise import STOP_SPEED, implied_acceleration
 from bayesdrive.inference.core.likelihood import StepInputs, check_model
 from bayesdrive.inference.core.output import EngineInputs, EngineResult
 from bayesdrive.inference.core.vehicles import one_chain_result, prepare
@@ -94,7 +94,8 @@ START_NAMES = ("defaults", "prior_centre")
 class ResidualSeries(NamedTuple):
     """One vehicle's (T,) inputs to the residuals (or (V, T) for all vehicles).
 
-    implied: implied acceleration (dx - v dt) / (dt^2/2), computed in float64 (m/s^2).
+    implied: the implied acceleration (:func:`~bayesdrive.drivers.execution_noise.implied_acceleration`),
+    computed in float64 (m/s^2).
     used: 1 on the steps that enter the least squares (masked in and moving), else 0.
     steps: the steps with the model's own inputs (:func:`~bayesdrive.inference.core.likelihood.step_inputs`).
     """
@@ -108,7 +109,7 @@ def residual_series(arrays: FollowerArrays, steps: StepInputs) -> tuple[Residual
     """The residual inputs of every vehicle (``steps``: its steps with the model's inputs), and
     the number of censored (stopped) steps of each."""
     dt = arrays.dt
-    implied = (arrays.dx - arrays.v * dt) / (0.5 * dt**2)
+    implied = implied_acceleration(arrays.v, arrays.dx, dt)
     usable = np.asarray(steps.mask) > 0
     moving = arrays.next_v > STOP_SPEED
     series = ResidualSeries(
