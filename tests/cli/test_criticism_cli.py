@@ -42,6 +42,7 @@ def small_file(tmp_path_factory):
     return path
 
 
+@pytest.mark.extended
 def test_json_on_stdout_and_pictures(small_file, tmp_path):
     """--json - writes only JSON on stdout; --out writes the check pictures and the final model
     (a result file that loads, of the model the JSON names, with its model card)."""
@@ -121,6 +122,7 @@ def test_bad_input_is_a_one_line_error_with_exit_code_2(tmp_path, small_file):
     assert "--unmoved-tolerance" in tolerance.output
 
 
+@pytest.mark.extended
 def test_vehicles_are_counted_as_fit_counts_them_and_few_of_them_draw_a_warning(small_file):
     """--vehicles 2 criticizes the 2 vehicles `fit --vehicles 2` fits, and says the checks lack
     power with so few (the detection study's vehicle count draws no such warning)."""

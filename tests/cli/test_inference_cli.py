@@ -137,19 +137,22 @@ def test_a_held_out_name_is_looked_up_in_the_held_out_folder(tmp_path):
     ("engine", "sizes", "exit_code", "printed_size", "options"),
     [
         # 200 draws cannot reach a bulk and tail ESS of 400: the fit is written and exits 3.
-        (
+        # The MCMC engines' cases are in the extended tier (reports/ci_time.md).
+        pytest.param(
             "nuts",
             ["--draws", "200", "--chains", "2", "--warmup", "100"],
             3,
             "200 draws in 2",
             {"num_chains": 2, "num_warmup": 100, "num_samples": 100},
+            marks=pytest.mark.extended,
         ),
-        (
+        pytest.param(
             "emcee",
             ["--draws", "200", "--steps", "400", "--warmup", "100", "--chains", "12"],
             3,
             "draws in 1 chain(s) of 12 walkers",
             {"num_walkers": 12, "num_burn": 100, "num_steps": 400},
+            marks=pytest.mark.extended,
         ),
         ("lm", ["--draws", "200"], 0, "200 draws in 1", {}),
     ],

@@ -336,6 +336,7 @@ def test_criticize_refuses_what_cannot_work_before_any_fit(delayed_platoon, mode
     assert message in " ".join(result.stderr.split())
 
 
+@pytest.mark.extended
 def test_criticize_runs_on_the_gipps_model(delayed_platoon):
     extra = ["--model", "gipps", "--causes", "reaction_delay", "--particles", "32"]
     result = criticize(delayed_platoon, *extra, "--rollouts", "2", "--json", "-")

@@ -89,6 +89,7 @@ def test_population_policy_draws_each_driver_per_rollout_from_the_new_driver_dra
     )
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_protocol_on_two_vehicles_gives_every_row_and_paired_intervals(data_dir, holdout_dir):
     held_out = registry.load_holdout(HELD_OUT, holdout_dir=holdout_dir)

@@ -66,6 +66,7 @@ def idm_fits(data_dir, tmp_path_factory):
     }
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_two_models_on_real_data_compare_by_psis_loo_from_the_saved_files(data_dir, idm_fits):
     traj = registry.load(str(data_dir / CHAIN))
@@ -107,6 +108,7 @@ def test_two_models_on_real_data_compare_by_psis_loo_from_the_saved_files(data_d
         matplotlib.pyplot.close(figure)
 
 
+@pytest.mark.extended
 @pytest.mark.realdata
 def test_the_idm_and_its_autocorrelated_noise_extension_compare_from_the_saved_files(
     data_dir, idm_fits, tmp_path

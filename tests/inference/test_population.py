@@ -158,6 +158,7 @@ def test_saved_result_diagnosed_with_how_drivers_differ(simulated, tmp_path):
     assert rows == how_drivers_differ(tree)
 
 
+@pytest.mark.extended
 def test_two_stage_matches_the_joint_fit(simulated):
     """The two-stage estimator from per-vehicle smc fits against the joint NUTS fit of the same
     8 drivers: population mu and tau posterior means within 0.35 of the joint fit's posterior sd

@@ -65,7 +65,12 @@ def study(name: str, fit_model=IDM):
     )
 
 
-@pytest.mark.parametrize("engine", list(ENGINES))
+# The cross-check engines' studies are in the extended tier (reports/ci_time.md): CI keeps smc's,
+# the sd-doubled negative control and their exact-posterior tests (test_nuts.py, test_emcee.py).
+@pytest.mark.parametrize(
+    "engine",
+    [pytest.param(name, marks=[pytest.mark.extended] if name != "smc" else []) for name in ENGINES],
+)
 def test_engine_is_calibrated_covers_the_truth_and_writes_its_outcome(engine, tmp_path):
     # One test per engine: its study runs once, on one worker (a module fixture shared by several
     # tests was built again on each worker that took one of them).
