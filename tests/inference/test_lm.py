@@ -225,6 +225,18 @@ def test_a_fit_on_the_edge_of_the_prior_box_is_flagged():
     assert not stat(result, "converged").any()
 
 
+def test_a_jacobian_without_information_gives_a_finite_covariance_flagged_unidentified():
+    """Every column of J zero (a fit saturated at its prior bounds, seen on a held-out NGSIM
+    vehicle): the floored inverse stays finite, where the floor rtol * 0 overflowed, and the
+    vehicle is not identified. A well-conditioned J gets the plain inverse of J^T J."""
+    covariance, identified = lm._gauss_newton_covariance(np.zeros((50, 2)))
+    assert np.isfinite(covariance).all() and not identified
+    jac = np.array([[1.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    covariance, identified = lm._gauss_newton_covariance(jac)
+    np.testing.assert_allclose(covariance, np.linalg.inv(jac.T @ jac))
+    assert identified
+
+
 def test_bad_requests_are_refused_clearly(short_data):
     arrays = short_data
     with pytest.raises(ValueError, match="no parameter"):

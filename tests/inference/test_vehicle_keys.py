@@ -80,11 +80,12 @@ def _assert_same_bits(first: dict[str, np.ndarray], second: dict[str, np.ndarray
         assert values.tobytes() == other.tobytes(), f"{name} of {what} differs"
 
 
-# nuts' case is in the extended tier (reports/ci_time.md); every engine maps vehicles alike.
+# nuts' and pf's cases are in the extended tier (reports/ci_time.md): every engine maps vehicles
+# alike, and CI keeps pf's chunking and order check (test_inference_pf.py).
 @pytest.mark.parametrize(
     "engine",
     [
-        pytest.param(name, marks=[pytest.mark.extended] if name == "nuts" else [])
+        pytest.param(name, marks=[pytest.mark.extended] if name in ("nuts", "pf") else [])
         for name in sorted(ENGINES)
     ],
 )

@@ -183,7 +183,9 @@ def _fit_vehicle(fun, jac, starts: np.ndarray, max_nfev: int | None) -> _Vehicle
 def _gauss_newton_covariance(jac: np.ndarray) -> tuple[np.ndarray, bool]:
     """(J^T J)^-1 with tiny eigenvalues floored, and whether none needed the floor."""
     eigenvalues, vectors = np.linalg.eigh(jac.T @ jac)
-    floor = IDENTIFIED_RTOL * max(float(eigenvalues[-1]), np.finfo(float).tiny)
+    # The floor itself is at least the smallest normal float: with no information at all (every
+    # column of J zero, e.g. a fit saturated at its prior bounds) 1 / floor stays finite.
+    floor = max(IDENTIFIED_RTOL * float(eigenvalues[-1]), np.finfo(float).tiny)
     identified = bool(eigenvalues[0] > floor)
     inverse = vectors @ np.diag(1.0 / np.maximum(eigenvalues, floor)) @ vectors.T
     return inverse, identified
