@@ -184,11 +184,12 @@ def test_sbc_command_refuses_bad_requests(args, message):
 
 
 def test_sbc_command_calibrates_any_registered_model():
-    """`--model` reaches the study: the OVM's own parameters are simulated, fitted and ranked."""
+    """`--model` reaches the study: the OVM's own parameters are simulated, fitted and ranked
+    (by lm, the cheapest engine to compile: the wiring, not the engine, is under test)."""
     run = CliRunner().invoke(
         app,
         [
-            *("sbc", "--engine", "smc", "--model", "ovm", "--replications", "10"),
+            *("sbc", "--engine", "lm", "--model", "ovm", "--replications", "10"),
             *("--steps", "16", "--particles", "128", "--seed", "1", "--json", "-"),
         ],
     )
