@@ -4,9 +4,10 @@
 ``$BAYESDRIVE_HOLDOUT_DIR`` or ``<repo>/../shared/holdout``. When the folder is missing, a test
 using it fails in CI (``$CI`` set) and is skipped, with the reason shown, elsewhere.
 
-Tests marked ``slow`` are collected first: with two workers (``-n 2 --dist worksteal``) the
-longest ones then start at once and the other worker takes the rest, instead of one of them
-starting last while the other worker has nothing left to do.
+Tests marked ``slow`` are collected first: ``--dist worksteal`` hands each worker a contiguous
+share of the collection and later moves work from the tail of the busier worker's queue, so the
+longest tests start at the beginning of the first worker's share instead of being left for last
+while the other worker has nothing left to do.
 
 JAX's persistent compilation cache: a run of the suite compiles each program once into a fresh
 folder that every worker and every ``bayesdrive`` subprocess shares (the environment carries it),
