@@ -197,6 +197,7 @@ def posteriors_on_generated_followers(
     return posterior
 
 
+@pytest.mark.extended
 def test_the_smc_engine_fits_a_perception_delay_of_the_independent_generator(tmp_path):
     """One follower of trafficgen perceiving gap and closing speed 0.9 s late, seed 3, and one
     without the delay (seed 4, the negative control): the smc posterior of the delay has its mean

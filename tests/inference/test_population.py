@@ -89,6 +89,9 @@ def test_spread_without_population_group_uses_vehicle_means():
     assert row["median"] == pytest.approx(2.0)
 
 
+# The joint hierarchical fit below is one NUTS program of its own (about a minute of CI on a
+# slow machine): the tests that read it are in the extended tier (reports/ci_time.md); CI keeps
+# the engine's refusals above and the pooled summaries.
 @pytest.fixture(scope="module")
 def simulated():
     box = IDM.prior(NAMES)
@@ -110,6 +113,7 @@ def simulated():
     return arrays, tree
 
 
+@pytest.mark.extended
 def test_hierarchical_recovers_population_mean(simulated):
     _, tree = simulated
     mu = tree["sample_stats"]["population_mu"]
@@ -119,6 +123,7 @@ def test_hierarchical_recovers_population_mean(simulated):
     assert np.all((low <= np.asarray(MU)) & (np.asarray(MU) <= high)), (low, high)
 
 
+@pytest.mark.extended
 def test_population_draws_in_natural_units(simulated):
     arrays, tree = simulated
     stats = tree["sample_stats"].to_dataset()
@@ -148,6 +153,7 @@ def test_custom_prior_is_refused():
         hierarchical.run(jax.random.key(0), constant_arrays(2), model=IDM, prior=IDM.prior())
 
 
+@pytest.mark.extended
 def test_saved_result_diagnosed_with_how_drivers_differ(simulated, tmp_path):
     _, tree = simulated
     path = save_result(tree, tmp_path / "hierarchical.nc")

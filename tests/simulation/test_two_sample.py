@@ -220,6 +220,7 @@ def test_boosted_classifier_is_at_chance_on_two_halves_of_real_data(data_dir):
     assert result.groups == len(distinct)
 
 
+@pytest.mark.extended
 def test_the_boosted_tests_result_does_not_depend_on_how_many_cores_share_it(monkeypatch):
     # The fits are split over the cores in slices of labellings: one core and two worker
     # processes give the same hits, so the same accuracy and p-value. Seeds 12 (data) and 13
