@@ -13,16 +13,19 @@ the second on the first, fitted by a line and by a parabola). Prints a Markdown 
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.core.output import load_result, metadata
+from bayesdrive.inference.population.two_stage import _logit_box_draws
 
 
-def vehicle_draws(path: str, vehicle: str) -> tuple[list[str], np.ndarray, str]:
-    """The parameter names, the (draws, parameters) array of ``vehicle`` and the model's name."""
+def vehicle_draws(path: str, vehicle: str) -> tuple[list[str], np.ndarray, np.ndarray, Any]:
+    """The parameter names, ``vehicle``'s (draws, parameters) array in natural units and on the
+    prior box's logit scale, and the fitted model."""
     tree = load_result(path)
     posterior = tree["posterior"]
     names = list(posterior.data_vars)
@@ -30,8 +33,9 @@ def vehicle_draws(path: str, vehicle: str) -> tuple[list[str], np.ndarray, str]:
     if vehicle not in ids:
         raise SystemExit(f"{path}: no vehicle {vehicle!r} (it has {', '.join(ids)})")
     at = ids.index(vehicle)
+    model = get_model(metadata(tree)["model"])
     draws = np.stack([posterior[n].isel(vehicle=at).values.reshape(-1) for n in names], axis=1)
-    return names, draws, metadata(tree)["model"]
+    return names, draws, _logit_box_draws(tree, model.prior(names), names)[at], model
 
 
 def main() -> None:
@@ -44,17 +48,14 @@ def main() -> None:
     rows, correlations, ridges = [], [], []
     for labelled in args.results:
         label, path = labelled.split("=", 1)
-        names, draws, model_name = vehicle_draws(path, args.vehicle)
-        model = get_model(model_name)
+        names, draws, logit, model = vehicle_draws(path, args.vehicle)
         for k, name in enumerate(names):
             spec = model.spec(name)
-            unit = (draws[:, k] - spec.lower) / (spec.upper - spec.lower)
-            logit = np.log(unit / (1.0 - unit))
             rows.append(
                 f"| {name} | {label} | {draws[:, k].mean():.4g} | {draws[:, k].std():.3g} "
                 f"| [{spec.lower:g}, {spec.upper:g}] | {draws[:, k].min():.4g} "
-                f"| {draws[:, k].max():.4g} | {stats.skew(logit):.2f} "
-                f"| {stats.kurtosis(logit):.2f} |"
+                f"| {draws[:, k].max():.4g} | {stats.skew(logit[:, k]):.2f} "
+                f"| {stats.kurtosis(logit[:, k]):.2f} |"
             )
         matrix = np.corrcoef(draws.T)
         correlations.append(f"{label} ({draws.shape[0]} draws):\n")

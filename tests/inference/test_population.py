@@ -91,7 +91,7 @@ def test_spread_without_population_group_uses_vehicle_means():
 
 # The joint hierarchical fit below is one NUTS program of its own (about a minute of CI on a
 # slow machine): the tests that read it are in the extended tier (reports/ci_time.md); CI keeps
-# the engine's refusals above and the pooled summaries.
+# the pooled summaries above and the engine's refusals below.
 @pytest.fixture(scope="module")
 def simulated():
     box = IDM.prior(NAMES)
