@@ -33,8 +33,8 @@ The checks (``Check.name``):
   rule) leaves a residual proportional to the predicted acceleration with a slope that moves.
   No extension models it, so it points to no cause; a misfit all the same.
 * ``score_<cause>``: the score (Lagrange-multiplier) test of each extension against the base
-  model: the slope of the held-out log-likelihood in the extension's parameter at the value that
-  switches it off (the base model), at the base posterior draws, with the execution-noise sd
+  model: the slope of the held-out log-likelihood in the extension's (first) parameter at the
+  values that switch it off (the base model), at the base posterior draws, with the execution-noise sd
   profiled out: the slope minus its regression on the slope in sigma over the vehicle's held-out
   steps (the efficient score). Without that projection a noise-scale extension's slope is mostly
   a change of the noise level between the fitting and the held-out window: speed-dependent noise
@@ -653,7 +653,7 @@ def score_check(
 ) -> Check:
     """The score test of the ``cause`` extension against the fitted base model (module docstring)."""
     extended = extend(cause, fit.model.base)
-    if extended.model.filter is not None or len(extended.new_params) != 1:
+    if extended.model.filter is not None or not extended.new_params:
         raise ValueError(f"no score test for {extended.name}")
     steps = step_inputs(series, extended.model)
     draws = np.linspace(0, fit.theta.shape[1] - 1, min(num_draws, fit.theta.shape[1])).astype(int)
@@ -671,8 +671,8 @@ def score_check(
         points_to=(cause,),
         summary={
             "statistic": f"sum of per-vehicle held-out efficient score in "
-            f"{extended.new_params[0]} at its off value (the execution-noise sd profiled out) / "
-            "root sum of squares",
+            f"{extended.new_params[0]} at the extension's off values (the execution-noise sd "
+            "profiled out) / root sum of squares",
             "parameter": extended.new_params[0],
             "vehicles_positive": int(np.sum(scores > 0)),
             "vehicles": int(scores.size),

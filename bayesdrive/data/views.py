@@ -52,9 +52,9 @@ HISTORY_SECONDS = 1.5
 
 def history_steps(dt: float) -> int:
     """K: how many past steps a model may read at sampling interval dt: a history of
-    :data:`HISTORY_SECONDS`, and one step more, so that a model remembering its previous step
-    (autocorrelated noise) can wrap one that reads the whole history (a reaction delay)."""
-    return math.ceil(HISTORY_SECONDS / dt - 1e-9) + 1
+    :data:`HISTORY_SECONDS`, and two steps more, so that a model remembering its previous two
+    steps (autocorrelated noise) can wrap one that reads the whole history (a reaction delay)."""
+    return math.ceil(HISTORY_SECONDS / dt - 1e-9) + 2
 
 
 def full_history_mask(mask: np.ndarray, history: int) -> np.ndarray:

@@ -192,6 +192,8 @@ NO_SUMO_CARRIER = {
     "noise_time_s": "the correlation time of the execution noise: SUMO's only Ornstein-Uhlenbeck "
     "error (driverstate device) perturbs the perceived gap and speed difference, not the "
     "acceleration",
+    "noise_lag_s": "the lag through which the execution error reaches the acceleration: SUMO "
+    "carries no execution noise on the acceleration",
     "reaction_time": "a delay of the driver's inputs: SUMO's actionStepLength holds decisions "
     "between action points, and the EIDM's treaction sits in a model that is not the IDM",
     "noise_speed_slope": "execution noise growing with speed: SUMO carries no execution noise",

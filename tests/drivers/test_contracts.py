@@ -106,8 +106,10 @@ def test_autocorrelated_noise_scales_the_declared_noise_sd():
     data = steps()
     now = jax.tree.map(lambda leaf: leaf[1], data.inputs)
     before = jax.tree.map(lambda leaf: leaf[0], data.inputs)
-    inputs = NoiseMemoryInputs(now, before, data.v[0], data.dx[0])
-    state = NoiseMemoryState(jnp.zeros(()), data.v[1], jnp.asarray(0.1), jnp.asarray(1.0))
+    inputs = NoiseMemoryInputs(now, before, data.v[0], data.dx[0], before, data.v[0], data.dx[0])
+    state = NoiseMemoryState(
+        jnp.zeros(()), data.v[1], jnp.asarray(0.1), jnp.asarray(-0.05), jnp.asarray(2.0)
+    )
     following = EgoState(data.dx[1], data.next_v[1])
     got = renamed.transition_logpdf(ours, state, following, inputs)
     want = idm.transition_logpdf(theirs, state, following, inputs)

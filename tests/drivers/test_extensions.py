@@ -56,18 +56,27 @@ def make_inputs(**overrides) -> ExtendedInputs:
     return ExtendedInputs(**fields)
 
 
-def read_by(model, inputs: ExtendedInputs, previous_dx=1.215):
+def read_by(model, inputs: ExtendedInputs, previous_dx=1.215, earlier_dx=1.21):
     """``inputs`` as ``model`` reads them: the extensions that change the mean rule read all of
     them, the white-noise IDM and its speed-dependent noise the current car following, the
-    autocorrelated noise the car following now and one step before (from the history window)."""
+    autocorrelated noise the car following now and two steps before (from the history window)."""
     if model.inputs_at is car_following_at:
         return inputs.car_following
     if model.name.endswith("+autocorrelated_noise"):
         previous = CarFollowingInputs(
             inputs.lag_gap[1], inputs.lag_lead_v[1], inputs.has_leader, inputs.dt
         )
+        earlier = CarFollowingInputs(
+            inputs.lag_gap[2], inputs.lag_lead_v[2], inputs.has_leader, inputs.dt
+        )
         return NoiseMemoryInputs(
-            inputs.car_following, previous, inputs.lag_v[1], jnp.float32(previous_dx)
+            inputs.car_following,
+            previous,
+            inputs.lag_v[1],
+            jnp.float32(previous_dx),
+            earlier,
+            inputs.lag_v[2],
+            jnp.float32(earlier_dx),
         )
     return inputs
 
@@ -250,23 +259,35 @@ def test_autocorrelated_noise_lift_recovers_the_drawn_residual():
     )
     lifted = extended.model.lift(params, EgoState(jnp.float32(0.0), first.v), inputs1)
     np.testing.assert_allclose(lifted.residual, first.residual, atol=2e-4)
-    assert float(lifted.known) == 1.0
     applied = implied_acceleration(STATE.v, first.x, DT)
     base = idm_acceleration(IDM.defaults(), STATE.v, inputs0.gap, inputs0.lead_v, 1.0)
     np.testing.assert_allclose(first.residual, applied - base, atol=2e-4)
+    # The step before is observed too (two steps back in the history, its increment read_by's
+    # 1.21 m): both residuals are known.
+    assert float(lifted.known) == 2.0
+    history = make_inputs()
+    earlier = history.lag_v[2], history.lag_gap[2], history.lag_lead_v[2]
+    applied_before = implied_acceleration(earlier[0], 1.21, DT)
+    base_before = idm_acceleration(IDM.defaults(), *earlier, 1.0)
+    np.testing.assert_allclose(lifted.earlier_residual, applied_before - base_before, atol=2e-4)
 
 
-@pytest.mark.parametrize("dt", [0.1, 0.5])
-def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt):
-    """A long simulated residual chain has sd sigma and lag-one-step correlation T / (T + dt): the
-    correlation time T = 0.5 s is in seconds, the per-step correlation follows the data's step
-    (0.83 at 10 Hz, 0.5 at 2 Hz).
+@pytest.mark.parametrize(
+    ("dt", "lag", "steps"), [(0.1, 0.0, 20000), (0.5, 0.0, 20000), (0.1, 0.2, 100000)]
+)
+def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt, lag, steps):
+    """A long simulated residual chain has sd sigma and the autocorrelations of the AR(2) with
+    roots r_e = T / (T + dt) and r_l = T_l / (T_l + dt): the correlation time T = 0.5 s is in
+    seconds, the per-step correlation follows the data's step (0.83 at 10 Hz, 0.5 at 2 Hz without
+    a lag); a 0.2 s lag adds the root 2/3 at 10 Hz and lifts the lag-one correlation to 0.96.
 
-    20000 steps (seed 3), sigma = 0.3, constant inputs: the lag-1 sample correlation has sd about
-    (1 - rho^2) / sqrt(n) < 0.01, we allow 0.03; the sd is allowed 5%.
+    Constant inputs, seed 3, sigma = 0.3. Without the lag 20000 steps: the lag-1 sample correlation
+    has sd about (1 - rho^2) / sqrt(n) < 0.01, we allow 0.03, and the sd 5%. With it, 100000 steps
+    (about 1800 effective ones for the sd), the same tolerances; the lag-one correlation of the
+    error without the lag (0.83) is 0.13 away, so a lag that did nothing fails.
     """
     extended = extend("autocorrelated_noise", IDM)
-    params = params_for(extended, 0.5)
+    params = params_for(extended, 0.5)._replace(noise_lag_s=jnp.float32(lag))
     inputs = read_by(extended.model, make_inputs(dt=jnp.float32(dt)))
     start = extended.model.initial_sample(jax.random.key(0), params, STATE)
 
@@ -276,11 +297,14 @@ def test_autocorrelated_noise_is_an_ornstein_uhlenbeck_error(dt):
         )
         return moved, moved.residual
 
-    _, residuals = jax.lax.scan(step, start, jax.random.split(jax.random.key(3), 20000))
+    _, residuals = jax.lax.scan(step, start, jax.random.split(jax.random.key(3), steps))
     residuals = np.asarray(residuals, np.float64)[100:]
     assert abs(residuals.std() - 0.3) < 0.05 * 0.3
-    expected = 0.5 / (0.5 + dt)
-    assert abs(np.corrcoef(residuals[1:], residuals[:-1])[0, 1] - expected) < 0.03
+    r_e, r_l = 0.5 / (0.5 + dt), lag / (lag + dt)
+    lag_one = (r_e + r_l) / (1 + r_e * r_l)
+    lag_two = (r_e + r_l) * lag_one - r_e * r_l
+    assert abs(np.corrcoef(residuals[1:], residuals[:-1])[0, 1] - lag_one) < 0.03
+    assert abs(np.corrcoef(residuals[2:], residuals[:-2])[0, 1] - lag_two) < 0.03
 
 
 def test_speed_dependent_noise_sd_grows_with_speed():

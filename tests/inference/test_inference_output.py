@@ -97,7 +97,7 @@ def _small_tree(arrays, scores, posterior, **options):
 
 
 def test_log_likelihood_holds_the_steps_with_a_full_history_and_every_draw(arrays):
-    """Steps without a full history (1.5 s at dt = 0.1 s plus one step: 16 usable steps before
+    """Steps without a full history (1.5 s at dt = 0.1 s plus two steps: 17 usable steps before
     them) are left out for every model, as masked steps are (not scored as 0), and every
     posterior draw is scored: the obs coordinates name each kept (vehicle, step), and its value
     is the padded score there."""
@@ -106,8 +106,8 @@ def test_log_likelihood_holds_the_steps_with_a_full_history_and_every_draw(array
     small, built = _small_tree(arrays, scores, {"v_des": np.zeros((2, 5, 2))})
     log_lik = built["log_likelihood"]["dx"]
     assert log_lik.dims == ("chain", "draw", "obs") and log_lik.dtype == np.float32
-    # Counted by hand: a scores 16-29; b scores 16-39, and 57-99 after its hole at step 40.
-    steps_a, steps_b = list(range(16, 30)), [*range(16, 40), *range(57, STEPS)]
+    # Counted by hand: a scores 17-29; b scores 17-39, and 58-99 after its hole at step 40.
+    steps_a, steps_b = list(range(17, 30)), [*range(17, 40), *range(58, STEPS)]
     assert log_lik.shape == (2, 5, len(steps_a) + len(steps_b))
     assert list(log_lik["vehicle"].values) == ["a"] * len(steps_a) + ["b"] * len(steps_b)
     assert list(log_lik["step"].values) == steps_a + steps_b
@@ -194,9 +194,9 @@ def test_summary_reports_each_vehicle_and_parameter(tree):
 def test_arviz_loo_reads_the_log_likelihood_group(tree, arrays):
     loo = arviz.loo(tree, pointwise=True)
     assert np.isfinite(loo.elpd)
-    # The usable steps with 16 usable steps before them (1.5 s at 0.1 s, plus one).
+    # The usable steps with 17 usable steps before them (1.5 s at 0.1 s, plus two).
     mask = np.asarray(arrays.mask) > 0
-    scored = sum(mask[n, j - 16 : j + 1].all() for n, j in np.argwhere(mask) if j >= 16)
+    scored = sum(mask[n, j - 17 : j + 1].all() for n, j in np.argwhere(mask) if j >= 17)
     assert loo.n_data_points == scored
     assert np.isfinite(loo.pareto_k.values).all()
 
@@ -301,7 +301,7 @@ def test_results_of_the_older_layout_are_converted_on_loading(tree, tmp_path, ca
     mask = tree["observed_data"]["mask"].values > 0
     vehicle, step = np.nonzero(mask)
     every = padded[:, :, vehicle, step].astype(np.float32)
-    every[:, :, step < 16] = np.nan  # steps without a full history: left out when converted
+    every[:, :, step < 17] = np.nan  # steps without a full history: left out when converted
     flat = old.copy()
     flat["log_likelihood"] = xr.DataTree(
         xr.Dataset(

@@ -137,7 +137,7 @@ def test_followers_are_re_anchored_to_the_measured_gap_at_the_start():
 
 def test_with_history_takes_each_followers_steps_before_t0_and_drops_scenarios_without():
     """Hand-made chain at 10 m/s, 20 m front to front: a scenario's past holds its followers'
-    last 16 steps (history_steps(0.1): 1.5 s and one more) before t0, with their speeds,
+    last 17 steps (history_steps(0.1): 1.5 s and two more) before t0, with their speeds,
     increments, gaps and leader speeds; a follower with a flagged sample there leaves its scenario
     out (counted): the negative control."""
     traj = chain_trajectories(dict.fromkeys("ABC", (0.0, 30.0)), FOLLOWS)
@@ -145,7 +145,7 @@ def test_with_history_takes_each_followers_steps_before_t0_and_drops_scenarios_w
     kept, dropped = with_history(found, traj)
     assert dropped == 0 and len(kept.scenarios) == len(found.scenarios)
     past = kept.scenarios[0].past
-    assert past.v.shape == (2, 16)
+    assert past.v.shape == (2, 17)
     np.testing.assert_allclose(past.v, 10.0)
     np.testing.assert_allclose(past.dx, 10.0 * DT, atol=1e-9)
     np.testing.assert_allclose(past.gap, 20.0 - LENGTH)
