@@ -36,8 +36,9 @@ longer is no execution error but a changed intention (a drifting parameter), and
 persists for tens of seconds carries the last observed error through a whole forecast, which then
 forecasts like constant acceleration. At 5 s the error's memory is :math:`e^{-1}` after the 5 s
 forecast horizon, and :math:`r_e \le 0.980` at 10 Hz. :math:`T_l` is uniform on [0, 0.5] s, the
-range of a car's response to its pedals; the two roots play symmetric parts in the AR(2), and the
-lag's lower bound keeps them apart wherever the error persists longer than 0.5 s.
+range of a car's response to its pedals. The two roots play symmetric parts in the AR(2) (an
+error of correlation time 0.3 s without lag is the same process as a 0.3 s lag of white noise),
+and the lag's upper bound keeps them apart wherever the error persists longer than 0.5 s.
 
 **Exact likelihood with observed states.** The state carries the last two residuals
 (:class:`NoiseMemoryState`). With exactly observed positions and speeds, they are observed too:
