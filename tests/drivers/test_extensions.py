@@ -423,32 +423,36 @@ def three_car_platoon() -> Trajectories:
     x_b = 70.0 + 10.0 * t
     v_c = np.full_like(t, 9.0)
     x_c = 40.0 + 9.0 * t
-    rows = []
-    for vid, x, v, leader, lead_x in (
-        ("A", x_a, v_a, None, None),
-        ("B", x_b, v_b, "A", x_a),
-        ("C", x_c, v_c, "B", x_b),
-    ):
-        gap = (lead_x - 4.5 - x) if leader else np.full_like(t, np.nan)
-        rows.append(
-            pd.DataFrame(
-                {
-                    "vehicle_id": vid,
-                    "t": t,
-                    "x": x,
-                    "v": v,
-                    "a": np.nan,
-                    "lane_id": 1,
-                    "leader_id": leader,
-                    "gap": gap,
-                    "length": 4.5,
-                    "driver": "human",
-                }
-            )
+    return single_lane(
+        t,
+        (("A", x_a, v_a, None, None), ("B", x_b, v_b, "A", x_a), ("C", x_c, v_c, "B", x_b)),
+        source="platoon",
+    )
+
+
+def single_lane(t, vehicles, source: str) -> Trajectories:
+    """One lane, one scene: ``vehicles`` are (id, x, v, leader id or None, leader's x or None)
+    sampled at times ``t``; bumper gaps for vehicles 4.5 m long."""
+    rows = [
+        pd.DataFrame(
+            {
+                "vehicle_id": vid,
+                "t": t,
+                "x": x,
+                "v": v,
+                "a": np.nan,
+                "lane_id": 1,
+                "leader_id": leader,
+                "gap": (lead_x - 4.5 - x) if leader else np.full_like(t, np.nan),
+                "length": 4.5,
+                "driver": "human",
+            }
         )
-    tracks = validate_tracks(pd.concat(rows, ignore_index=True), source="platoon", dt=DT)
-    scenes = pd.DataFrame({"scene_id": "s", "vehicle_id": ["A", "B", "C"]})
-    return Trajectories(tracks=tracks, scenes=scenes, dt=DT, format="test", source="platoon")
+        for vid, x, v, leader, lead_x in vehicles
+    ]
+    tracks = validate_tracks(pd.concat(rows, ignore_index=True), source=source, dt=DT)
+    scenes = pd.DataFrame({"scene_id": "s", "vehicle_id": [vehicle[0] for vehicle in vehicles]})
+    return Trajectories(tracks=tracks, scenes=scenes, dt=DT, format="test", source=source)
 
 
 def test_scored_series_second_vehicle_leader_acceleration_and_history():
@@ -750,29 +754,9 @@ def lagged_error_follower(lag_s: float, seed: int, steps: int = 3000) -> Traject
         acc = a_max * (1 - (v[k] / v_des) ** 4 - (wanted / gap) ** 2) + lagged[k]
         x[k + 1] = x[k] + v[k] * DT + 0.5 * acc * DT**2
         v[k + 1] = v[k] + acc * DT
-    rows = [
-        pd.DataFrame(
-            {
-                "vehicle_id": vid,
-                "t": t,
-                "x": xs,
-                "v": vs,
-                "a": np.nan,
-                "lane_id": 1,
-                "leader_id": leader,
-                "gap": gap,
-                "length": 4.5,
-                "driver": "human",
-            }
-        )
-        for vid, xs, vs, leader, gap in (
-            ("L", x_lead, v_lead, None, np.full_like(t, np.nan)),
-            ("F", x, v, "L", x_lead - 4.5 - x),
-        )
-    ]
-    tracks = validate_tracks(pd.concat(rows, ignore_index=True), source="lagged", dt=DT)
-    scenes = pd.DataFrame({"scene_id": "s", "vehicle_id": ["L", "F"]})
-    return Trajectories(tracks=tracks, scenes=scenes, dt=DT, format="test", source="lagged")
+    return single_lane(
+        t, (("L", x_lead, v_lead, None, None), ("F", x, v, "L", x_lead)), source="lagged"
+    )
 
 
 @pytest.mark.parametrize(("lag_s", "best"), [(0.2, 0.2), (0.0, 0.0)])
