@@ -39,6 +39,10 @@ cut_in_relaxation             cut_in_overreaction               shorter accepted
                                                                 relaxing back over seconds
 leader_acceleration_response  leader_acceleration_anticipation  the leader's acceleration through a
                                                                 first-order lag, times a gain, added
+position_smoothing            out of reach (a processing        the recording smooths positions by
+                              artefact, which no cause names)   a symmetric exponential moving
+                                                                average; speeds differenced from
+                                                                them
 (none)                        none                              IDM with white noise per sample
 ============================  ================================  ====================================
 """

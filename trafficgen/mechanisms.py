@@ -116,6 +116,19 @@ MECHANISMS: dict[str, Mechanism] = {
         "lag of time constant uniform on 0.2-0.5 s per driver (the extension adds the backward "
         "difference of the recorded leader speed over the last sample instead)",
     ),
+    "position_smoothing": Mechanism(
+        "smoothing_width_s",
+        "s",
+        {"small": (0.05, 0.1), "medium": (0.1, 0.2), "large": (0.2, 0.4)},
+        (),
+        "the recording, not the drivers: every vehicle's positions are smoothed by a symmetric "
+        "exponential moving average of width T (weights exp(-|t' - t| / T), cut at 5 T; beyond "
+        "the record's ends the positions are continued by reflection through the end point), as trajectory reconstructions smooth video "
+        "positions; speeds are central differences of the smoothed positions (floored at 0), "
+        "accelerations differences of those speeds, headways differences of the smoothed "
+        "positions. A processing artefact, which no cause names: out of reach, measured to see "
+        "whether criticize adopts a driver-behaviour extension on it",
+    ),
 }
 
 

@@ -26,9 +26,9 @@ m/s^2), at a random speed within 1 m/s of the vehicle it then follows, and is dr
 from then on.
 
 **Mechanisms** (:data:`trafficgen.mechanisms.MECHANISMS`) change the followers' driving (all but
-``video_position_noise``, which changes the recording). Each follower draws its own size from the
-range given; heads and cut-in vehicles get none (video noise excepted: a camera sees every
-vehicle).
+``video_position_noise`` and ``position_smoothing``, which change the recording). Each follower draws its own size from the
+range given; heads and cut-in vehicles get none (the recording's mechanisms excepted: a camera
+sees every vehicle).
 
 Randomness: one integer seed; each part (heads, drivers, noise, cut-ins, each mechanism, the
 recording) draws from its own stream spawned from it by a fixed position, so adding a mechanism
@@ -76,6 +76,10 @@ MIN_CUT_GAP = 8.0  # m of bumper gap a cut-in waits for
 B_SAFE = 4.0  # m/s^2: MOBIL's safe braking limit for the new follower of a lane change
 MIN_GAP = 0.1  # m: the interaction term's floor, so a collision does not divide by zero
 STREAMS = ("heads", "drivers", "lengths", "cut_ins", "noise", "recording", *MECHANISMS)
+# Mechanisms of the recording, not of the drivers: they act on every vehicle the camera sees.
+RECORDING_MECHANISMS = ("video_position_noise", "position_smoothing")
+# The smoothing kernel is cut where its weight falls below exp(-SMOOTHING_CUT).
+SMOOTHING_CUT = 5.0
 
 
 class Recording(NamedTuple):
@@ -180,7 +184,7 @@ def _draw_sizes(
                 f"mechanism {name}: size range must be 0 <= low <= high, got {low, high}"
             )
         rng = seed_streams[name]
-        acts = np.ones(n, bool) if name == "video_position_noise" else follower
+        acts = np.ones(n, bool) if name in RECORDING_MECHANISMS else follower
         params[f"{name}.{MECHANISMS[name].parameter}"] = np.where(
             acts, rng.uniform(low, high, n), np.nan
         )
@@ -433,7 +437,10 @@ def simulate(
     leader, lane = leader_hist[keep].T, lane[keep].T
     sd = np.nan_to_num(sizes.get("video_position_noise.position_noise_m", np.zeros(n)))
     recorded_x = true_x + sd[:, None] * streams["recording"].standard_normal(true_x.shape)
-    if "video_position_noise" in mechanisms:
+    if "position_smoothing" in mechanisms:
+        width = sizes["position_smoothing.smoothing_width_s"]
+        recorded_x = np.stack([_smoothed(row, w) for row, w in zip(recorded_x, width, strict=True)])
+    if any(name in mechanisms for name in RECORDING_MECHANISMS):
         # Video: speeds are central differences of the positions (one-sided at the ends), floored
         # at 0 as published speeds are (the noise alone makes a standing vehicle's negative).
         recorded_v = np.maximum(np.gradient(recorded_x, DT, axis=1), 0.0)
@@ -464,6 +471,20 @@ def simulate(
         cut_ins=int((entered >= 0).sum()),
         dt=DT,
     )
+
+
+def _smoothed(x: np.ndarray, width_s: float) -> np.ndarray:
+    """Symmetric exponential moving average of one vehicle's positions: weights exp(-|k| DT / T)
+    over the samples within ``SMOOTHING_CUT`` T. Beyond the record's ends the positions are
+    continued by reflection through the end point (x(end + k) = 2 x(end) - x(end - k)), so a
+    trajectory at constant speed stays as it is there too (a plain renormalised average bends it:
+    m/s^2 of false acceleration in the last samples)."""
+    reach = min(int(np.ceil(SMOOTHING_CUT * width_s / DT)), x.size - 1)
+    weights = np.exp(-np.abs(np.arange(-reach, reach + 1)) * DT / width_s)
+    before = 2.0 * x[0] - x[reach:0:-1]
+    after = 2.0 * x[-1] - x[-2 : -reach - 2 : -1]
+    padded = np.concatenate([before, x, after])
+    return np.convolve(padded, weights / weights.sum(), mode="valid")
 
 
 def _vehicle_ids(platoon: np.ndarray) -> np.ndarray:

@@ -92,6 +92,37 @@ def test_video_noise_speeds_are_differences_of_the_noisy_positions(tmp_path):
     np.testing.assert_allclose(first["v"], rec.v[1], atol=1e-5)
 
 
+def test_position_smoothing_averages_the_recorded_positions_and_leaves_the_drivers(tmp_path):
+    """The recording's smoothing: the same traffic as without it; every vehicle (a camera sees all)
+    draws its width; inside the record each position is the exponentially weighted mean of the
+    true ones within five widths (summed here term by term); speeds are differences of the
+    smoothed positions; the recorded jerk falls well below the unsmoothed record's."""
+    base = simulate(7, None, **SMALL)
+    rec = simulate(7, {"position_smoothing": (0.2, 0.4)}, **SMALL)
+    np.testing.assert_array_equal(rec.true_x, base.true_x)
+    width = rec.params["position_smoothing.smoothing_width_s"]
+    assert ((width >= 0.2) & (width <= 0.4)).all()
+    for row in (0, 2):
+        reach = int(np.ceil(5 * width[row] / rec.dt))
+        for t in (reach, 150, rec.x.shape[1] - 1 - reach):
+            terms = [
+                (np.exp(-abs(k) * rec.dt / width[row]), rec.true_x[row, t + k])
+                for k in range(-reach, reach + 1)
+            ]
+            mean = sum(w * x for w, x in terms) / sum(w for w, _ in terms)
+            assert rec.x[row, t] == pytest.approx(mean, abs=1e-9)
+    central = (rec.x[:, 2:] - rec.x[:, :-2]) / (2 * rec.dt)
+    np.testing.assert_allclose(rec.v[:, 1:-1], np.maximum(central, 0.0))
+    jerk = np.diff(rec.a[rec.follower], axis=1).std()
+    assert jerk < 0.5 * np.diff(base.a[base.follower], axis=1).std()
+    # At the ends too: no false braking or acceleration where the average runs out of record.
+    assert np.abs(rec.a[rec.follower]).max() < 1.5 * np.abs(base.a[base.follower]).max()
+    traj = read(write_ngsim_raw(rec, tmp_path / "smoothed.csv"), format="ngsim_raw")
+    np.testing.assert_allclose(
+        traj.vehicle(f"smoothed:{rec.vehicle_id[1]}")["v"], rec.v[1], atol=1e-5
+    )
+
+
 def test_mechanism_sizes_per_driver_and_streams_apart():
     """Each follower draws its own size in the range; heads and cut-ins none; adding a mechanism
     leaves the head vehicles' trajectories unchanged (their own random stream)."""
