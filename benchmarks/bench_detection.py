@@ -150,6 +150,14 @@ def library_fingerprint() -> str:
 # Taken once, at start: the rows of a run carry the versions it imported.
 GENERATOR = generator_fingerprint()
 CODE = library_fingerprint()
+# Earlier generator versions whose data are byte-identical to the later one's for every cell they
+# could make (checked when the later version was made): their rows stand for the later version's.
+# 9694aaba4aea -> aa0aedd5461c added position_smoothing; 92 CSVs of the other cells were compared
+# (reports/criticism/smoothing/README.md).
+SAME_DATA_GENERATORS = {"9694aaba4aea": "aa0aedd5461c"}
+CURRENT_GENERATORS = {GENERATOR} | {
+    earlier for earlier, later in SAME_DATA_GENERATORS.items() if later == GENERATOR
+}
 
 
 def study_config(rollouts: int) -> CriticizeConfig:
@@ -369,12 +377,12 @@ def write_report(
     runs_path: Path, out: Path, *, dev: bool, config: CriticizeConfig, scenario: dict
 ) -> str:
     """The markdown table of the current sampler's rows: for the study, of the current generator
-    only; for the development pilot, of every generator version it ran (marked). With rollouts,
+    only (or one whose data it repeats, :data:`SAME_DATA_GENERATORS`); for the development pilot, of every generator version it ran (marked). With rollouts,
     each cell's adoption rate stands beside its naming rate."""
     runs = pd.read_csv(runs_path, dtype={"generator": str, "code": str})
     runs = runs[runs["sampler"] == sampler_label(config)]
     if not dev:
-        runs = runs[runs["generator"] == GENERATOR]
+        runs = runs[runs["generator"].isin(CURRENT_GENERATORS)]
     rates = cell_rates(runs)
     judged = bool(config.num_rollouts)
     lines = [
@@ -401,7 +409,7 @@ def write_report(
     reliable = rates[
         (rates["n"] >= CLAIM_REPLICATIONS)
         & (rates["hits"] == rates["n"])
-        & (rates["generator"] == GENERATOR)
+        & (rates["generator"].isin(CURRENT_GENERATORS))
         & (rates["code"] == CODE)
     ]
     kind = (
@@ -546,7 +554,7 @@ def main(argv: list[str] | None = None) -> int:
         previous = pd.read_csv(runs_path)
         current = previous[
             (previous["sampler"] == sampler_label(config))
-            & (previous["generator"] == GENERATOR)
+            & (previous["generator"].isin(CURRENT_GENERATORS))
             & (previous["code"] == CODE)
         ]
         done = set(zip(current["cell"], current["size"], current["seed"], strict=True))
