@@ -469,7 +469,7 @@ def run_shards(args: argparse.Namespace) -> int:
     common += ["--null-replications", str(args.null_replications)]
     common += ["--dev"] if args.dev else []
     common += ["--first-seed", str(args.first_seed), "--rollouts", str(args.rollouts)]
-    common += ["--platoons", str(args.platoons)]
+    common += ["--platoons", str(args.platoons), "--duration-s", str(args.duration_s)]
     common += ["--stop-at", str(args.stop_at)] if args.stop_at is not None else []
     shards = []
     for k in range(args.jobs):
@@ -509,6 +509,12 @@ def main(argv: list[str] | None = None) -> int:
         default=DETECTION_SCENARIO["platoons"],
         help="platoons per replication (CI's scenario by default); another size needs its own --out",
     )
+    parser.add_argument(
+        "--duration-s",
+        type=float,
+        default=DETECTION_SCENARIO["duration_s"],
+        help="seconds recorded per replication (CI's scenario by default); another needs its own --out",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
     parser.add_argument("--shard", default="0/1", help="K/N: every N-th replication from the K-th")
@@ -520,11 +526,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     # The rows do not record the scenario: rows of another size must not join CI's study.
-    if args.platoons != DETECTION_SCENARIO["platoons"] and args.out == parser.get_default("out"):
-        parser.error(f"--platoons {args.platoons} is not CI's scenario: give it its own --out")
+    scenario = {**DETECTION_SCENARIO, "platoons": args.platoons, "duration_s": args.duration_s}
+    if scenario != DETECTION_SCENARIO and args.out == parser.get_default("out"):
+        parser.error(f"{scenario} is not CI's scenario: give it its own --out")
     args.out.mkdir(parents=True, exist_ok=True)
     config = study_config(args.rollouts)
-    scenario = {**DETECTION_SCENARIO, "platoons": args.platoons}
     fields = ADOPTION_FIELDS if args.rollouts else FIELDS
     runs_path = runs_file(args.out, dev=args.dev, rollouts=args.rollouts)
     if args.report_only:
