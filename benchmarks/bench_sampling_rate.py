@@ -70,14 +70,12 @@ def cause_row(entry: dict, dt: float) -> dict:
         "collisions": forecast.get("collisions"),
         "collisions_idm": forecast.get("collisions_current"),
     }
-    posterior = entry.get("posterior", {}).get("noise_time_s")
-    if posterior:
-        # Across vehicles: the mean of the per-vehicle posterior means, and its 5%-95% range.
-        row["noise_time_s"] = [
-            posterior["mean"],
-            posterior["q05_vehicles"],
-            posterior["q95_vehicles"],
-        ]
+    for name in ("noise_time_s", "noise_lag_s"):
+        posterior = entry.get("posterior", {}).get(name)
+        if posterior:
+            # Across vehicles: the mean of the per-vehicle posterior means, and its 5%-95% range.
+            row[name] = [posterior["mean"], posterior["q05_vehicles"], posterior["q95_vehicles"]]
+    if "noise_time_s" in row:
         row["rho"] = [t / (t + dt) for t in row["noise_time_s"]]
     return row
 
@@ -162,8 +160,9 @@ def markdown(record: dict) -> str:
         "",
         "| data | rate | vehicles | steps (fit / held-out) | cause | one-step gain (SE) | "
         "forecast gain (SE, p) | RMSE change (m) | collisions (IDM) | noise_time_s: mean of the "
-        "vehicles' posterior means (5%-95% over vehicles); rho = T / (T + dt) at those T |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "vehicles' posterior means (5%-95% over vehicles); rho = T / (T + dt) at those T | "
+        "noise_lag_s: the same |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in record["results"]:
         for cause, c in r["causes"].items():
@@ -174,12 +173,14 @@ def markdown(record: dict) -> str:
                 if "noise_time_s" in c
                 else ""
             )
+            lag = "{:.2f} s ({:.2f}-{:.2f})".format(*c["noise_lag_s"]) if "noise_lag_s" in c else ""
             lines.append(
                 f"| {r['data']} | {r['rate']} | {r['vehicles']} | {r['scored_steps_fit']} / "
                 f"{r['scored_steps_heldout']} | {cause} | {_number(c['one_step_gain'], 4)} "
                 f"({_number(c['one_step_se'])}) | {_number(c['forecast_gain'])} "
                 f"({_number(c['forecast_se'])}, {_number(c['forecast_p'], 2)}) | "
-                f"{_number(c['rmse_change_m'])} | {c['collisions']} ({c['collisions_idm']}) | {ar} |"
+                f"{_number(c['rmse_change_m'])} | {c['collisions']} ({c['collisions_idm']}) | {ar} | "
+                f"{lag} |"
             )
     lines += [
         "",
