@@ -377,8 +377,9 @@ def write_report(
     runs_path: Path, out: Path, *, dev: bool, config: CriticizeConfig, scenario: dict
 ) -> str:
     """The markdown table of the current sampler's rows: for the study, of the current generator
-    only (or one whose data it repeats, :data:`SAME_DATA_GENERATORS`); for the development pilot, of every generator version it ran (marked). With rollouts,
-    each cell's adoption rate stands beside its naming rate."""
+    only (or one whose data it repeats, :data:`SAME_DATA_GENERATORS`); for the development pilot,
+    of every generator version it ran (marked). With rollouts, each cell's adoption rate stands
+    beside its naming rate."""
     runs = pd.read_csv(runs_path, dtype={"generator": str, "code": str})
     runs = runs[runs["sampler"] == sampler_label(config)]
     if not dev:
@@ -513,7 +514,8 @@ def main(argv: list[str] | None = None) -> int:
         "--duration-s",
         type=float,
         default=DETECTION_SCENARIO["duration_s"],
-        help="seconds recorded per replication (CI's scenario by default); another needs its own --out",
+        help="seconds recorded per replication (CI's scenario by default); another length needs "
+        "its own --out",
     )
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")

@@ -179,8 +179,8 @@ def markdown(record: dict) -> str:
                 f"{r['scored_steps_heldout']} | {cause} | {_number(c['one_step_gain'], 4)} "
                 f"({_number(c['one_step_se'])}) | {_number(c['forecast_gain'])} "
                 f"({_number(c['forecast_se'])}, {_number(c['forecast_p'], 2)}) | "
-                f"{_number(c['rmse_change_m'])} | {c['collisions']} ({c['collisions_idm']}) | {ar} | "
-                f"{lag} |"
+                f"{_number(c['rmse_change_m'])} | {c['collisions']} ({c['collisions_idm']}) | "
+                f"{ar} | {lag} |"
             )
     lines += [
         "",

@@ -45,7 +45,7 @@ MODEL = "idm+autocorrelated_noise"
 
 
 def smoothed_white_noise_acf(width_s: float, dt: float, lags: int) -> np.ndarray:
-    """Autocorrelation of white noise smoothed by the exponential kernel, by the kernel's overlap."""
+    """Autocorrelation of white noise smoothed by the exponential kernel (its self-overlap)."""
     reach = int(np.ceil(40 * width_s / dt))
     weights = np.exp(-np.abs(np.arange(-reach, reach + 1)) * dt / width_s)
     overlap = np.array([weights[: weights.size - h] @ weights[h:] for h in range(lags + 1)])
