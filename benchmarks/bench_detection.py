@@ -150,14 +150,23 @@ def library_fingerprint() -> str:
 # Taken once, at start: the rows of a run carry the versions it imported.
 GENERATOR = generator_fingerprint()
 CODE = library_fingerprint()
-# Earlier generator versions whose data are byte-identical to the later one's for every cell they
-# could make (checked when the later version was made): their rows stand for the later version's.
-# 9694aaba4aea -> aa0aedd5461c added position_smoothing; 92 CSVs of the other cells were compared
-# (reports/criticism/smoothing/README.md).
+# Earlier generator version -> the next one, whose data are byte-identical for every cell the
+# earlier could make (checked when the next was made): its rows stand for the next one's, and so
+# on down the chain. 9694aaba4aea -> aa0aedd5461c added position_smoothing; 92 CSVs of the other
+# cells were compared (reports/criticism/smoothing/README.md).
 SAME_DATA_GENERATORS = {"9694aaba4aea": "aa0aedd5461c"}
-CURRENT_GENERATORS = {GENERATOR} | {
-    earlier for earlier, later in SAME_DATA_GENERATORS.items() if later == GENERATOR
-}
+
+
+def same_data_generators(generator: str) -> set[str]:
+    """``generator`` and every earlier version whose chain in :data:`SAME_DATA_GENERATORS`
+    reaches it."""
+    found = {generator}
+    while more := {e for e, later in SAME_DATA_GENERATORS.items() if later in found} - found:
+        found |= more
+    return found
+
+
+CURRENT_GENERATORS = same_data_generators(GENERATOR)
 
 
 def study_config(rollouts: int) -> CriticizeConfig:
