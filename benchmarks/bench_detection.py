@@ -153,8 +153,9 @@ CODE = library_fingerprint()
 # Earlier generator version -> the next one, whose data are byte-identical for every cell the
 # earlier could make (checked when the next was made): its rows stand for the next one's, and so
 # on down the chain. 9694aaba4aea -> aa0aedd5461c added position_smoothing; 92 CSVs of the other
-# cells were compared (reports/criticism/smoothing/README.md).
-SAME_DATA_GENERATORS = {"9694aaba4aea": "aa0aedd5461c"}
+# cells were compared (reports/criticism/smoothing/README.md). aa0aedd5461c -> d3093b9b024b added
+# approach_braking; 100 CSVs of the other cells (reports/state_correction/README.md).
+SAME_DATA_GENERATORS = {"9694aaba4aea": "aa0aedd5461c", "aa0aedd5461c": "d3093b9b024b"}
 
 
 def same_data_generators(generator: str) -> set[str]:

@@ -3,9 +3,10 @@ compiling, which programs compile longest, and how many compiles are small eager
 
 Runs the README's pytest command (two workers) with ``benchmarks/compile_log`` on ``PYTHONPATH``,
 so every process, subprocesses and Dask workers included, logs its compile events with the test
-that caused it; then joins them with pytest's ``--durations=0``. Writes ``<out>/summary.md``.
+that caused it and the line of bayesdrive that did; then joins them with pytest's
+``--durations=0``. Writes ``<out>/summary.md``.
 
-    PYTHONPATH=. python benchmarks/compile_profile.py --out compile-profile       # the suite, ~25 min
+    PYTHONPATH=. python benchmarks/compile_profile.py --out compile-profile       # the suite
     PYTHONPATH=. python benchmarks/compile_profile.py --out p --tests tests/inference/test_lm.py
     PYTHONPATH=. python benchmarks/compile_profile.py --out compile-profile --summary-only
 
@@ -58,14 +59,28 @@ def run_suite(out: Path, tests: list[str]) -> None:
         )
 
 
+def ranked_table(
+    title: str, preface: str, what: str, times: dict[str, list[float]], rows: int
+) -> list[str]:
+    """A section of the summary: ``times``'s keys ranked by their summed seconds."""
+    lines = ["", title, "", f"{preface}| seconds | compiles | {what} |", "|---|---|---|"]
+    ranked = sorted(times.items(), key=lambda item: -sum(item[1]))
+    for name, seconds in ranked[:rows]:
+        lines.append(f"| {sum(seconds):.1f} | {len(seconds)} | `{name}` |")
+    return lines
+
+
 def summarize(out: Path) -> str:
     per_test: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
     per_program: dict[str, list[float]] = collections.defaultdict(list)
     small = collections.Counter()
+    small_sites: dict[str, list[float]] = collections.defaultdict(list)
     hits = misses = 0
     for path in sorted((out / "logs").glob("*.log")):
         for line in path.read_text().splitlines():
-            _, test, message = line.split("\t", 2)
+            fields = line.split("\t", 3)
+            # Logs written before the call site was recorded have three fields.
+            test, site, message = (fields[1], "-", fields[2]) if len(fields) == 3 else fields[1:]
             test = test.split(" (")[0]
             if "cache hit" in message.lower():
                 hits += 1
@@ -81,6 +96,7 @@ def summarize(out: Path) -> str:
                 if seconds < SMALL_S:
                     small["count"] += 1
                     small["seconds"] += seconds
+                    small_sites[site].append(seconds)
     pytest_lines = (out / "pytest.log").read_text().splitlines()
     durations = collections.Counter()
     for line in pytest_lines:
@@ -110,16 +126,15 @@ def summarize(out: Path) -> str:
     ]
     for test, seconds in durations.most_common(30):
         lines.append(f"| {seconds:.1f} | {jax_time.get(test, 0.0):.1f} | `{test}` |")
-    lines += [
-        "",
-        "## Programs by compile time",
-        "",
-        "| seconds | compiles | program |",
-        "|---|---|---|",
-    ]
-    ranked = sorted(per_program.items(), key=lambda item: -sum(item[1]))
-    for program, times in ranked[:25]:
-        lines.append(f"| {sum(times):.1f} | {len(times)} | `{program}` |")
+    lines += ranked_table("## Programs by compile time", "", "program", per_program, 25)
+    lines += ranked_table(
+        f"## Compiles under {SMALL_S:.0f} s by call site",
+        "The innermost line of bayesdrive's code on the stack when JAX compiled (`-`: none, such "
+        "as a test's own JAX call).\n\n",
+        "call site",
+        small_sites,
+        40,
+    )
     return "\n".join(lines) + "\n"
 
 

@@ -26,9 +26,9 @@ m/s^2), at a random speed within 1 m/s of the vehicle it then follows, and is dr
 from then on.
 
 **Mechanisms** (:data:`trafficgen.mechanisms.MECHANISMS`) change the followers' driving (all but
-``video_position_noise`` and ``position_smoothing``, which change the recording). Each follower draws its own size from the
-range given; heads and cut-in vehicles get none (the recording's mechanisms excepted: a camera
-sees every vehicle).
+``video_position_noise`` and ``position_smoothing``, which change the recording). Each follower
+draws its own size from the range given; heads and cut-in vehicles get none (the recording's
+mechanisms excepted: a camera sees every vehicle).
 
 Randomness: one integer seed; each part (heads, drivers, noise, cut-ins, each mechanism, the
 recording) draws from its own stream spawned from it by a fixed position, so adding a mechanism
@@ -199,6 +199,8 @@ def _draw_sizes(
             params[f"{name}.relaxation_time_s"] = np.where(acts, rng.uniform(4.0, 10.0, n), np.nan)
         elif name == "leader_acceleration_response":
             params[f"{name}.smoothing_s"] = np.where(acts, rng.uniform(0.2, 0.5, n), np.nan)
+        elif name == "approach_braking":
+            params[f"{name}.onset_m_s"] = np.where(acts, rng.uniform(0.0, 1.0, n), np.nan)
     return params
 
 
@@ -248,6 +250,8 @@ def simulate(
     relax, relax_time = size("cut_in_relaxation"), size("cut_in_relaxation", "relaxation_time_s")
     lead_gain = size("leader_acceleration_response")
     lead_smoothing = size("leader_acceleration_response", "smoothing_s")
+    approach_gain = size("approach_braking")
+    approach_onset = size("approach_braking", "onset_m_s")
 
     length = streams["lengths"].uniform(*LENGTH_M, n)
     heads = np.flatnonzero(layout.head)
@@ -392,6 +396,10 @@ def simulate(
                 has, realized_acc[safe], 0.0
             )
             rule = rule + lead_gain * np.where(has, perceived_lead_acc, 0.0)
+            # Braking beyond the rule's while closing in faster than the driver's onset speed.
+            rule = rule - approach_gain * np.where(
+                has, np.maximum(closing - approach_onset, 0.0), 0.0
+            )
             sd = p["sigma"] * (1.0 + growth * (v / 10.0) ** power)
             if pedal.any():
                 decay = np.exp(-h / np.maximum(pedal_time, 1e-9))
@@ -441,7 +449,7 @@ def simulate(
         width = sizes["position_smoothing.smoothing_width_s"]
         recorded_x = np.stack([_smoothed(row, w) for row, w in zip(recorded_x, width, strict=True)])
     if any(name in mechanisms for name in RECORDING_MECHANISMS):
-        # Video: speeds are central differences of the positions (one-sided at the ends), floored
+        # Speeds differenced from the recorded positions (central, one-sided at the ends), floored
         # at 0 as published speeds are (the noise alone makes a standing vehicle's negative).
         recorded_v = np.maximum(np.gradient(recorded_x, DT, axis=1), 0.0)
     else:

@@ -11,7 +11,8 @@ extension of each kind to its base, applied in the order of :data:`KIND_ORDER` (
 kind            extensions                                                  wraps
 ==============  ==========================================================  =====================
 ``mean``        reaction_delay, second_leader_anticipation,                 a base model that
-                cut_in_overreaction, leader_acceleration_anticipation       reads car following
+                cut_in_overreaction, leader_acceleration_anticipation,      reads car following
+                state_correction
 ``noise``       autocorrelated_noise, speed_dependent_noise                 any exactly observed
                                                                             model with white noise
 ``parameters``  drifting_parameters                                         the base model alone
@@ -21,7 +22,8 @@ kind            extensions                                                  wrap
 The two observation models (:mod:`bayesdrive.drivers.measurement_noise`,
 :mod:`bayesdrive.drivers.video_noise`) are extensions of the ``observation`` kind, so a model has
 at most one. :data:`CAUSES` are the extensions the criticism screens: all but video noise, whose
-cause is measurement noise's.
+cause is measurement noise's, and the state correction (:mod:`.state_correction`), whose
+coefficients take either sign, where the criticism's score test is one-sided in one parameter.
 
 So ``idm+reaction_delay+autocorrelated_noise``, ``cidm+autocorrelated_noise`` and
 ``gipps+second_leader_anticipation+measurement_noise`` exist, and :func:`compose` refuses the
@@ -52,6 +54,7 @@ from bayesdrive.drivers.extensions import (
     reaction_delay,
     second_leader,
     speed_dependent_noise,
+    state_correction,
 )
 from bayesdrive.drivers.extensions.compose import ExtendedModel
 
@@ -98,6 +101,7 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
         second_leader.CAUSE: second_leader.with_second_leader_anticipation,
         cut_in.CAUSE: cut_in.with_cut_in_heuristic,
         leader_acceleration.CAUSE: leader_acceleration.with_leader_acceleration_anticipation,
+        state_correction.CAUSE: state_correction.with_state_correction,
         drifting_parameters.CAUSE: drifting_parameters.with_drifting_time_gap,
         measurement_noise.CAUSE: with_measurement_noise,
         video_noise.NAME: with_video_noise,
@@ -105,8 +109,9 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
 )
 # Every extension a model name may join to its base.
 PARTS = tuple(EXTENSIONS)
-# The extensions the criticism screens: video noise answers measurement noise's cause.
-CAUSES = tuple(part for part in PARTS if part != video_noise.NAME)
+# The extensions the criticism screens: video noise answers measurement noise's cause, and the
+# state correction's two-sided coefficients have no score test yet (module docstring).
+CAUSES = tuple(part for part in PARTS if part not in (video_noise.NAME, state_correction.CAUSE))
 KIND_ORDER = ("mean", "noise", "parameters", "observation")
 KINDS = MappingProxyType(
     {
@@ -114,6 +119,7 @@ KINDS = MappingProxyType(
         second_leader.CAUSE: "mean",
         cut_in.CAUSE: "mean",
         leader_acceleration.CAUSE: "mean",
+        state_correction.CAUSE: "mean",
         autocorrelated_noise.CAUSE: "noise",
         speed_dependent_noise.CAUSE: "noise",
         drifting_parameters.CAUSE: "parameters",

@@ -1,0 +1,136 @@
+"""Does the state correction (``idm+state_correction``) forecast held-out steps better than the IDM
+where the independent generator hides a state-dependent effect, and not where it hides none?
+
+Per seed, trafficgen's detection scenario (``--duration-s`` long) twice: with ``approach_braking``
+at ``--size`` and without a mechanism (the same seed, so the same traffic). Per recording, the
+held-out evidence fits that ``criticize`` uses (``fit_model``: tempering on each follower's
+fitting window, then on to its held-out window; the criticism's settings) of the IDM and of the
+IDM with the state correction, started from the IDM's fit. Per follower: the held-out one-step
+log predictive density gain of the correction, and where its three coefficients' 90% intervals
+lie. Writes ``<out>/runs.csv`` and ``<out>/README.md`` (keeping the findings written below its
+marker). Seeds are fixed before a run.
+
+    PYTHONPATH=. python benchmarks/bench_state_correction.py --seeds 250001-250020 --out DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bayesdrive.criticism.criticize import DETECTION_CONFIG, criticized_series  # noqa: E402
+from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
+from bayesdrive.data.readers import read  # noqa: E402
+from bayesdrive.drivers.extensions import as_extended, extend  # noqa: E402
+from bayesdrive.drivers.extensions.state_correction import STATE_CORRECTION_SPECS  # noqa: E402
+from bayesdrive.drivers.idm import IDM  # noqa: E402
+from bayesdrive.inference.engines.heldout_evidence import DEFAULT_CONFIG, fit_model  # noqa: E402
+from benchmarks.bench_crosscheck_convergence import markdown, write_keeping_findings  # noqa: E402
+from benchmarks.bench_detection import CODE, GENERATOR  # noqa: E402
+from trafficgen import DETECTION_SCENARIO, MECHANISMS, NULL, generate  # noqa: E402
+
+MECHANISM = "approach_braking"
+COEFFICIENTS = tuple(spec.name for spec in STATE_CORRECTION_SPECS)
+
+
+def seed_range(text: str) -> list[int]:
+    first, _, last = text.partition("-")
+    return list(range(int(first), int(last or first) + 1))
+
+
+def run_cell(seed: int, cell: str, size: str, duration_s: float, folder: Path) -> pd.DataFrame:
+    """Both fits on one recording; one row per follower."""
+    mechanisms = {} if cell == NULL else {cell: MECHANISMS[cell].sizes[size]}
+    path = folder / f"{cell}_{seed}.csv"
+    generate(seed, path, mechanisms, **{**DETECTION_SCENARIO, "duration_s": duration_s})
+    series = criticized_series(read(path, format="ngsim_raw"))
+    config = DEFAULT_CONFIG._replace(
+        num_particles=DETECTION_CONFIG.num_particles,
+        num_moves=DETECTION_CONFIG.num_moves,
+        unmoved_tolerance=DETECTION_CONFIG.unmoved_tolerance,
+    )
+    key = jax.random.key(seed)
+    base = fit_model(jax.random.fold_in(key, 0), series, as_extended(IDM), config=config)
+    extended = extend("state_correction", IDM)
+    corrected = fit_model(jax.random.fold_in(key, 1), series, extended, config=config, start=base)
+    rows = {
+        "seed": seed,
+        "cell": cell,
+        "size": size if cell != NULL else "-",
+        "vehicle": list(series.vehicle_ids),
+        "gain_nats": corrected.log_z_held - base.log_z_held,
+    }
+    for name in COEFFICIENTS:
+        draws = corrected.theta[:, :, corrected.names.index(name)]
+        low, high = np.quantile(draws, [0.05, 0.95], axis=1)
+        rows[f"{name}_mean"] = draws.mean(axis=1)
+        rows[f"{name}_sign"] = np.where(high < 0, "-", np.where(low > 0, "+", "0"))
+    return pd.DataFrame(rows)
+
+
+def summary(runs: pd.DataFrame) -> pd.DataFrame:
+    """Per cell: followers, the held-out gain (sum, its SE over followers, the median, the share
+    above 0) and, per coefficient, the followers whose 90% interval lies below or above 0."""
+    out = []
+    for (cell, size), group in runs.groupby(["cell", "size"], sort=False):
+        gain = group["gain_nats"].to_numpy()
+        row = {
+            "cell": cell,
+            "size": size,
+            "followers": len(group),
+            "gain_sum_nats": gain.sum(),
+            "gain_se_nats": gain.std(ddof=1) * np.sqrt(len(gain)),
+            "gain_median_nats": np.median(gain),
+            "followers_gaining": int((gain > 0).sum()),
+        }
+        for name in COEFFICIENTS:
+            signs = group[f"{name}_sign"]
+            row[f"{name} below / above 0"] = f"{(signs == '-').sum()} / {(signs == '+').sum()}"
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", required=True, help="e.g. 250001-250004")
+    parser.add_argument("--size", default="large", choices=list(MECHANISMS[MECHANISM].sizes))
+    parser.add_argument("--duration-s", type=float, default=120.0)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    started = time.perf_counter()
+    frames = []
+    with tempfile.TemporaryDirectory() as folder:
+        for seed in seed_range(args.seeds):
+            for cell in (MECHANISM, NULL):
+                frames.append(run_cell(seed, cell, args.size, args.duration_s, Path(folder)))
+                print(f"seed {seed} {cell}: done at {time.perf_counter() - started:.0f} s")
+    runs = pd.concat(frames, ignore_index=True)
+    table = summary(runs)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(args.out / "runs.csv", runs.to_csv(index=False, float_format="%.6g"))
+    header = (
+        f"# The state correction on trafficgen's `{MECHANISM}` and on null data\n\n"
+        f"Generated by `benchmarks/bench_state_correction.py --seeds {args.seeds} --size "
+        f"{args.size} --duration-s {args.duration_s:g}` (library {CODE}, generator {GENERATOR}; "
+        f"{time.perf_counter() - started:.0f} s). The detection scenario "
+        f"({DETECTION_SCENARIO['platoons']} platoons of {DETECTION_SCENARIO['followers']} "
+        f"followers) {args.duration_s:g} s long; the criticism's held-out evidence fits. Gain: "
+        "the held-out one-step log predictive density of `idm+state_correction` minus the IDM's, "
+        "per follower (`runs.csv`).\n\n"
+    )
+    write_keeping_findings(args.out / "README.md", header + markdown(table) + "\n")
+    print(header + markdown(table))
+
+
+if __name__ == "__main__":
+    main()
