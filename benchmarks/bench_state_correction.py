@@ -11,6 +11,12 @@ lie. Writes ``<out>/runs.csv`` and ``<out>/README.md`` (keeping the findings wri
 marker). Seeds are fixed before a run.
 
     PYTHONPATH=. python benchmarks/bench_state_correction.py --seeds 250001-250020 --out DIR
+
+With ``--real``, on the training data sets instead, the criticism's data of the README's main job
+(``criticism_data``: NGSIM I-80 scenes 9-40, OpenACC's human recordings, their first 120 s): the
+gain of the correction over the IDM and over the model the criticism adopted
+(``idm+autocorrelated_noise``), each extended model started from its base's fit. Writes
+``<out>/real.csv`` and ``<out>/real.md``.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from bayesdrive.data.readers import read  # noqa: E402
 from bayesdrive.drivers.extensions import as_extended, extend  # noqa: E402
 from bayesdrive.drivers.extensions.state_correction import STATE_CORRECTION_SPECS  # noqa: E402
 from bayesdrive.drivers.idm import IDM  # noqa: E402
+from bayesdrive.experiments.paper import Settings, criticism_data, highway_data  # noqa: E402
 from bayesdrive.inference.engines.heldout_evidence import DEFAULT_CONFIG, fit_model  # noqa: E402
 from benchmarks.bench_crosscheck_convergence import markdown, write_keeping_findings  # noqa: E402
 from benchmarks.bench_detection import CODE, GENERATOR  # noqa: E402
@@ -48,45 +55,92 @@ def seed_range(text: str) -> list[int]:
     return list(range(int(first), int(last or first) + 1))
 
 
+CRITICISM_FIT = DEFAULT_CONFIG._replace(
+    num_particles=DETECTION_CONFIG.num_particles,
+    num_moves=DETECTION_CONFIG.num_moves,
+    unmoved_tolerance=DETECTION_CONFIG.unmoved_tolerance,
+)
+REAL_DATA = ("ngsim_i80_chains", "openacc_vicolungo:human")
+# Each base the correction is added to: the plain IDM, and the model the criticism adopted.
+REAL_PAIRS = ((), ("autocorrelated_noise",))
+
+
+def coefficient_columns(fitted) -> dict[str, np.ndarray]:
+    """Per vehicle, each coefficient's posterior mean and where its 90% interval lies."""
+    columns = {}
+    for name in COEFFICIENTS:
+        draws = fitted.theta[:, :, fitted.names.index(name)]
+        low, high = np.quantile(draws, [0.05, 0.95], axis=1)
+        columns[f"{name}_mean"] = draws.mean(axis=1)
+        columns[f"{name}_sign"] = np.where(high < 0, "-", np.where(low > 0, "+", "0"))
+    return columns
+
+
+def run_real(label: str, seed: int) -> pd.DataFrame:
+    """The correction against each base of :data:`REAL_PAIRS` on one training data set."""
+    traj = highway_data(label.split(":")[0])[label]
+    series = criticized_series(criticism_data(label, traj, Settings()))
+    key = jax.random.key(seed)
+    frames = []
+    for number, present in enumerate(REAL_PAIRS):
+        base_model = extend(present[0], IDM) if present else as_extended(IDM)
+        base = fit_model(
+            jax.random.fold_in(key, 2 * number), series, base_model, config=CRITICISM_FIT
+        )
+        corrected = fit_model(
+            jax.random.fold_in(key, 2 * number + 1),
+            series,
+            extend("state_correction", IDM, present),
+            config=CRITICISM_FIT,
+            start=base,
+        )
+        frames.append(
+            pd.DataFrame(
+                {
+                    "data": label,
+                    "base": base_model.model.name,
+                    "vehicle": list(series.vehicle_ids),
+                    "gain_nats": corrected.log_z_held - base.log_z_held,
+                    **coefficient_columns(corrected),
+                }
+            )
+        )
+    return pd.concat(frames, ignore_index=True)
+
+
 def run_cell(seed: int, cell: str, size: str, duration_s: float, folder: Path) -> pd.DataFrame:
     """Both fits on one recording; one row per follower."""
     mechanisms = {} if cell == NULL else {cell: MECHANISMS[cell].sizes[size]}
     path = folder / f"{cell}_{seed}.csv"
     generate(seed, path, mechanisms, **{**DETECTION_SCENARIO, "duration_s": duration_s})
     series = criticized_series(read(path, format="ngsim_raw"))
-    config = DEFAULT_CONFIG._replace(
-        num_particles=DETECTION_CONFIG.num_particles,
-        num_moves=DETECTION_CONFIG.num_moves,
-        unmoved_tolerance=DETECTION_CONFIG.unmoved_tolerance,
-    )
     key = jax.random.key(seed)
-    base = fit_model(jax.random.fold_in(key, 0), series, as_extended(IDM), config=config)
+    base = fit_model(jax.random.fold_in(key, 0), series, as_extended(IDM), config=CRITICISM_FIT)
     extended = extend("state_correction", IDM)
-    corrected = fit_model(jax.random.fold_in(key, 1), series, extended, config=config, start=base)
-    rows = {
-        "seed": seed,
-        "cell": cell,
-        "size": size if cell != NULL else "-",
-        "vehicle": list(series.vehicle_ids),
-        "gain_nats": corrected.log_z_held - base.log_z_held,
-    }
-    for name in COEFFICIENTS:
-        draws = corrected.theta[:, :, corrected.names.index(name)]
-        low, high = np.quantile(draws, [0.05, 0.95], axis=1)
-        rows[f"{name}_mean"] = draws.mean(axis=1)
-        rows[f"{name}_sign"] = np.where(high < 0, "-", np.where(low > 0, "+", "0"))
-    return pd.DataFrame(rows)
+    corrected = fit_model(
+        jax.random.fold_in(key, 1), series, extended, config=CRITICISM_FIT, start=base
+    )
+    return pd.DataFrame(
+        {
+            "seed": seed,
+            "cell": cell,
+            "size": size if cell != NULL else "-",
+            "vehicle": list(series.vehicle_ids),
+            "gain_nats": corrected.log_z_held - base.log_z_held,
+            **coefficient_columns(corrected),
+        }
+    )
 
 
-def summary(runs: pd.DataFrame) -> pd.DataFrame:
-    """Per cell: followers, the held-out gain (sum, its SE over followers, the median, the share
-    above 0) and, per coefficient, the followers whose 90% interval lies below or above 0."""
+def summary(runs: pd.DataFrame, by: list[str]) -> pd.DataFrame:
+    """Per group of ``by``: followers, the held-out gain (sum, its SE over followers, the median,
+    the share above 0) and, per coefficient, the followers whose 90% interval lies below or above
+    0."""
     out = []
-    for (cell, size), group in runs.groupby(["cell", "size"], sort=False):
+    for keys, group in runs.groupby(by, sort=False):
         gain = group["gain_nats"].to_numpy()
         row = {
-            "cell": cell,
-            "size": size,
+            **dict(zip(by, keys, strict=True)),
             "followers": len(group),
             "gain_sum_nats": gain.sum(),
             "gain_se_nats": gain.std(ddof=1) * np.sqrt(len(gain)),
@@ -106,8 +160,27 @@ def main() -> None:
     parser.add_argument("--size", default="large", choices=list(MECHANISMS[MECHANISM].sizes))
     parser.add_argument("--duration-s", type=float, default=120.0)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--real", action="store_true", help="the training data sets (see above)")
     args = parser.parse_args()
     started = time.perf_counter()
+    if args.real:
+        seed = seed_range(args.seeds)[0]
+        runs = pd.concat([run_real(label, seed) for label in REAL_DATA], ignore_index=True)
+        table = summary(runs, ["data", "base"])
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(args.out / "real.csv", runs.to_csv(index=False, float_format="%.6g"))
+        header = (
+            "# The state correction on the training data sets\n\n"
+            f"Generated by `benchmarks/bench_state_correction.py --real --seeds {seed} --out "
+            f"{args.out}` (library {CODE}; {time.perf_counter() - started:.0f} s). The criticism's "
+            "data of the README's main job and its held-out evidence fits. Gain: the held-out "
+            "one-step log predictive density of the base with `state_correction` added, minus "
+            "the base's, per follower (`real.csv`); `gain_se_nats` is the standard error of the "
+            "sum.\n\n"
+        )
+        write_keeping_findings(args.out / "real.md", header + markdown(table) + "\n")
+        print(header + markdown(table))
+        return
     frames = []
     with tempfile.TemporaryDirectory() as folder:
         for seed in seed_range(args.seeds):
@@ -115,7 +188,7 @@ def main() -> None:
                 frames.append(run_cell(seed, cell, args.size, args.duration_s, Path(folder)))
                 print(f"seed {seed} {cell}: done at {time.perf_counter() - started:.0f} s")
     runs = pd.concat(frames, ignore_index=True)
-    table = summary(runs)
+    table = summary(runs, ["cell", "size"])
     args.out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(args.out / "runs.csv", runs.to_csv(index=False, float_format="%.6g"))
     header = (

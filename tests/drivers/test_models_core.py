@@ -283,7 +283,9 @@ def test_smc_sequential_pass_refuses_a_model_with_a_state_filter():
 def test_the_simulator_runs_an_extension_through_its_own_inputs():
     """A 3-car platoon behind a braking head (40 steps, key 5): the reaction-delay extension
     switched off rolls out exactly like the IDM (same keys), switched on (1.0 s) it brakes later
-    and so comes closer to its leader; the autocorrelated-noise extension runs too."""
+    and so comes closer to its leader; the autocorrelated-noise extension runs too; the state
+    correction switched off rolls out like the IDM, and with a closing coefficient of -1 m/s^2
+    keeps a wider gap."""
     from bayesdrive.simulation.rollout import broadcast_params, platoon_scene, rollout
 
     steps = 40
@@ -311,6 +313,11 @@ def test_the_simulator_runs_an_extension_through_its_own_inputs():
     np.testing.assert_allclose(np.asarray(both_off.x), np.asarray(base.x), atol=1e-4)
     late_and_noisy = run(composite, reaction_time=np.float32(1.0), noise_time_s=np.float32(1.0))
     assert float(late_and_noisy.gap[:, 0].min()) < float(base.gap[:, 0].min()) - 0.5
+    # The state correction: off, the IDM; braking harder while closing in keeps a wider gap.
+    corrected = get_model("idm+state_correction")
+    np.testing.assert_array_equal(np.asarray(run(corrected).x), np.asarray(base.x))
+    cautious = run(corrected, corr_closing=np.float32(-1.0))
+    assert float(cautious.gap[:, 0].min()) > float(base.gap[:, 0].min()) + 0.3
 
 
 def test_generated_platoons_of_a_composite_model_start_in_equilibrium():
