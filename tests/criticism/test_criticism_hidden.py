@@ -13,7 +13,9 @@ Two mechanisms at once are left to the study: no pair is named right 20 times in
 were rerun on fresh seeds 130001-130020 (library 7e2a5195645e) and again, after the drift cause's
 filtered forecast start, on 150001-150020 (library f1435fca9d52;
 reports/criticism/detection_adoption.md): each time every mechanism cell was named right 20 of
-20, and null data said none 18 of 20 (the other two flag a misfit no cause explains).
+20, and null data said none 18 of 20 (the other two flag a misfit no cause explains). The
+table there holds every rerun since, one per change of the detector; the latest, at library
+9a6ae6c6f042 (seeds 200001-200020), repeats the one before it replication for replication.
 Each test runs one round (a one-mechanism verdict is the first round's; the loop's later rounds
 cost CI time and are measured in the study). One seed per cell, fixed before any of these tests
 ran, outside the study's seed range (not chosen by outcome). Cells the study has not backed run
