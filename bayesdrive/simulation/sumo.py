@@ -198,6 +198,11 @@ NO_SUMO_CARRIER = {
     "between action points, and the EIDM's treaction sits in a model that is not the IDM",
     "noise_speed_slope": "execution noise growing with speed: SUMO carries no execution noise",
     "tau_drift": "a time headway drifting within a vehicle: SUMO's tau is fixed per type",
+    **{
+        name: "a correction of the acceleration on features of the state (state_correction): "
+        "SUMO's IDM has no term to add it to"
+        for name in ("corr_speed", "corr_gap", "corr_closing")
+    },
 }
 # Kept as <param> entries, not simulated: one line each, printed on export.
 NOT_CARRIED = {

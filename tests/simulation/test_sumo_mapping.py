@@ -108,6 +108,7 @@ def test_population_drivers_are_rows_of_the_population_new_driver_draws():
         ("idm+autocorrelated_noise", "noise_time_s has no SUMO carrier"),
         ("idm+reaction_delay", "reaction_time has no SUMO carrier"),
         ("idm+drifting_parameters", "tau_drift has no SUMO carrier"),
+        ("idm+state_correction", "corr_speed has no SUMO carrier"),
     ],
 )
 def test_a_driver_parameter_sumo_cannot_carry_is_refused_by_name(model, named):
