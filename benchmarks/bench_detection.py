@@ -155,7 +155,12 @@ CODE = library_fingerprint()
 # on down the chain. 9694aaba4aea -> aa0aedd5461c added position_smoothing; 92 CSVs of the other
 # cells were compared (reports/criticism/smoothing/README.md). aa0aedd5461c -> d3093b9b024b added
 # approach_braking; 100 CSVs of the other cells (reports/state_correction/README.md).
-SAME_DATA_GENERATORS = {"9694aaba4aea": "aa0aedd5461c", "aa0aedd5461c": "d3093b9b024b"}
+# d3093b9b024b -> 18351af3c27e rewrapped a description's string (the same text, the same CSVs).
+SAME_DATA_GENERATORS = {
+    "9694aaba4aea": "aa0aedd5461c",
+    "aa0aedd5461c": "d3093b9b024b",
+    "d3093b9b024b": "18351af3c27e",
+}
 
 
 def same_data_generators(generator: str) -> set[str]:

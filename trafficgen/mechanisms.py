@@ -124,8 +124,8 @@ MECHANISMS: dict[str, Mechanism] = {
         "the recording, not the drivers: every vehicle's positions are smoothed by a symmetric "
         "exponential moving average of width T (weights exp(-|t' - t| / T), cut at 5 T; beyond "
         "the record's ends the positions are continued by reflection through the end point), as "
-        "trajectory reconstructions smooth video positions; speeds are central differences of the smoothed positions (floored at 0), "
-        "accelerations differences of those speeds, headways differences of the smoothed "
+        "trajectory reconstructions smooth video positions; speeds are central differences of "
+        "the smoothed positions (floored at 0), accelerations differences of those speeds, headways differences of the smoothed "
         "positions. A processing artefact, which no cause names: out of reach, measured to see "
         "whether criticize adopts a driver-behaviour extension on it",
     ),
