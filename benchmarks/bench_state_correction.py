@@ -76,35 +76,36 @@ def coefficient_columns(fitted) -> dict[str, np.ndarray]:
     return columns
 
 
+def correction_gain(key: jax.Array, fold: int, series, present: tuple[str, ...]) -> dict:
+    """Fit the base (the IDM with ``present``) with the key's ``fold``-th part, then the base with
+    the correction, started from it, with the next; per follower the held-out gain and the
+    coefficients (:func:`coefficient_columns`)."""
+    base_model = extend(present[0], IDM) if present else as_extended(IDM)
+    base = fit_model(jax.random.fold_in(key, fold), series, base_model, config=CRITICISM_FIT)
+    corrected = fit_model(
+        jax.random.fold_in(key, fold + 1),
+        series,
+        extend("state_correction", IDM, present),
+        config=CRITICISM_FIT,
+        start=base,
+    )
+    return {
+        "base": base_model.model.name,
+        "vehicle": list(series.vehicle_ids),
+        "gain_nats": corrected.log_z_held - base.log_z_held,
+        **coefficient_columns(corrected),
+    }
+
+
 def run_real(label: str, seed: int) -> pd.DataFrame:
     """The correction against each base of :data:`REAL_PAIRS` on one training data set."""
     traj = highway_data(label.split(":")[0])[label]
     series = criticized_series(criticism_data(label, traj, Settings()))
     key = jax.random.key(seed)
-    frames = []
-    for number, present in enumerate(REAL_PAIRS):
-        base_model = extend(present[0], IDM) if present else as_extended(IDM)
-        base = fit_model(
-            jax.random.fold_in(key, 2 * number), series, base_model, config=CRITICISM_FIT
-        )
-        corrected = fit_model(
-            jax.random.fold_in(key, 2 * number + 1),
-            series,
-            extend("state_correction", IDM, present),
-            config=CRITICISM_FIT,
-            start=base,
-        )
-        frames.append(
-            pd.DataFrame(
-                {
-                    "data": label,
-                    "base": base_model.model.name,
-                    "vehicle": list(series.vehicle_ids),
-                    "gain_nats": corrected.log_z_held - base.log_z_held,
-                    **coefficient_columns(corrected),
-                }
-            )
-        )
+    frames = [
+        pd.DataFrame({"data": label, **correction_gain(key, 2 * number, series, present)})
+        for number, present in enumerate(REAL_PAIRS)
+    ]
     return pd.concat(frames, ignore_index=True)
 
 
@@ -114,22 +115,9 @@ def run_cell(seed: int, cell: str, size: str, duration_s: float, folder: Path) -
     path = folder / f"{cell}_{seed}.csv"
     generate(seed, path, mechanisms, **{**DETECTION_SCENARIO, "duration_s": duration_s})
     series = criticized_series(read(path, format="ngsim_raw"))
-    key = jax.random.key(seed)
-    base = fit_model(jax.random.fold_in(key, 0), series, as_extended(IDM), config=CRITICISM_FIT)
-    extended = extend("state_correction", IDM)
-    corrected = fit_model(
-        jax.random.fold_in(key, 1), series, extended, config=CRITICISM_FIT, start=base
-    )
-    return pd.DataFrame(
-        {
-            "seed": seed,
-            "cell": cell,
-            "size": size if cell != NULL else "-",
-            "vehicle": list(series.vehicle_ids),
-            "gain_nats": corrected.log_z_held - base.log_z_held,
-            **coefficient_columns(corrected),
-        }
-    )
+    gain = correction_gain(jax.random.key(seed), 0, series, ())
+    del gain["base"]  # always the IDM here
+    return pd.DataFrame({"seed": seed, "cell": cell, "size": size if cell != NULL else "-", **gain})
 
 
 def summary(runs: pd.DataFrame, by: list[str]) -> pd.DataFrame:
@@ -154,6 +142,18 @@ def summary(runs: pd.DataFrame, by: list[str]) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
+def write_study(
+    out: Path, report: str, runs: pd.DataFrame, table: pd.DataFrame, header: str, csv: str = ""
+) -> None:
+    """``<csv or report>.csv`` (the rows) and ``<report>.md`` (the header and the table, keeping
+    the findings written below its marker), both atomically; the report is printed too."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows = runs.to_csv(index=False, float_format="%.6g")
+    write_text_atomic(out / f"{csv or report}.csv", rows)
+    write_keeping_findings(out / f"{report}.md", header + markdown(table) + "\n")
+    print(header + markdown(table))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", required=True, help="e.g. 250001-250004")
@@ -166,9 +166,6 @@ def main() -> None:
     if args.real:
         seed = seed_range(args.seeds)[0]
         runs = pd.concat([run_real(label, seed) for label in REAL_DATA], ignore_index=True)
-        table = summary(runs, ["data", "base"])
-        args.out.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(args.out / "real.csv", runs.to_csv(index=False, float_format="%.6g"))
         header = (
             "# The state correction on the training data sets\n\n"
             f"Generated by `benchmarks/bench_state_correction.py --real --seeds {seed} --out "
@@ -178,8 +175,7 @@ def main() -> None:
             "the base's, per follower (`real.csv`); `gain_se_nats` is the standard error of the "
             "sum.\n\n"
         )
-        write_keeping_findings(args.out / "real.md", header + markdown(table) + "\n")
-        print(header + markdown(table))
+        write_study(args.out, "real", runs, summary(runs, ["data", "base"]), header)
         return
     frames = []
     with tempfile.TemporaryDirectory() as folder:
@@ -188,9 +184,6 @@ def main() -> None:
                 frames.append(run_cell(seed, cell, args.size, args.duration_s, Path(folder)))
                 print(f"seed {seed} {cell}: done at {time.perf_counter() - started:.0f} s")
     runs = pd.concat(frames, ignore_index=True)
-    table = summary(runs, ["cell", "size"])
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(args.out / "runs.csv", runs.to_csv(index=False, float_format="%.6g"))
     header = (
         f"# The state correction on trafficgen's `{MECHANISM}` and on null data\n\n"
         f"Generated by `benchmarks/bench_state_correction.py --seeds {args.seeds} --size "
@@ -201,8 +194,7 @@ def main() -> None:
         "the held-out one-step log predictive density of `idm+state_correction` minus the IDM's, "
         "per follower (`runs.csv`).\n\n"
     )
-    write_keeping_findings(args.out / "README.md", header + markdown(table) + "\n")
-    print(header + markdown(table))
+    write_study(args.out, "README", runs, summary(runs, ["cell", "size"]), header, "runs")
 
 
 if __name__ == "__main__":
