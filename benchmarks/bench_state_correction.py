@@ -34,14 +34,18 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bayesdrive.criticism.criticize import DETECTION_CONFIG, criticized_series  # noqa: E402
+from bayesdrive.criticism.criticize import (  # noqa: E402
+    DETECTION_CONFIG,
+    criticized_series,
+    fit_config,
+)
 from bayesdrive.data.atomic import write_text_atomic  # noqa: E402
 from bayesdrive.data.readers import read  # noqa: E402
 from bayesdrive.drivers.extensions import as_extended, extend  # noqa: E402
 from bayesdrive.drivers.extensions.state_correction import STATE_CORRECTION_SPECS  # noqa: E402
 from bayesdrive.drivers.idm import IDM  # noqa: E402
 from bayesdrive.experiments.paper import Settings, criticism_data, highway_data  # noqa: E402
-from bayesdrive.inference.engines.heldout_evidence import DEFAULT_CONFIG, fit_model  # noqa: E402
+from bayesdrive.inference.engines.heldout_evidence import fit_model  # noqa: E402
 from benchmarks.bench_crosscheck_convergence import markdown, write_keeping_findings  # noqa: E402
 from benchmarks.bench_detection import CODE, GENERATOR  # noqa: E402
 from trafficgen import DETECTION_SCENARIO, MECHANISMS, NULL, generate  # noqa: E402
@@ -55,11 +59,7 @@ def seed_range(text: str) -> list[int]:
     return list(range(int(first), int(last or first) + 1))
 
 
-CRITICISM_FIT = DEFAULT_CONFIG._replace(
-    num_particles=DETECTION_CONFIG.num_particles,
-    num_moves=DETECTION_CONFIG.num_moves,
-    unmoved_tolerance=DETECTION_CONFIG.unmoved_tolerance,
-)
+CRITICISM_FIT = fit_config(DETECTION_CONFIG)
 REAL_DATA = ("ngsim_i80_chains", "openacc_vicolungo:human")
 # Each base the correction is added to: the plain IDM, and the model the criticism adopted.
 REAL_PAIRS = ((), ("autocorrelated_noise",))

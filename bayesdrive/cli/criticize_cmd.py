@@ -265,13 +265,18 @@ def _write_final_model(
         )
         remove_chunks(folder)
     path = save_result(tree, folder / "final_model.nc")
-    gains = [
-        f"round {r['round']}: {r['model']} + {r['named']}, held-out gain "
-        f"{r['one_step_gain']['elpd']:.1f} +- {r['one_step_gain']['se']:.1f} nats "
-        f"(p = {r['one_step_gain']['p_value']:.2g}); {r['adoption']}"
-        for r in report["rounds"]
-        if r["named"] and r["adopted"] is not False and r["one_step_gain"]["elpd"] is not None
-    ]
+    gains = []
+    for r in report["rounds"]:
+        # The cause that extended the model: the adopted one, or the named one where adoption
+        # was not judged.
+        cause = r["adopted_cause"] or (r["named"] if r["adopted"] is None else None)
+        gain = next((c["gain"] for c in r["causes"] if c["name"] == cause), None)
+        if gain is not None and gain["elpd"] is not None:
+            gains.append(
+                f"round {r['round']}: {r['model']} + {cause}, held-out gain "
+                f"{gain['elpd']:.1f} +- {gain['se']:.1f} nats (p = {gain['p_value']:.2g}); "
+                f"{r['adoption']}"
+            )
     card = model_card(
         tree,
         title=f"{model.name}: the final model of `bayesdrive criticize`",

@@ -26,18 +26,23 @@ misfit no known cause explains.
    The named cause is the significant cause with the largest gain. Without one the verdict
    (:func:`verdict_of`) is ``unexplained: <check>`` (the misfit's smallest-p check) when the checks
    found a misfit, and ``none`` only for data the model fits.
-7. **Adopt** (:func:`adopt`): the named cause extends the next round's model only if (a) its
+7. **Adopt** (:func:`adopt`): a cause extends the next round's model only if (a) its
    held-out forecast is better: the per-vehicle energy score of the joint (gap, speed) path over
    each window (:func:`~bayesdrive.criticism.gain.forecast_gain`), one-sided paired t-test across
    vehicles, Holm at ``alpha`` over the round's family; (b) its predictive mean is not worse: the
    mean over vehicles of the change of the predictive mean's position RMSE at the window's end is
    at most 0 m; (c) it adds no collisions: its rollouts collide (simulated gap <= 0) no more often
-   than the current model's, on the same windows, draws and noise.
+   than the current model's, on the same windows, draws and noise. The named cause is judged
+   first; where it fails, the other causes whose one-step gain is significant are judged in the
+   order of their gain, and the first that passes is adopted. Two causes can explain the same
+   residual about equally well one step ahead (a persistent error and a drifting parameter) and
+   still forecast differently; every forecast test is already inside the round's Holm family, so
+   judging more than one adds no false adoption.
 8. **The loop** (:func:`judge_round`): an adopted cause extends the model and the next round asks
    what the extended model still gets wrong: every cause screened in at step 5 that composes with
    it (:func:`~bayesdrive.drivers.extensions.composition_problem`) is added to it, fitted from its
    posterior, named and judged as above, until a round adopts nothing or ``max_rounds`` rounds
-   ran. A cause named but not adopted stops the loop (its round says why). The residual checks
+   ran. A round that adopts nothing stops the loop (its round says why). The residual checks
    describe the base model's misfit, so they run once; a later round's misfit is the multistep
    check of the model it starts from. **Without rollouts** (``num_rollouts = 0``, the detection
    study's setting) nothing can be adopted: adoption is recorded as not judged and the named cause
@@ -124,6 +129,7 @@ __all__ = [
     "criticized_series",
     "extends_model",
     "fit",
+    "fit_config",
     "forecast",
     "forecast_better",
     "judge_round",
@@ -184,10 +190,20 @@ class CriticizeConfig(NamedTuple):
 
 
 # Settings of the detection study and of the CI tests built on it (see DETECTION_SCENARIO in
-# trafficgen, the independent generator at the repository root): the default sampler (moves until every particle has moved with
-# probability 0.99, Drovandi & Pettitt 2011's c = 0.01, since 4 fixed moves let the speed-noise
-# posterior collapse: bayesdrive.inference.engines.heldout_evidence), without rollouts, to keep CI fast.
+# trafficgen, the independent generator at the repository root): the default sampler (moves
+# until every particle has moved with probability 0.99, Drovandi & Pettitt 2011's c = 0.01, since
+# 4 fixed moves let the speed-noise posterior collapse:
+# bayesdrive.inference.engines.heldout_evidence), without rollouts, to keep CI fast.
 DETECTION_CONFIG = CriticizeConfig(num_rollouts=0)
+
+
+def fit_config(config: CriticizeConfig) -> TemperingConfig:
+    """The held-out evidence fits' settings of a criticism run with ``config``."""
+    return DEFAULT_CONFIG._replace(
+        num_particles=config.num_particles,
+        num_moves=config.num_moves,
+        unmoved_tolerance=config.unmoved_tolerance,
+    )
 
 
 class CriticismResult(NamedTuple):
@@ -350,10 +366,12 @@ class Naming(NamedTuple):
 
 
 class Adoption(NamedTuple):
-    """Whether the named cause extends the next round's model (None: not judged) and why."""
+    """Whether a cause extends the next round's model (None: not judged), why, and which
+    (:data:`~bayesdrive.drivers.extensions.NO_CAUSE` where none)."""
 
     adopted: bool | None
     reason: str
+    cause: str
 
 
 class Round(NamedTuple):
@@ -481,36 +499,68 @@ def forecast_better(
 
 
 def adopt(
-    named: str, forecasts: Mapping[str, ForecastGain], family: Sequence[str], alpha: float
+    naming: Naming, forecasts: Mapping[str, ForecastGain], family: Sequence[str], alpha: float
 ) -> Adoption:
-    """Whether the named cause extends the next round's model (module docstring, step 7): its
-    forecast gain significant (Holm at ``alpha`` over ``family``), the mean change of its
-    predictive-mean RMSE at most 0 m, and no more collisions than the current model."""
+    """Which cause extends the next round's model (module docstring, step 7): the named cause, or
+    where it fails the first other cause of significant one-step gain, in the order of that gain,
+    whose forecast gain is significant (Holm at ``alpha`` over ``family``), whose mean change of
+    predictive-mean RMSE is at most 0 m, and whose rollouts collide no more than the current
+    model's."""
+    named = naming.cause
     if named == NO_CAUSE:
-        return Adoption(False, "no cause named")
+        return Adoption(False, "no cause named", NO_CAUSE)
     found = forecasts.get(named)
     if found is None or not np.isfinite(found.per_vehicle).any():
-        return Adoption(None, "not judged: no rollouts")
-    better = named in forecast_better(forecasts, family, alpha)
-    score = (
+        return Adoption(None, "not judged: no rollouts", named)
+    better = forecast_better(forecasts, family, alpha)
+    others = [c for c in naming.ranked if c in naming.significant and c != named]
+    failures = []
+    for cause in (named, *others):
+        judged = forecasts.get(cause)
+        if judged is None:
+            continue
+        reasons = _adoption_failures(judged, cause in better, len(family), alpha)
+        if not reasons:
+            instead = f"{named} not adopted ({failures[0]}); instead {cause}: " if failures else ""
+            return Adoption(True, f"adopted: {instead}{_judged(judged, len(family), alpha)}", cause)
+        failures.append(f"{cause}: " + "; ".join(reasons) if cause != named else "; ".join(reasons))
+    return Adoption(False, "not adopted: " + " | ".join(failures), NO_CAUSE)
+
+
+def _score(found: ForecastGain, family_size: int, alpha: float) -> str:
+    return (
         f"energy score gain {found.mean:.3g} (se {found.se:.2g}, p = {found.p_value:.2g}, Holm at "
-        f"{alpha} over {len(family)} causes; its rollouts from the {found.start} start)"
+        f"{alpha} over {family_size} causes; its rollouts from the {found.start} start)"
     )
-    rmse = f"predictive-mean RMSE change {found.rmse_mean_change:+.3g} m"
-    collisions = f"collisions {found.collisions_extension} against {found.collisions_current}"
-    reasons = [
-        *([] if better else [f"its forecast is not better: {score}"]),
+
+
+def _judged(found: ForecastGain, family_size: int, alpha: float) -> str:
+    """A passing cause's three criteria, in words."""
+    return f"{_score(found, family_size, alpha)}; {_rmse(found)}; {_collisions(found)}"
+
+
+def _rmse(found: ForecastGain) -> str:
+    return f"predictive-mean RMSE change {found.rmse_mean_change:+.3g} m"
+
+
+def _collisions(found: ForecastGain) -> str:
+    return f"collisions {found.collisions_extension} against {found.collisions_current}"
+
+
+def _adoption_failures(
+    found: ForecastGain, better: bool, family_size: int, alpha: float
+) -> list[str]:
+    """Which of the three criteria of step 7 ``found`` fails, in words (none: it is adopted)."""
+    return [
+        *([] if better else [f"its forecast is not better: {_score(found, family_size, alpha)}"]),
         # NaN (no vehicle scored by both) is not "not worse".
-        *([] if found.rmse_mean_change <= 0 else [f"its predictive mean is worse: {rmse}"]),
+        *([] if found.rmse_mean_change <= 0 else [f"its predictive mean is worse: {_rmse(found)}"]),
         *(
-            [f"it adds collisions: {collisions}"]
+            [f"it adds collisions: {_collisions(found)}"]
             if found.collisions_extension > found.collisions_current
             else []
         ),
     ]
-    if reasons:
-        return Adoption(False, "not adopted: " + "; ".join(reasons))
-    return Adoption(True, f"adopted: {score}; {rmse}; {collisions}")
 
 
 def _forecast_entry(found: ForecastGain, significant: bool) -> dict[str, Any]:
@@ -589,7 +639,7 @@ def judge_round(
         misfit=fired,
         naming=naming,
         verdict=verdict_of(naming.cause, fired),
-        adoption=adopt(naming.cause, forecasts, family, config.alpha),
+        adoption=adopt(naming, forecasts, family, config.alpha),
         entries=entries,
         fits=fits,
         rollouts=rolled,
@@ -599,9 +649,10 @@ def judge_round(
 
 
 def extends_model(found: Round) -> bool:
-    """Whether the round's named cause extends the next round's model: adopted, or named where
-    adoption could not be judged (no rollouts: the loop names, module docstring)."""
-    return found.naming.cause != NO_CAUSE and found.adoption.adopted is not False
+    """Whether a cause of the round (``found.adoption.cause``) extends the next round's model:
+    adopted, or named where adoption could not be judged (no rollouts: the loop names, module
+    docstring)."""
+    return found.adoption.cause != NO_CAUSE and found.adoption.adopted is not False
 
 
 def _outcome(found: Round) -> str:
@@ -610,13 +661,16 @@ def _outcome(found: Round) -> str:
     if named == NO_CAUSE:
         return "no cause named: the loop stops"
     if found.adoption.adopted:
+        adopted = found.adoption.cause
+        if adopted != named:
+            return f"{named} named but not adopted; {adopted} adopted: it extends the model"
         return f"{named} adopted: it extends the model"
     if found.adoption.adopted is None:
         return (
             f"{named} named; adoption not judged (no rollouts): it extends the model, the loop "
             "names causes only"
         )
-    return f"{named} named but not adopted: the loop stops"
+    return f"{named} named, nothing adopted: the loop stops"
 
 
 def _round_entry(run: Run, number: int, found: Round) -> dict[str, Any]:
@@ -633,6 +687,7 @@ def _round_entry(run: Run, number: int, found: Round) -> dict[str, Any]:
         "one_step_gain": named.get("gain"),
         "forecast_gain": named.get("forecast"),
         "adopted": found.adoption.adopted,
+        "adopted_cause": found.adoption.cause if found.adoption.adopted else None,
         "adoption": found.adoption.reason,
         "outcome": _outcome(found),
         "causes": found.entries,
@@ -671,11 +726,7 @@ def criticize(
         series=series,
         windows=windows,
         config=config,
-        fit_config=DEFAULT_CONFIG._replace(
-            num_particles=config.num_particles,
-            num_moves=config.num_moves,
-            unmoved_tolerance=config.unmoved_tolerance,
-        ),
+        fit_config=fit_config(config),
         client=client,
         chunk_size=chunk_size,
         say=progress or (lambda message: None),
@@ -699,9 +750,9 @@ def criticize(
         rounds.append(found)
         if not extends_model(found):
             break
-        named = found.naming.cause
-        current, current_rollouts = found.fits[named], found.rollouts[named]
-        present = (*present, named)
+        chosen = found.adoption.cause
+        current, current_rollouts = found.fits[chosen], found.rollouts[chosen]
+        present = (*present, chosen)
         # The residual checks ran on the base model; the extended model's misfit is its forecast's.
         fired = misfit([multistep_check(current_rollouts, series.dt)], config.alpha)
     first = rounds[0]
@@ -716,7 +767,7 @@ def criticize(
         "verdict": first.verdict,
         "verdict_is_possible_processing_artefact": artefacts.get(first.verdict),
         "model": compose(model, present).name,
-        "adopted": [f.naming.cause for f in rounds if f.adoption.adopted],
+        "adopted": [f.adoption.cause for f in rounds if f.adoption.adopted],
         "rounds": [_round_entry(run, number, f) for number, f in enumerate(rounds, start=1)],
         "power_warning": power_warning(num_vehicles),
         "seed": seed,
@@ -750,12 +801,14 @@ def criticize(
             f"{config.horizon_s:g} s held-out window (units {ENERGY_UNITS}), rollouts from the "
             "filtered start, averaged over each vehicle's windows; gain = current model minus "
             "extension, one-sided paired t-test across vehicles (N-1 df)",
-            "adoption": "the named cause extends the next round's model only if (a) its forecast "
+            "adoption": "a cause extends the next round's model only if (a) its forecast "
             f"gain is significant, Holm at {config.alpha} over the round's family; (b) the mean "
             "over vehicles of its predictive-mean position RMSE change at the window's end is "
             "<= 0 m; (c) its rollouts collide (simulated gap <= 0) no more often than the "
-            "current model's. Without rollouts adoption is not judged and the named cause "
-            "extends the model (a naming study)",
+            "current model's. The named cause is judged first; where it fails, the other causes "
+            "of significant one-step gain in the order of their gain, the first that passes "
+            "adopted. Without rollouts adoption is not judged and the named cause extends the "
+            "model (a naming study)",
             "rounds": f"at most {config.max_rounds}; each extends the model by the round before's "
             "adopted cause (named, without rollouts) and tests every screened cause that "
             f"composes with it, Holm at {config.alpha} over the causes that compose; a round "

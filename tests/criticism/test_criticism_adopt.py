@@ -15,6 +15,7 @@ from bayesdrive.criticism.checks import Check, multistep_check
 from bayesdrive.criticism.criticize import (
     DETECTION_CONFIG,
     UNEXPLAINED,
+    Naming,
     adopt,
     criticize,
     misfit,
@@ -53,27 +54,36 @@ def _gain(seed, improvement, *, rmse_change=-0.1, collisions=(0, 0)):
     )
 
 
+def _named(cause, *others):
+    """The naming of ``cause`` with ``others`` significant too, ranked after it by one-step gain."""
+    return Naming(cause, {cause, *others}, [cause, *others])
+
+
 def test_an_extension_that_forecasts_better_is_adopted_and_one_that_forecasts_worse_is_not():
     better = _gain(1, 0.5)
     assert better.mean == pytest.approx(0.5, abs=0.1)  # 8 vehicles, noise sd 0.1
     assert better.p_value < 1e-4
-    adopted = adopt("autocorrelated_noise", {"autocorrelated_noise": better}, FAMILY, 0.05)
+    adopted = adopt(_named("autocorrelated_noise"), {"autocorrelated_noise": better}, FAMILY, 0.05)
     assert adopted.adopted is True and adopted.reason.startswith("adopted: ")
     # Negative control: named (the one-step gain decided that) but forecasting worse.
     worse = _gain(1, -0.5)
-    rejected = adopt("autocorrelated_noise", {"autocorrelated_noise": worse}, FAMILY, 0.05)
+    rejected = adopt(_named("autocorrelated_noise"), {"autocorrelated_noise": worse}, FAMILY, 0.05)
     assert rejected.adopted is False and "forecast is not better" in rejected.reason
 
 
 def test_a_better_forecast_that_adds_a_collision_or_moves_the_mean_away_is_not_adopted():
     collides = _gain(2, 0.5, collisions=(3, 4))
-    found = adopt("autocorrelated_noise", {"autocorrelated_noise": collides}, FAMILY, 0.05)
+    found = adopt(_named("autocorrelated_noise"), {"autocorrelated_noise": collides}, FAMILY, 0.05)
     assert found.adopted is False and "adds collisions: collisions 4 against 3" in found.reason
     same_collisions = _gain(2, 0.5, collisions=(3, 3))
-    kept = adopt("autocorrelated_noise", {"autocorrelated_noise": same_collisions}, FAMILY, 0.05)
+    kept = adopt(
+        _named("autocorrelated_noise"), {"autocorrelated_noise": same_collisions}, FAMILY, 0.05
+    )
     assert kept.adopted is True
     mean_worse = _gain(2, 0.5, rmse_change=0.05)
-    found = adopt("autocorrelated_noise", {"autocorrelated_noise": mean_worse}, FAMILY, 0.05)
+    found = adopt(
+        _named("autocorrelated_noise"), {"autocorrelated_noise": mean_worse}, FAMILY, 0.05
+    )
     assert found.adopted is False and "predictive mean is worse" in found.reason
     assert "forecast is not better" not in found.reason
 
@@ -81,15 +91,48 @@ def test_a_better_forecast_that_adds_a_collision_or_moves_the_mean_away_is_not_a
 def test_holm_over_the_rounds_family_decides_a_marginal_forecast_gain():
     """A forecast gain with p between alpha / 4 and alpha is adopted alone, not in a family of 4."""
     marginal = next(g for s in range(200) if 0.0125 < (g := _gain(s, 0.06)).p_value < 0.05)
-    one = adopt("reaction_delay", {"reaction_delay": marginal}, ["reaction_delay"], 0.05)
-    four = adopt("reaction_delay", {"reaction_delay": marginal}, FAMILY, 0.05)
+    one = adopt(_named("reaction_delay"), {"reaction_delay": marginal}, ["reaction_delay"], 0.05)
+    four = adopt(_named("reaction_delay"), {"reaction_delay": marginal}, FAMILY, 0.05)
     assert one.adopted is True and four.adopted is False
 
 
 def test_nothing_named_or_nothing_rolled_out_is_not_adopted():
-    assert adopt(NO_CAUSE, {"reaction_delay": _gain(3, 0.5)}, FAMILY, 0.05).adopted is False
-    not_judged = adopt("reaction_delay", {}, FAMILY, 0.05)
-    assert not_judged == (None, "not judged: no rollouts")
+    assert (
+        adopt(Naming(NO_CAUSE, set(), []), {"reaction_delay": _gain(3, 0.5)}, FAMILY, 0.05).adopted
+        is False
+    )
+    not_judged = adopt(_named("reaction_delay"), {}, FAMILY, 0.05)
+    assert not_judged == (None, "not judged: no rollouts", "reaction_delay")
+
+
+def test_where_the_named_cause_fails_the_next_significant_cause_that_passes_is_adopted():
+    """The named cause forecasts worse; of the other causes significant one step ahead, in the
+    order of their one-step gain, the first that passes all three criteria is adopted. Negative
+    controls: a cause that forecasts better but was not significant one step ahead is never
+    adopted, and with every candidate failing nothing is."""
+    forecasts = {
+        "autocorrelated_noise": _gain(1, -0.5),
+        "reaction_delay": _gain(2, 0.5, collisions=(0, 1)),
+        "drifting_parameters": _gain(3, 0.5),
+        "measurement_noise": _gain(4, 0.8),
+    }
+    naming = Naming(
+        "autocorrelated_noise",
+        {"autocorrelated_noise", "reaction_delay", "drifting_parameters"},
+        ["autocorrelated_noise", "measurement_noise", "reaction_delay", "drifting_parameters"],
+    )
+    found = adopt(naming, forecasts, FAMILY, 0.05)
+    assert found.adopted is True and found.cause == "drifting_parameters", found.reason
+    assert found.reason.startswith("adopted: autocorrelated_noise not adopted (its forecast")
+    # Not significant one step ahead: never judged, however well it forecasts.
+    only_named = Naming("autocorrelated_noise", {"autocorrelated_noise"}, naming.ranked)
+    nothing = adopt(only_named, forecasts, FAMILY, 0.05)
+    assert nothing.adopted is False and nothing.cause == NO_CAUSE
+    failing = {**forecasts, "drifting_parameters": _gain(3, 0.5, rmse_change=0.05)}
+    none_pass = adopt(naming, failing, FAMILY, 0.05)
+    assert none_pass.adopted is False and none_pass.cause == NO_CAUSE
+    assert "reaction_delay: it adds collisions" in none_pass.reason
+    assert "drifting_parameters: its predictive mean is worse" in none_pass.reason
 
 
 def _rollouts(offsets, speed_offsets, rows, collisions=None):

@@ -77,9 +77,19 @@ def _coefficient(name: str, feature: str) -> ParamSpec:
 
 
 STATE_CORRECTION_SPECS = (
-    _coefficient("corr_speed", "speed feature tanh((v - 15 m/s) / 10 m/s)"),
-    _coefficient("corr_gap", "gap feature tanh((s - 20 m) / 20 m), with a leader"),
-    _coefficient("corr_closing", "closing feature tanh((v - v_lead) / 2 m/s), with a leader"),
+    _coefficient(
+        "corr_speed",
+        f"speed feature tanh((v - {FEATURES.speed_centre:g} m/s) / {FEATURES.speed_unit:g} m/s)",
+    ),
+    _coefficient(
+        "corr_gap",
+        f"gap feature tanh((s - {FEATURES.gap_centre:g} m) / {FEATURES.gap_unit:g} m), "
+        "with a leader",
+    ),
+    _coefficient(
+        "corr_closing",
+        f"closing feature tanh((v - v_lead) / {FEATURES.closing_unit:g} m/s), with a leader",
+    ),
 )
 
 
@@ -89,7 +99,7 @@ def features(v: Array, gap: Array, lead_v: Array, has_leader: Array) -> Array:
     speed = jnp.tanh((v - FEATURES.speed_centre) / FEATURES.speed_unit)
     # A free road's gap is a placeholder (it may be inf): the centre puts the feature at 0.
     gap = jnp.where(has_leader > 0, gap, FEATURES.gap_centre)
-    spacing = jnp.tanh((gap - FEATURES.gap_centre) / FEATURES.gap_unit) * has_leader
+    spacing = jnp.tanh((gap - FEATURES.gap_centre) / FEATURES.gap_unit)
     closing = jnp.tanh((v - lead_v) / FEATURES.closing_unit) * has_leader
     return jnp.stack([speed, spacing, closing], axis=-1)
 
