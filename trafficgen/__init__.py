@@ -43,8 +43,8 @@ position_smoothing            out of reach (a processing        the recording sm
                               artefact, which no cause names)   a symmetric exponential moving
                                                                 average; speeds differenced from
                                                                 them
-approach_braking              out of reach (the criticism does  extra braking in proportion to the
-                              not screen state_correction)      closing speed beyond an onset
+approach_braking              state_correction (a tanh basis    extra braking in proportion to the
+                              approximating the ramp)           closing speed beyond an onset
 (none)                        none                              IDM with white noise per sample
 ============================  ================================  ====================================
 """

@@ -1,6 +1,6 @@
-"""The hidden mechanisms, their effect sizes, and the verdicts of ``bayesdrive criticize`` that count
-as right for each (cause names of ``bayesdrive.drivers.extensions``; the table is in the package
-docstring and in reports/criticism/generator.md).
+"""The hidden mechanisms, their effect sizes, and the verdicts of ``bayesdrive criticize`` that
+count as right for each (cause names of ``bayesdrive.drivers.extensions``; the table is in the
+package docstring and in reports/criticism/generator.md).
 
 Sizes are ranges of one parameter per mechanism, drawn uniformly per driver, so a platoon mixes
 drivers with more and less of the effect.
@@ -125,21 +125,21 @@ MECHANISMS: dict[str, Mechanism] = {
         "exponential moving average of width T (weights exp(-|t' - t| / T), cut at 5 T; beyond "
         "the record's ends the positions are continued by reflection through the end point), as "
         "trajectory reconstructions smooth video positions; speeds are central differences of "
-        "the smoothed positions (floored at 0), accelerations differences of those speeds, headways differences of the smoothed "
-        "positions. A processing artefact, which no cause names: out of reach, measured to see "
-        "whether criticize adopts a driver-behaviour extension on it",
+        "the smoothed positions (floored at 0), accelerations differences of those speeds, "
+        "headways differences of the smoothed positions. A processing artefact, which no cause "
+        "names: out of reach, measured to see whether criticize adopts a driver-behaviour "
+        "extension on it",
     ),
     "approach_braking": Mechanism(
         "gain_per_s",
         "1/s",
         {"small": (0.1, 0.2), "medium": (0.2, 0.4), "large": (0.4, 0.8)},
-        (),
+        ("state_correction",),
         "while closing in on the leader faster than an onset speed (uniform on 0-1 m/s per "
         "driver), the driver brakes gain_per_s times the excess closing speed beyond the IDM "
         "acceleration: a one-sided ramp in the perceived closing speed, which the IDM's own "
-        "approach term does not have (the state_correction extension fits a tanh of the closing "
-        "speed, two-sided, among other features). The criticism does not screen that extension, "
-        "so out of reach: measured by fitting the extension, not by criticize",
+        "approach term does not have; the state_correction extension approximates it with a "
+        "tanh of the closing speed, two-sided, among other features",
     ),
 }
 

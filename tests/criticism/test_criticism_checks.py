@@ -15,13 +15,15 @@ from bayesdrive.criticism.checks import (
     gain_drift_check,
     leader_cross_correlation_check,
     noise_speed_by_vehicle_check,
+    score_check,
     vehicle_autocorrelation_checks,
 )
 from bayesdrive.criticism.gain import elpd_gain, holm, rmse_change
-from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows
+from bayesdrive.data.views import AheadArrays, FollowerArrays, ScoredWindows, scored_series
 from bayesdrive.drivers.extensions import as_extended
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.inference.engines.heldout_evidence import FitResult
+from tests.followers import corrected_follower
 
 VEHICLES, STEPS = 12, 300
 
@@ -240,13 +242,13 @@ def test_gain_drift_finds_a_rule_whose_strength_swings_and_not_a_fixed_one():
         assert quiet.p_value > 1e-3 and quiet.summary["flagged"] <= 3
 
 
-def fit_with(log_z_held) -> FitResult:
+def fit_with(log_z_held, theta=None) -> FitResult:
     n = len(log_z_held)
     zeros = np.zeros(n)
     return FitResult(
         model=as_extended(IDM),
         names=IDM.param_names,
-        theta=np.zeros((n, 2, 6)),
+        theta=np.zeros((n, 2, 6)) if theta is None else theta,
         log_z_fit=zeros,
         log_z_held=np.asarray(log_z_held, float),
         stages_fit=zeros,
@@ -307,3 +309,35 @@ def test_rmse_change_mean_and_se():
     change, se = rmse_change(np.array([1.0, 2.0, np.nan]), np.array([0.5, 1.0, 3.0]))
     assert change == pytest.approx(-0.75)
     assert se == pytest.approx(np.std([-0.5, -1.0], ddof=1) / np.sqrt(2))
+
+
+# The numpy follower's IDM values (tests/followers.py) and its noise sd.
+FOLLOWER_TRUTH = {
+    "v_des": 30.0,
+    "d_min": 2.0,
+    "tau": 1.0,
+    "a_max": 3.0,
+    "b_pref": 2.0,
+    "sigma": 0.3,
+}
+
+
+@pytest.mark.parametrize(("hidden", "found"), [(-0.6, True), (0.6, True), (0.0, False)])
+def test_the_state_corrections_score_test_is_two_sided_in_its_three_coefficients(hidden, found):
+    """8 numpy followers of 60 s (tests/followers.py, seeds 31-38, fixed before the test ran) hide
+    a correction of -0.6 or +0.6 m/s^2 on the closing feature, or none. Scored at the generator's
+    IDM values, the state correction's score test (three coefficients, both directions) finds
+    either sign with p < 1e-3; a one-sided test would miss one of them. Negative control: on the
+    followers without the correction p > 0.01 (a 1% false alarm at this seed)."""
+    series = scored_series(corrected_follower(hidden, seed=31, steps=600, pairs=8))
+    vehicles = len(series.vehicle_ids)
+    truth = np.asarray([FOLLOWER_TRUTH[name] for name in IDM.param_names])
+    fit = fit_with(np.zeros(vehicles), theta=np.tile(truth, (vehicles, 2, 1)))
+    check = score_check("state_correction", fit, series)
+    assert check.screening and check.points_to == ("state_correction",)
+    assert check.summary["degrees_of_freedom"] == [3, 5] and vehicles == 8
+    assert check.summary["t_squared"] == pytest.approx(check.figure["values"].sum(), rel=1e-6)
+    if found:
+        assert check.p_value < 1e-3, check.summary
+    else:
+        assert check.p_value > 0.01, check.summary

@@ -7,12 +7,10 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pandas as pd
 import pytest
 from scipy import stats
 
 from bayesdrive.data.trajectories import Trajectories
-from bayesdrive.data.validate import validate_tracks
 from bayesdrive.data.views import scored_series
 from bayesdrive.drivers.base import (
     CarFollowingInputs,
@@ -30,8 +28,8 @@ from bayesdrive.drivers.extensions.cut_in import cah_acceleration
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs, history_steps, inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
 from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_logpdfs
+from tests.followers import DT, corrected_follower, single_lane
 
-DT = 0.1
 K = history_steps(DT)
 
 
@@ -90,6 +88,7 @@ ON = {
     "second_leader_anticipation": 0.6,
     "cut_in_overreaction": 0.99,
     "leader_acceleration_anticipation": 0.5,
+    "state_correction": -0.5,
 }
 # Causes whose state is lifted from the observed past (each step scored on its own) and causes
 # with a hidden state (scored through their filter).
@@ -428,31 +427,6 @@ def three_car_platoon() -> Trajectories:
         (("A", x_a, v_a, None, None), ("B", x_b, v_b, "A", x_a), ("C", x_c, v_c, "B", x_b)),
         source="platoon",
     )
-
-
-def single_lane(t, vehicles, source: str) -> Trajectories:
-    """One lane, one scene: ``vehicles`` are (id, x, v, leader id or None, leader's x or None)
-    sampled at times ``t``; bumper gaps for vehicles 4.5 m long."""
-    rows = [
-        pd.DataFrame(
-            {
-                "vehicle_id": vid,
-                "t": t,
-                "x": x,
-                "v": v,
-                "a": np.nan,
-                "lane_id": 1,
-                "leader_id": leader,
-                "gap": (lead_x - 4.5 - x) if leader else np.full_like(t, np.nan),
-                "length": 4.5,
-                "driver": "human",
-            }
-        )
-        for vid, x, v, leader, lead_x in vehicles
-    ]
-    tracks = validate_tracks(pd.concat(rows, ignore_index=True), source=source, dt=DT)
-    scenes = pd.DataFrame({"scene_id": "s", "vehicle_id": [vehicle[0] for vehicle in vehicles]})
-    return Trajectories(tracks=tracks, scenes=scenes, dt=DT, format="test", source=source)
 
 
 def test_scored_series_second_vehicle_leader_acceleration_and_history():
@@ -808,30 +782,6 @@ def test_state_correction_off_is_the_base_rule_and_on_adds_its_features():
         )
         got = float(model.mean_acceleration(on, state, inputs))
         assert got == pytest.approx(rule + added, abs=1e-5)
-
-
-def corrected_follower(closing_coefficient: float, seed: int, steps: int = 3000) -> Trajectories:
-    """A follower written here in numpy, sharing no code with the model: the IDM (v_des 30, d_min
-    2, tau 1, a_max 3, b_pref 2, delta 4) behind a leader whose speed swings 14 +- 3 m/s with a
-    20 s period, plus ``closing_coefficient`` times tanh((v - v_lead) / 2 m/s) and white noise of
-    sd 0.3 m/s^2 per 0.1 s step. Exact kinematics per step."""
-    rng = np.random.default_rng(seed)
-    v_des, d_min, tau, a_max, b_pref = 30.0, 2.0, 1.0, 3.0, 2.0
-    t = np.round(np.arange(steps + 1) * DT, 6)
-    v_lead = 14.0 + 3.0 * np.sin(2 * np.pi * t / 20.0)
-    x_lead = 60.0 + np.concatenate([[0.0], np.cumsum(0.5 * (v_lead[1:] + v_lead[:-1]) * DT)])
-    x, v = np.zeros(steps + 1), np.full(steps + 1, 14.0)
-    for k in range(steps):
-        gap = x_lead[k] - 4.5 - x[k]
-        closing = v[k] - v_lead[k]
-        wanted = d_min + max(0.0, v[k] * tau + v[k] * closing / (2 * math.sqrt(a_max * b_pref)))
-        acc = a_max * (1 - (v[k] / v_des) ** 4 - (wanted / gap) ** 2)
-        acc += closing_coefficient * math.tanh(closing / 2.0) + 0.3 * rng.standard_normal()
-        x[k + 1] = x[k] + v[k] * DT + 0.5 * acc * DT**2
-        v[k + 1] = v[k] + acc * DT
-    return single_lane(
-        t, (("L", x_lead, v_lead, None, None), ("F", x, v, "L", x_lead)), source="corrected"
-    )
 
 
 @pytest.mark.parametrize(("hidden", "best"), [(-0.6, -0.6), (0.0, 0.0)])

@@ -22,8 +22,8 @@ kind            extensions                                                  wrap
 The two observation models (:mod:`bayesdrive.drivers.measurement_noise`,
 :mod:`bayesdrive.drivers.video_noise`) are extensions of the ``observation`` kind, so a model has
 at most one. :data:`CAUSES` are the extensions the criticism screens: all but video noise, whose
-cause is measurement noise's, and the state correction (:mod:`.state_correction`), whose
-coefficients take either sign, where the criticism's score test is one-sided in one parameter.
+cause is measurement noise's. The state correction's coefficients take either sign, so its score
+test is two-sided in all three (:func:`bayesdrive.criticism.checks.score_check`).
 
 So ``idm+reaction_delay+autocorrelated_noise``, ``cidm+autocorrelated_noise`` and
 ``gipps+second_leader_anticipation+measurement_noise`` exist, and :func:`compose` refuses the
@@ -109,9 +109,8 @@ EXTENSIONS: MappingProxyType[str, Callable[[DriverModel], ExtendedModel]] = Mapp
 )
 # Every extension a model name may join to its base.
 PARTS = tuple(EXTENSIONS)
-# The extensions the criticism screens: video noise answers measurement noise's cause, and the
-# state correction's two-sided coefficients have no score test yet (module docstring).
-CAUSES = tuple(part for part in PARTS if part not in (video_noise.NAME, state_correction.CAUSE))
+# The extensions the criticism screens: video noise answers measurement noise's cause.
+CAUSES = tuple(part for part in PARTS if part != video_noise.NAME)
 KIND_ORDER = ("mean", "noise", "parameters", "observation")
 KINDS = MappingProxyType(
     {
