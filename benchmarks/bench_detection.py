@@ -175,9 +175,12 @@ def same_data_generators(generator: str) -> set[str]:
 CURRENT_GENERATORS = same_data_generators(GENERATOR)
 
 
-def study_config(rollouts: int) -> CriticizeConfig:
-    """CI's detection settings, with ``rollouts`` rollouts per model (0: naming only)."""
-    return DETECTION_CONFIG._replace(num_rollouts=rollouts)
+def study_config(
+    rollouts: int, causes: tuple[str, ...] = DETECTION_CONFIG.causes
+) -> CriticizeConfig:
+    """CI's detection settings, with ``rollouts`` rollouts per model (0: naming only), screening
+    ``causes`` (CI's: the criticism's default family)."""
+    return DETECTION_CONFIG._replace(num_rollouts=rollouts, causes=causes)
 
 
 def sampler_label(config: CriticizeConfig) -> str:
@@ -187,6 +190,8 @@ def sampler_label(config: CriticizeConfig) -> str:
     rounds = f", up to {config.max_rounds} rounds"
     if config.num_rollouts:
         rounds += f", {config.num_rollouts} rollouts"
+    if config.causes != DETECTION_CONFIG.causes:
+        rounds += f", causes {'+'.join(config.causes)}"
     if config.unmoved_tolerance > 0:
         return f">={config.num_moves} moves until unmoved<={config.unmoved_tolerance}{rounds}"
     return f"{config.num_moves} moves{rounds}"
@@ -486,6 +491,7 @@ def run_shards(args: argparse.Namespace) -> int:
     common += ["--dev"] if args.dev else []
     common += ["--first-seed", str(args.first_seed), "--rollouts", str(args.rollouts)]
     common += ["--platoons", str(args.platoons), "--duration-s", str(args.duration_s)]
+    common += ["--causes", args.causes]
     common += ["--stop-at", str(args.stop_at)] if args.stop_at is not None else []
     shards = []
     for k in range(args.jobs):
@@ -532,6 +538,12 @@ def main(argv: list[str] | None = None) -> int:
         help="seconds recorded per replication (CI's scenario by default); another length needs "
         "its own --out",
     )
+    parser.add_argument(
+        "--causes",
+        default=",".join(DETECTION_CONFIG.causes),
+        help="comma-separated: the family criticize screens (CI's by default); another family "
+        "needs its own --out",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "reports" / "criticism")
     parser.add_argument("--report-only", action="store_true", help="redraw the table from the CSV")
     parser.add_argument("--shard", default="0/1", help="K/N: every N-th replication from the K-th")
@@ -546,8 +558,11 @@ def main(argv: list[str] | None = None) -> int:
     scenario = {**DETECTION_SCENARIO, "platoons": args.platoons, "duration_s": args.duration_s}
     if scenario != DETECTION_SCENARIO and args.out == parser.get_default("out"):
         parser.error(f"{scenario} is not CI's scenario: give it its own --out")
+    causes = tuple(args.causes.split(","))
+    if causes != DETECTION_CONFIG.causes and args.out == parser.get_default("out"):
+        parser.error(f"causes {causes} are not CI's family: give them their own --out")
     args.out.mkdir(parents=True, exist_ok=True)
-    config = study_config(args.rollouts)
+    config = study_config(args.rollouts, causes)
     fields = ADOPTION_FIELDS if args.rollouts else FIELDS
     runs_path = runs_file(args.out, dev=args.dev, rollouts=args.rollouts)
     if args.report_only:

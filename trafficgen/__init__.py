@@ -43,8 +43,9 @@ position_smoothing            out of reach (a processing        the recording sm
                               artefact, which no cause names)   a symmetric exponential moving
                                                                 average; speeds differenced from
                                                                 them
-approach_braking              state_correction (a tanh basis    extra braking in proportion to the
-                              approximating the ramp)           closing speed beyond an onset
+approach_braking              state_correction (screened on     extra braking in proportion to the
+                              request; a tanh basis             closing speed beyond an onset
+                              approximating the ramp)
 (none)                        none                              IDM with white noise per sample
 ============================  ================================  ====================================
 """

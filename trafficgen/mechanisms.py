@@ -139,7 +139,8 @@ MECHANISMS: dict[str, Mechanism] = {
         "driver), the driver brakes gain_per_s times the excess closing speed beyond the IDM "
         "acceleration: a one-sided ramp in the perceived closing speed, which the IDM's own "
         "approach term does not have; the state_correction extension approximates it with a "
-        "tanh of the closing speed, two-sided, among other features",
+        "tanh of the closing speed, two-sided, among other features (criticize screens it on "
+        "request)",
     ),
 }
 

@@ -66,7 +66,11 @@ def criticize_command(
         ),
     ] = 32,
     causes: Annotated[
-        str | None, typer.Option("--causes", help="Comma-separated causes (default: all).")
+        str | None,
+        typer.Option(
+            "--causes",
+            help="Comma-separated causes (default: all but state_correction, screened on request).",
+        ),
     ] = None,
     max_rounds: Annotated[
         int,
@@ -116,7 +120,7 @@ def criticize_command(
 
     from bayesdrive.criticism.criticize import CriticizeConfig, criticize
     from bayesdrive.data.errors import DataError
-    from bayesdrive.drivers.extensions import CAUSES, extend
+    from bayesdrive.drivers.extensions import CAUSES, DEFAULT_CAUSES, extend
     from bayesdrive.drivers.registry import get_model
     from bayesdrive.inference.core.likelihood import check_model
 
@@ -136,7 +140,7 @@ def criticize_command(
         reads_car_following(base)
     except (NotImplementedError, TypeError) as error:
         raise fail(f"criticize fits car-following data; model {model!r}: {error}") from None
-    chosen = tuple(c.strip() for c in causes.split(",")) if causes else CAUSES
+    chosen = tuple(c.strip() for c in causes.split(",")) if causes else DEFAULT_CAUSES
     unknown = [c for c in chosen if c not in CAUSES]
     if unknown:
         raise fail(f"unknown cause(s) {unknown}; known: {', '.join(CAUSES)}")

@@ -25,6 +25,7 @@ CAUSES = (
     "second_leader_anticipation",
     "cut_in_overreaction",
     "leader_acceleration_anticipation",
+    "state_correction",
     "drifting_parameters",
     "measurement_noise",
 )

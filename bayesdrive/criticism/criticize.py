@@ -94,6 +94,7 @@ from bayesdrive.drivers.base import DriverModel
 from bayesdrive.drivers.closed_loop import FILTERED, forecast_start
 from bayesdrive.drivers.extensions import (
     CAUSES,
+    DEFAULT_CAUSES,
     NO_CAUSE,
     as_extended,
     compose,
@@ -184,7 +185,7 @@ class CriticizeConfig(NamedTuple):
     horizon_s: float = 5.0
     # Per held-out window; 0 skips the rollouts (no RMSE, no multistep, no adoption judged).
     num_rollouts: int = 32
-    causes: tuple[str, ...] = CAUSES
+    causes: tuple[str, ...] = DEFAULT_CAUSES
     vehicle_batch: int = 1  # see bayesdrive.inference.engines.heldout_evidence.fit_model
     max_rounds: int = 3  # rounds of the loop (module docstring, step 7); 1: the first cause only
 

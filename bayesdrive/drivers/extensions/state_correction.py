@@ -22,7 +22,8 @@ coefficients' posterior is that of a linear regression of the base rule's residu
 the features, under the uniform priors below; every engine samples them with the base parameters.
 All three at 0 (the defaults) is the base model. Coefficients of either sign are allowed (a
 driver may brake more or less than the rule when closing in), so the criticism's score test of
-this extension is two-sided in all three at once (:func:`bayesdrive.criticism.checks.score_check`).
+this extension is two-sided in all three at once (:func:`bayesdrive.criticism.checks.score_check`);
+it screens the extension on request only (:data:`~bayesdrive.drivers.extensions.DEFAULT_CAUSES`).
 The applied acceleration stays within the physical limits and below the
 collision-free ceiling, as in every model (:func:`~bayesdrive.drivers.execution_noise.noisy_step`).
 
