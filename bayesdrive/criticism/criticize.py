@@ -502,11 +502,11 @@ def forecast_better(
 def adopt(
     naming: Naming, forecasts: Mapping[str, ForecastGain], family: Sequence[str], alpha: float
 ) -> Adoption:
-    """Which cause extends the next round's model (module docstring, step 7): the named cause, or
-    where it fails the first other cause of significant one-step gain, in the order of that gain,
-    whose forecast gain is significant (Holm at ``alpha`` over ``family``), whose mean change of
-    predictive-mean RMSE is at most 0 m, and whose rollouts collide no more than the current
-    model's."""
+    """Which cause extends the next round's model (module docstring, step 7). The named cause is
+    judged first, then the other causes of significant one-step gain in the order of that gain;
+    the first that passes is adopted: its forecast gain significant (Holm at ``alpha`` over
+    ``family``), its mean change of predictive-mean RMSE at most 0 m, and its rollouts colliding
+    no more often than the current model's."""
     named = naming.cause
     if named == NO_CAUSE:
         return Adoption(False, "no cause named", NO_CAUSE)
