@@ -730,7 +730,8 @@ def _vector_score_check(
     return Check(
         name=f"score_{cause}",
         title=f"Score test: {', '.join(params)} (does {cause} improve held-out fit?)",
-        statistic=float(stats.norm.isf(p)),
+        # Clipped so that p = 1 (no evidence) reads as a finite quantile, as JSON needs.
+        statistic=float(stats.norm.isf(min(p, 1.0 - 1e-12))),
         p_value=p,
         points_to=(cause,),
         summary={

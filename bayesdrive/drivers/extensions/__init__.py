@@ -25,11 +25,10 @@ at most one. :data:`CAUSES` are the extensions the criticism can screen: all but
 cause is measurement noise's. :data:`DEFAULT_CAUSES` are those it screens unless told otherwise:
 all but the state correction (:mod:`.state_correction`), screened on request. Its coefficients
 take either sign, so its score test is two-sided in all three
-(:func:`bayesdrive.criticism.checks.score_check`), and as a generic correction on the state,
-not a named mechanism, it takes up any small mismatch of the rule: on the independent
-generator's null data, the gap between its sub-stepped IDM and the fitted one-step map, where
-its held-out gain is negative. Screened by default it would be fitted in most runs, one more
-held-out fit each, without being named.
+(:func:`bayesdrive.criticism.checks.score_check`). On records as short as the detection
+study's it did not name the generator's state-dependent braking (reports/state_correction), so
+in the default family it would widen every run's Holm family and add a fit wherever it is
+screened in, for no cause found; on longer records its held-out gain is measured there.
 
 So ``idm+reaction_delay+autocorrelated_noise``, ``cidm+autocorrelated_noise`` and
 ``gipps+second_leader_anticipation+measurement_noise`` exist, and :func:`compose` refuses the
