@@ -149,7 +149,8 @@ UNEXPLAINED = "unexplained: "
 # The detection study (reports/criticism/detection.md) showed the checks' and the gain test's power
 # with this many vehicles; fewer is untested ground.
 # The detection study's vehicle count (two platoons of four followers: DETECTION_SCENARIO of the
-# independent generator, which the library cannot import; tests/cli/test_criticism_cli.py ties the two).
+# independent generator, which the library cannot import; tests/cli/test_criticism_cli.py ties
+# the two).
 POWERED_VEHICLES = 8
 SMOOTHING = (
     "the trajectories were smoothed, which alone makes residuals autocorrelated and lags the "
@@ -178,7 +179,8 @@ class CriticizeConfig(NamedTuple):
     num_particles: int = DEFAULT_CONFIG.num_particles
     num_moves: int = DEFAULT_CONFIG.num_moves
     # Moves per tempering stage continue past num_moves until a particle has moved with
-    # probability 1 - this (bayesdrive.inference.engines.heldout_evidence, "How many moves"); 0: num_moves only.
+    # probability 1 - this (bayesdrive.inference.engines.heldout_evidence, "How many moves");
+    # 0: num_moves only.
     unmoved_tolerance: float = DEFAULT_CONFIG.unmoved_tolerance
     screen_p: float = SCREEN_P
     alpha: float = ALPHA
@@ -524,7 +526,8 @@ def adopt(
         if not reasons:
             instead = f"{named} not adopted ({failures[0]}); instead {cause}: " if failures else ""
             return Adoption(True, f"adopted: {instead}{_judged(judged, len(family), alpha)}", cause)
-        failures.append(f"{cause}: " + "; ".join(reasons) if cause != named else "; ".join(reasons))
+        prefix = "" if cause == named else f"{cause}: "
+        failures.append(prefix + "; ".join(reasons))
     return Adoption(False, "not adopted: " + " | ".join(failures), NO_CAUSE)
 
 

@@ -60,6 +60,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from bayesdrive.data.views import AheadArrays, FollowerArrays, MergeArrays
@@ -142,7 +143,7 @@ def device_series(arrays: FollowerArrays, dtype: Any = float) -> Series:
         lead_v=cast(arrays.lead_v),
         has_leader=cast(arrays.has_leader),
         mask=cast(arrays.mask),
-        dt=jnp.full(arrays.mask.shape, arrays.dt, dtype=dtype),
+        dt=cast(np.full(arrays.mask.shape, arrays.dt)),  # filled on the host: no program per shape
         merge=part(arrays.merge),
         ahead=part(arrays.ahead),
     )

@@ -105,6 +105,7 @@ from jax import Array
 
 from bayesdrive.data.atomic import write_atomic
 from bayesdrive.data.provenance import provenance_line
+from bayesdrive.drivers.extensions.state_correction import STATE_CORRECTION_SPECS
 from bayesdrive.drivers.idm import DELTA
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.inference.core.output import metadata
@@ -201,7 +202,7 @@ NO_SUMO_CARRIER = {
     **{
         name: "a correction of the acceleration on features of the state (state_correction): "
         "SUMO's IDM has no term to add it to"
-        for name in ("corr_speed", "corr_gap", "corr_closing")
+        for name in (spec.name for spec in STATE_CORRECTION_SPECS)
     },
 }
 # Kept as <param> entries, not simulated: one line each, printed on export.

@@ -27,9 +27,10 @@ from bayesdrive.drivers.execution_noise import (
 )
 from bayesdrive.drivers.extensions.compose import ExtendedModel
 from bayesdrive.inference.core.kernels import WalkInfo, WalkState, moves_until_moved
-from bayesdrive.inference.core.likelihood import step_inputs, step_logpdfs
+from bayesdrive.inference.core.likelihood import step_inputs
 from bayesdrive.inference.core.smc import TemperingConfig
 from bayesdrive.inference.engines.heldout_evidence import DEFAULT_CONFIG, fit_model
+from tests.compiled import step_logpdfs
 
 SIGMA = 0.4
 DT = 0.1

@@ -23,12 +23,13 @@ from bayesdrive.drivers.extensions.autocorrelated_noise import NoiseMemoryInputs
 from bayesdrive.drivers.extensions.inputs import inputs_at as extended_inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.core.likelihood import StepInputs, check_model, step_logpdfs
+from bayesdrive.inference.core.likelihood import StepInputs, check_model
 from bayesdrive.inference.core.output import set_metadata
 from bayesdrive.inference.engines import pmmh
 from bayesdrive.simulation.evaluation import _posterior_policy
 from bayesdrive.simulation.generate import desired_speed_name
 from bayesdrive.simulation.posterior import posterior_predictive
+from tests.compiled import step_logpdfs
 
 
 class RenamedParams(NamedTuple):

@@ -27,7 +27,8 @@ from bayesdrive.drivers.extensions.autocorrelated_noise import (
 from bayesdrive.drivers.extensions.cut_in import cah_acceleration
 from bayesdrive.drivers.extensions.inputs import ExtendedInputs, history_steps, inputs_at
 from bayesdrive.drivers.idm import IDM, idm_acceleration
-from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_logpdfs
+from bayesdrive.inference.core.likelihood import StepInputs, step_inputs
+from tests.compiled import step_logpdfs
 from tests.followers import DT, corrected_follower, single_lane
 
 K = history_steps(DT)

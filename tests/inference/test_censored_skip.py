@@ -25,12 +25,8 @@ from bayesdrive.data.readers import read
 from bayesdrive.data.views import FollowerArrays, scored_series
 from bayesdrive.drivers.base import EgoState
 from bayesdrive.drivers.registry import get_model
-from bayesdrive.inference.core.likelihood import (
-    StepInputs,
-    step_inputs,
-    step_loglik,
-    step_logpdfs,
-)
+from bayesdrive.inference.core.likelihood import StepInputs, step_inputs, step_loglik
+from tests.compiled import step_logpdfs
 
 CHAIN = "ngsim_i80_chains/202_210_213_222_234_252.csv"
 CLEAN, AT_CEILING = "210", "252"

@@ -37,7 +37,8 @@ from bayesdrive.data.views import follower_arrays
 from bayesdrive.drivers.idm import IDM
 from bayesdrive.drivers.registry import get_model
 from bayesdrive.drivers.video_noise import INITIAL_SPEED_SD, with_video_noise
-from bayesdrive.inference.core.likelihood import step_inputs, step_logpdfs
+from bayesdrive.inference.core.likelihood import step_inputs
+from tests.compiled import step_logpdfs
 from trafficgen import generate
 from trafficgen.mechanisms import MECHANISMS
 

@@ -67,17 +67,23 @@ def full_history(mask: Array, history: int) -> Array:
     return kept.astype(mask.dtype)
 
 
+@functools.partial(jax.jit, static_argnums=(0, 2, 3))
+def _inputs_and_mask(
+    inputs_at: Any, series: Any, history: int, reads_history: bool
+) -> tuple[Any, Array]:
+    """Every step's model inputs and the mask it is scored under, as one program per model and
+    shape (eagerly, each of their many small operations compiled on its own)."""
+    index = jnp.arange(series.mask.shape[1])
+    inputs = jax.vmap(lambda one: jax.vmap(lambda j: inputs_at(one, j, history))(index))(series)
+    return inputs, full_history(series.mask, history) if reads_history else series.mask
+
+
 def step_inputs(arrays: FollowerArrays, model: DriverModel) -> StepInputs:
     """Every step of ``arrays`` with the inputs ``model`` reads, as JAX arrays in the default float
     type (float32 unless x64). A model that reads its past is scored only on steps with a full
     history behind them (:meth:`FollowerArrays.history` steps)."""
     series = device_series(arrays)
-    history = arrays.history
-    index = jnp.arange(arrays.mask.shape[1])
-    inputs = jax.vmap(lambda one: jax.vmap(lambda j: model.inputs_at(one, j, history))(index))(
-        series
-    )
-    mask = full_history(series.mask, history) if model.reads_history else series.mask
+    inputs, mask = _inputs_and_mask(model.inputs_at, series, arrays.history, model.reads_history)
     windows = arrays.windows
     return StepInputs(
         v=series.v,
