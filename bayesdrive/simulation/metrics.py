@@ -21,8 +21,9 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   Lower is better; unlike the RMSE over rollouts they do not penalise a calibrated spread.
   Beside them the **predictive mean's** last-step position error (squared, averaged over
   vehicles; its root over scenarios is the predictive-mean RMSE), and the **calibration** of the
-  last-step position: each vehicle's probability integral transform (the share of rollouts behind
-  the observed position, ties at the mid-rank), pooled over scenarios into the coverage of the
+  last-step position: each vehicle's probability integral transform (the observed position's
+  rank among the rollouts, ties at the mid-rank:
+  :func:`~bayesdrive.simulation.calibration.pit_of_observation`), pooled over scenarios into the coverage of the
   central 50% and 90% intervals and a PIT histogram
   (:func:`~bayesdrive.simulation.calibration.pit_summary`).
 * **Realism beside the data**: the jerk (the change of the realised acceleration; RMS and the

@@ -72,17 +72,11 @@ def vehicle_keys(key: Array, vehicle_ids: Sequence[str], replicates: int | None 
     """One key per vehicle, (vehicle,), from ``key`` and each id (module docstring); with
     ``replicates``, one per replicate and vehicle, (replicate, vehicle), the index folded in too."""
     words = np.array([vehicle_hash(v) for v in vehicle_ids], dtype=np.uint32).reshape(-1, 2)
-    return _fold_in_ids(key, words, replicates)
-
-
-@functools.partial(jax.jit, static_argnums=2)
-def _fold_in_ids(key: Array, words: Array, replicates: int | None) -> Array:
-    """:func:`vehicle_keys`' folds as one program (eagerly, each fold compiles on its own)."""
 
     def one(high, low):
         return jax.random.fold_in(jax.random.fold_in(key, high), low)
 
-    keys = jax.vmap(one)(words[:, 0], words[:, 1])
+    keys = jax.vmap(one)(jnp.asarray(words[:, 0]), jnp.asarray(words[:, 1]))
     if replicates is None:
         return keys
     indices = jnp.arange(replicates, dtype=jnp.uint32)
