@@ -20,9 +20,9 @@ splits exactly into the mean's error and the rollouts' spread,
 ``rmse_rollouts**2 = rmse_mean**2 + spread**2``, so it penalises a calibrated spread), and the
 probability integral transform of the observed position (its rank among the rollouts' end
 positions, ties, e.g. two stopped cars, split at random: :func:`pit_of_observation`), whose
-central 50% and 90% intervals cover the observation at those rates for a calibrated predictive. Constant velocity from each window's
-observed first speed (:func:`constant_velocity_offsets`) is scored on the same windows: for a
-point forecast the CRPS is the absolute error.
+central 50% and 90% intervals cover the observation at those rates for a calibrated predictive.
+Constant velocity from each window's observed first speed (:func:`constant_velocity_offsets`) is
+scored on the same windows: for a point forecast the CRPS is the absolute error.
 """
 
 from __future__ import annotations

@@ -23,8 +23,8 @@ Per scenario (R rollouts of N simulated vehicles over T steps):
   vehicles; its root over scenarios is the predictive-mean RMSE), and the **calibration** of the
   last-step position: each vehicle's probability integral transform (the observed position's
   rank among the rollouts, ties at the mid-rank:
-  :func:`~bayesdrive.simulation.calibration.pit_of_observation`), pooled over scenarios into the coverage of the
-  central 50% and 90% intervals and a PIT histogram
+  :func:`~bayesdrive.simulation.calibration.pit_of_observation`), pooled over scenarios into the
+  coverage of the central 50% and 90% intervals and a PIT histogram
   (:func:`~bayesdrive.simulation.calibration.pit_summary`).
 * **Realism beside the data**: the jerk (the change of the realised acceleration; RMS and the
   distance of its distribution to the data's) and the share of vehicles whose minimum
