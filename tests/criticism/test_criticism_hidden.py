@@ -15,7 +15,7 @@ filtered forecast start, on 150001-150020 (library f1435fca9d52;
 reports/criticism/detection_adoption.md): each time every mechanism cell was named right 20 of
 20, and null data said none 18 of 20 (the other two flag a misfit no cause explains). The
 table there holds every rerun since, one per change of the detector; the latest, at library
-c584e770b554 (seeds 200001-200020), names as the one before it in every replication.
+d0222453dc69 (seeds 200001-200020), names as the one before it in every replication.
 Each test runs one round (a one-mechanism verdict is the first round's; the loop's later rounds
 cost CI time and are measured in the study). One seed per cell, fixed before any of these tests
 ran, outside the study's seed range (not chosen by outcome). Cells the study has not backed run
