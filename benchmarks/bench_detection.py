@@ -132,19 +132,15 @@ def generator_fingerprint() -> str:
 
 def code_without_docstrings(source: str) -> str:
     """``source`` without docstrings, comments or layout (Python's own rendering of its syntax
-    tree): what the code computes, so rewording a docstring or reflowing a line keeps a study's
-    rows valid."""
+    tree, so compare rows made on one Python minor version): what the code computes, so rewording
+    a docstring or reflowing a line keeps a study's rows valid."""
     tree = ast.parse(source)
     for node in ast.walk(tree):
-        body = getattr(node, "body", None)
         if (
             isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef)
-            and body
-            and isinstance(body[0], ast.Expr)
-            and isinstance(body[0].value, ast.Constant)
-            and isinstance(body[0].value.value, str)
+            and ast.get_docstring(node, clean=False) is not None
         ):
-            node.body = body[1:] or [ast.Pass()]
+            node.body = node.body[1:] or [ast.Pass()]
     return ast.unparse(tree)
 
 
